@@ -1,0 +1,1 @@
+"""Code shared by the robot agent and the training server: maps, models, beliefs, simulator."""

@@ -1,0 +1,163 @@
+"""Probabilistic target beliefs (PTB), with the orientation of SPEC section 2.
+
+Own belief (Theorem 1, Eq. 1-2):   b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1},  b_0 ∝ Lambda(p_0, z_0) b0
+Collective belief (Theorem 3, Eq. 6-7): the same with the product of all robots' Lambdas.
+Posterior b0 (Theorem 2, Eq. 4-5):  b0 ∝ Lambda_0 b0 with all robots' t = 0 observations.
+
+The paper writes "Gamma b"; its Appendix A sums Gamma(k, j) b(k), i.e. Gamma^T b for a
+row-stochastic Gamma. As row vectors (how the batched code stores beliefs) that is ``b @ Gamma``.
+
+Vanishing mass. With eta = 0 some Lambda entries are exactly 0; under a correct model the
+posterior never vanishes, but with a wrong Gamma_hat it can (the robot sees the target where
+Gamma_hat says it cannot be). Then the filter restarts from the current observation alone:
+b ∝ Lambda(p_t, z_t) 1 (a uniform prior), and if even that is 0 (impossible for eta < 0.5 unless
+D(p) = V and z = 0 with eta_fn = 0) from the uniform belief. ``BeliefFilter.restarts`` counts these.
+
+Two implementations that must agree (tests/test_belief.py checks them against each other and
+against brute-force Bayes):
+- ``BeliefFilter``: one robot, numpy float64, O(n + m) per step; what a robot agent runs.
+- ``BatchedBelief``: beliefs of shape (..., n) in torch; what the simulator and trainer run.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from shared.graph import Graph
+from shared.models import Sensor, TargetModel
+
+TINY = 1e-30
+
+
+class BeliefFilter:
+    """One robot's own belief, updated in O(n + m) per step (sparse Gamma_hat^T b)."""
+
+    def __init__(self, graph: Graph, model: TargetModel, sensor: Sensor) -> None:
+        self.n = graph.n
+        self._src = model.src
+        self._dst = model.dst
+        self._prob = model.prob
+        self._b0 = model.b0.copy()
+        self._dptr, self._didx = graph.detection_sets(sensor.detection)
+        (self._in0, self._in1), (self._out0, self._out1) = sensor.likelihoods()
+        self._node_detection = sensor.detection == "node"
+        self.belief = self._b0.copy()
+        self.restarts = 0
+
+    def _observe(self, prior: np.ndarray, p: int, z: int) -> np.ndarray:
+        """prior (n,) -> Lambda(p, z) prior, normalised (Eq. 1-2); the array is reused."""
+        l_in, l_out = (self._in1, self._out1) if z else (self._in0, self._out0)
+        if self._node_detection:
+            keep = prior[p] * l_in
+            prior *= l_out
+            prior[p] = keep
+        else:
+            d = self._didx[self._dptr[p] : self._dptr[p + 1]]
+            keep = prior[d] * l_in
+            prior *= l_out
+            prior[d] = keep
+        total = prior.sum()
+        if total > TINY:
+            prior /= total
+            return prior
+        # vanished mass: restart from the observation alone, then from uniform (module docstring)
+        self.restarts += 1
+        prior[:] = l_out
+        if self._node_detection:
+            prior[p] = l_in
+        else:
+            prior[self._didx[self._dptr[p] : self._dptr[p + 1]]] = l_in
+        total = prior.sum()
+        if total > TINY:
+            prior /= total
+        else:
+            prior[:] = 1.0 / self.n
+        return prior
+
+    def reset(self, p0: int, z0: int) -> np.ndarray:
+        """b_0 ∝ Lambda(p_0, z_0) b0 (the t = 0 case of Theorem 1)."""
+        self.belief = self._observe(self._b0.copy(), p0, z0)
+        return self.belief
+
+    def predict(self) -> np.ndarray:
+        """Gamma_hat^T b: (Gamma^T b)(v) = sum_u Gamma(u, v) b(u); O(nnz) = O(n + m)."""
+        return np.bincount(self._dst, weights=self._prob * self.belief[self._src], minlength=self.n)
+
+    def update(self, p: int, z: int) -> np.ndarray:
+        """Theorem 1, Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}."""
+        self.belief = self._observe(self.predict(), p, z)
+        return self.belief
+
+
+class BatchedBelief:
+    """Batched belief algebra in torch; beliefs are row vectors of shape (..., n)."""
+
+    def __init__(
+        self,
+        graph: Graph,
+        model: TargetModel,
+        sensor: Sensor,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        self.n = graph.n
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.gamma = torch.as_tensor(model.dense(), dtype=dtype, device=self.device)  # (n, n)
+        self.b0 = torch.as_tensor(model.b0, dtype=dtype, device=self.device)  # (n,)
+        ptr, idx = graph.detection_sets(sensor.detection)
+        rows = np.repeat(np.arange(graph.n), np.diff(ptr))
+        d = torch.zeros(graph.n, graph.n, dtype=torch.bool)
+        d[torch.as_tensor(rows), torch.as_tensor(idx)] = True
+        self.detect = d.to(self.device)  # (n, n): detect[p, j] = j in D(p)
+        (in0, in1), (out0, out1) = sensor.likelihoods()
+        self.lik_in = torch.tensor([in0, in1], dtype=dtype, device=self.device)  # indexed by z
+        self.lik_out = torch.tensor([out0, out1], dtype=dtype, device=self.device)
+
+    def set_model(self, model: TargetModel) -> None:
+        """Swap Gamma_hat and b0 (e.g. after an EM update)."""
+        self.gamma = torch.as_tensor(model.dense(), dtype=self.dtype, device=self.device)
+        self.b0 = torch.as_tensor(model.b0, dtype=self.dtype, device=self.device)
+
+    def likelihood(self, pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Diagonal of Lambda (Eq. 2) for robots at ``pos`` seeing ``z``: (...,) -> (..., n)."""
+        z = z.long()
+        return torch.where(self.detect[pos], self.lik_in[z].unsqueeze(-1), self.lik_out[z].unsqueeze(-1))
+
+    def collective_likelihood(
+        self, pos: torch.Tensor, z: torch.Tensor, active: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Diagonal of Lambda_c (Eq. 7): product over robots. (B, N) -> (B, n).
+
+        Robots with ``active`` False (withdrawn) contribute no observation.
+        """
+        lik = self.likelihood(pos, z)  # (B, N, n)
+        if active is not None:
+            lik = torch.where(active.unsqueeze(-1), lik, torch.ones_like(lik))
+        return lik.prod(dim=-2)
+
+    def predict(self, b: torch.Tensor) -> torch.Tensor:
+        """Gamma_hat^T b for each belief row: (..., n) -> (..., n)."""
+        return b @ self.gamma
+
+    @staticmethod
+    def normalise(x: torch.Tensor, lik: torch.Tensor) -> torch.Tensor:
+        """x / sum(x), restarting from ``lik`` (then uniform) where the mass vanished."""
+        total = x.sum(-1, keepdim=True)
+        ok = total > TINY
+        if bool(ok.all()):
+            return x / total
+        fallback_total = lik.sum(-1, keepdim=True)
+        fallback = torch.where(
+            fallback_total > TINY, lik / fallback_total.clamp_min(TINY), torch.full_like(lik, 1.0 / lik.shape[-1])
+        )
+        return torch.where(ok, x / total.clamp_min(TINY), fallback)
+
+    def initial(self, lik: torch.Tensor) -> torch.Tensor:
+        """b_0 ∝ Lambda_0 b0 (Theorem 1 at t = 0; Theorem 2 / Eq. 4 with a collective lik)."""
+        return self.normalise(lik * self.b0, lik)
+
+    def update(self, b: torch.Tensor, lik: torch.Tensor) -> torch.Tensor:
+        """Eq. 1 / Eq. 6: b_t ∝ Lambda Gamma_hat^T b_{t-1}; lik is Lambda's diagonal (..., n)."""
+        return self.normalise(lik * self.predict(b), lik)

@@ -1,0 +1,309 @@
+"""The `mures` command line (SPEC section 7).
+
+    mures evaluate  (--env office|museum | --graph FILE) --robots N --searcher NAME ...
+    mures simulate  (--env | --graph) --robots N --missions M --out FILE.jsonl ...
+    mures estimate  (--env | --graph) --episodes FILE.jsonl --out model.json ...
+    mures map       (--env | --graph)
+
+Bad arguments and bad input files end with one line ``mures: error: ...`` and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from shared.estimate import collect_missions, em, eq8, mean_row_tv
+from shared.evaluate import evaluate
+from shared.graph import BUILTIN_MAPS, Graph, GraphError, builtin_graph, load_graph_file
+from shared.models import ModelError, Sensor, TargetModel, parse_target
+from shared.records import make_record, read_jsonl
+from shared.searchers import REFERENCE_SEARCHERS, make_searcher
+
+
+class CliError(Exception):
+    pass
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
+    return v
+
+
+def _eta(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 0.5), got {text!r}") from None
+    if not (0.0 <= v < 0.5):
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 0.5), got {v}")
+    return v
+
+
+def _add_map_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--env", choices=BUILTIN_MAPS, help="a built-in map")
+    g.add_argument("--graph", metavar="FILE", help="a JSON graph file (SPEC section 7)")
+
+
+def _add_world_args(p: argparse.ArgumentParser) -> None:
+    _add_map_args(p)
+    p.add_argument("--robots", type=_positive_int, required=True, help="number of robots N")
+    p.add_argument("--eta-fn", type=_eta, default=0.0, help="false-negative rate, in [0, 0.5) (default 0)")
+    p.add_argument("--eta-fp", type=_eta, default=0.0, help="false-positive rate, in [0, 0.5) (default 0)")
+    p.add_argument(
+        "--detection",
+        choices=("node", "neighbourhood", "custom"),
+        default="node",
+        help="detection set D(p): {p}, N[p], or the graph file's sensing table (default node)",
+    )
+    p.add_argument(
+        "--target",
+        default="uniform",
+        metavar="MODEL",
+        help="target motion: uniform (default, the paper's), lazy:STAY, or a model.json file",
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+
+
+def _graph(args: argparse.Namespace) -> Graph:
+    return builtin_graph(args.env) if args.env else load_graph_file(args.graph)
+
+
+def _world(args: argparse.Namespace) -> tuple[Graph, TargetModel, Sensor]:
+    graph = _graph(args)
+    target = parse_target(graph, args.target)
+    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection)
+    if sensor.detection == "custom":
+        graph.detection_sets("custom")  # raises a clear error when the graph has no table
+    return graph, target, sensor
+
+
+def _device(name: str) -> torch.device:
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise CliError(f"unknown device {name!r} (expected cpu or cuda)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise CliError("--device cuda asked for, but no CUDA device is available")
+    return dev
+
+
+# ---------------------------------------------------------------------- evaluate
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    graph, target, sensor = _world(args)
+    device = _device(args.device)
+    if args.searcher not in REFERENCE_SEARCHERS:
+        raise CliError(f"unknown searcher {args.searcher!r} (expected one of {', '.join(REFERENCE_SEARCHERS)})")
+    res = evaluate(
+        graph, target, sensor, args.robots,
+        lambda seed: make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device),
+        episodes=args.episodes, seed=args.seed, device=device,
+    )  # fmt: skip
+    summary: dict[str, Any] = {
+        "map": graph.name,
+        "graph_id": graph.graph_id,
+        "robots": args.robots,
+        "searcher": args.searcher,
+        "target": target.kind,
+        "sensor": sensor.to_json(),
+        **res.summary(),
+        "wall_seconds": round(res.wall_seconds, 3),
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        lo, hi = summary["ci95"]
+        print(
+            f"{graph.name}, N={args.robots}, searcher={args.searcher}, "
+            f"{summary['episodes']} episodes, seed {args.seed}\n"
+            f"  mean_capture_time         {summary['mean_capture_time']:.2f}  (95% CI {lo:.2f} .. {hi:.2f})\n"
+            f"  median                    {summary['median']:.1f}\n"
+            f"  censored_fraction         {summary['censored_fraction']:.4f}  (T_max = {3 * graph.n})\n"
+            f"  false_alarms_per_episode  {summary['false_alarms_per_episode']:.3f}\n"
+            f"  wall_seconds              {summary['wall_seconds']:.2f}"
+        )
+    return 0
+
+
+# ---------------------------------------------------------------------- simulate
+def cmd_simulate(args: argparse.Namespace) -> int:
+    graph, target, sensor = _world(args)
+    device = _device(args.device)
+    if args.searcher not in REFERENCE_SEARCHERS:
+        raise CliError(f"unknown searcher {args.searcher!r} (expected one of {', '.join(REFERENCE_SEARCHERS)})")
+    res = evaluate(
+        graph, target, sensor, args.robots,
+        lambda seed: make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device),
+        episodes=args.missions, seed=args.seed, device=device, record=True,
+    )  # fmt: skip
+    out = Path(args.out)
+    tmp = out.with_name(out.name + ".tmp")
+    written = 0
+    with open(tmp, "w", encoding="utf-8") as fh:
+        k = 0
+        for tr in res.trajectories:
+            for b in range(tr.pos.shape[1]):
+                length = int(tr.length[b])
+                censored = bool(res.censored[k])
+                for i in range(args.robots):
+                    rec = make_record(
+                        graph,
+                        fleet=args.fleet,
+                        mission_id=f"sim-{args.seed}-{k:06d}",
+                        robot_id=f"r{i}",
+                        nodes=tr.pos[:length, b, i],
+                        z=tr.z[:length, b, i],
+                        sensor=sensor,
+                        captured=not censored,
+                        capture_time=None if censored else int(res.capture_time[k]),
+                        captured_by=None if censored else f"r{int(res.captured_by[k])}",
+                    )
+                    fh.write(json.dumps(rec, separators=(",", ":")) + "\n")
+                    written += 1
+                k += 1
+    os.replace(tmp, out)
+    if args.truth:
+        Path(args.truth).write_text(json.dumps({**target.to_json(graph), "kind": target.kind}) + "\n")
+    s = res.summary()
+    print(
+        f"wrote {written} records of {args.missions} missions to {out} "
+        f"(mean capture time {s['mean_capture_time']:.2f}, censored {s['censored_fraction']:.3f})"
+    )
+    return 0
+
+
+# ---------------------------------------------------------------------- estimate
+def cmd_estimate(args: argparse.Namespace) -> int:
+    graph = _graph(args)
+    if not Path(args.episodes).is_file():
+        raise CliError(f"episode file {args.episodes!r} does not exist")
+    t0 = time.perf_counter()
+    data = collect_missions(read_jsonl(args.episodes), graph, capture_aware=args.method == "em")
+    skipped = sum(data.skipped.values())
+    reasons = ", ".join(f"{k}: {v}" for k, v in sorted(data.skipped.items())) or "none"
+    print(
+        f"read {data.used_records} records in {len(data.length)} missions; skipped {skipped} ({reasons})",
+        file=sys.stderr,
+    )
+    if len(data.length) == 0:
+        raise CliError("no usable episode records: nothing estimated, nothing written")
+    last = [0.0]
+
+    def progress(it: int, ll: float) -> None:
+        now = time.perf_counter()
+        if now - last[0] > 2.0:
+            last[0] = now
+            print(f"  EM pass {it}: log-likelihood {ll:.3f}", file=sys.stderr)
+
+    if args.method == "em":
+        est = em(graph, data, max_iter=args.max_iter, tol=args.tol, pseudo_count=args.pseudo_count, progress=progress)
+    else:
+        est = eq8(graph, data, rounds=args.rounds)
+    out = est.to_json(graph, data)
+    if args.truth:
+        truth = parse_target(graph, args.truth)
+        out["mean_row_tv_to_truth"] = mean_row_tv(est.model, truth)
+    path = Path(args.out)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(out) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+    msg = (
+        f"{args.method}: {est.iterations} passes, converged={est.converged}, "
+        f"{time.perf_counter() - t0:.1f} s; wrote {path}"
+    )
+    if est.log_likelihood:
+        msg += f"; log-likelihood {est.log_likelihood[-1]:.3f}"
+    if args.truth:
+        msg += f"; mean row TV to truth {out['mean_row_tv_to_truth']:.4f}"
+    print(msg)
+    return 0
+
+
+# ---------------------------------------------------------------------- map
+def cmd_map(args: argparse.Namespace) -> int:
+    g = _graph(args)
+    deg = g.deg_closed - 1
+    info = {
+        "name": g.name,
+        "nodes": g.n,
+        "edges": g.m,
+        "start_node": int(g.labels[g.start]),
+        "max_degree": int(deg.max()),
+        "mean_degree": float(np.mean(deg)),
+        "graph_id": g.graph_id,
+    }
+    print(json.dumps(info, indent=2))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mures", description="MuRES fleet: multirobot search for a moving target")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("evaluate", help="evaluate a searcher in simulation and print capture-time statistics")
+    _add_world_args(p)
+    p.add_argument("--searcher", required=True, help=f"one of {', '.join(REFERENCE_SEARCHERS)}")
+    p.add_argument("--episodes", type=_positive_int, default=1500, help="episodes (default 1500)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("simulate", help="simulate missions and write their episode records (JSON Lines)")
+    _add_world_args(p)
+    p.add_argument("--searcher", default="random", help="searcher that drives the robots (default random)")
+    p.add_argument("--missions", type=_positive_int, required=True, help="number of missions")
+    p.add_argument("--fleet", default="default", help="fleet name written into the records")
+    p.add_argument("--out", required=True, metavar="FILE.jsonl", help="output records")
+    p.add_argument("--truth", metavar="FILE", help="also write the true target model as model.json")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("estimate", help="estimate Gamma_hat and b0 from episode records")
+    _add_map_args(p)
+    p.add_argument("--episodes", required=True, metavar="FILE.jsonl", help="episode records (JSON Lines)")
+    p.add_argument("--out", required=True, metavar="model.json")
+    p.add_argument("--method", choices=("em", "eq8"), default="em", help="EM (default) or the paper's Eq. 8")
+    p.add_argument("--max-iter", type=_positive_int, default=1000, help="EM forward-backward passes at most")
+    p.add_argument("--tol", type=float, default=1e-6, help="EM relative log-likelihood tolerance")
+    p.add_argument("--pseudo-count", type=float, default=0.0, help="Dirichlet pseudo-count per transition")
+    p.add_argument("--rounds", type=_positive_int, default=1, help="Eq. 8 rounds (filter <-> Eq. 8)")
+    p.add_argument("--truth", metavar="MODEL", help="a known model (lazy:STAY, uniform, or .json): report the TV")
+    p.set_defaults(func=cmd_estimate)
+
+    p = sub.add_parser("map", help="print a map's size and graph_id")
+    _add_map_args(p)
+    p.set_defaults(func=cmd_map)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (CliError, GraphError, ModelError) as exc:
+        print(f"mures: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"mures: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("mures: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

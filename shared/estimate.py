@@ -1,0 +1,274 @@
+"""Estimating the target's motion model (Gamma_hat, b0) from the robots' own records.
+
+Only robots' positions, observations and the mission outcome are used, never the target's
+true positions (SPEC section 2). The hidden state is the target's node e_t; at each t the
+emission is the product of the Lambdas of every robot of the mission (Theorem 3, Eq. 7).
+
+``em`` (default): Baum-Welch with the sensor known. Scaled forward-backward smoothing over all
+missions at once (tensors (M, T, n): M missions padded to T steps), expected transition counts,
+transitions restricted to the closed neighbourhoods (the support of the initial guess, which
+Baum-Welch never leaves), rows stochastic, iterated until the log-likelihood stops improving.
+
+``eq8``: the paper's one-round least-squares estimate (Eq. 8) from collective beliefs filtered
+with Gamma_hat_0 = I, projected onto the closed-neighbourhood support and made row-stochastic;
+kept for comparison.
+
+Capture-aware emissions. A mission stops at its capture, and a z = 1 that did not stop it was a
+false alarm. The EM uses that: a z = 1 before the capture time says e_t is outside D(p), and the
+capturing robot's last z = 1 says e_t is inside D(p). With eta_fp = 0 this changes nothing.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter, defaultdict
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from shared.graph import Graph
+from shared.models import TargetModel, from_matrix, uniform_walk
+from shared.records import Episode, RecordError, parse_record
+
+
+@dataclass
+class MissionData:
+    """Emission likelihoods of M missions: lik (M, T, n) with 1 where a mission has ended;
+    length (M,) number of steps (t = 0..length-1) per mission."""
+
+    lik: np.ndarray
+    length: np.ndarray
+    used_records: int
+    skipped: Counter[str] = field(default_factory=Counter)
+
+
+def collect_missions(
+    records: Iterable[tuple[int, Any]],
+    graph: Graph,
+    capture_aware: bool = True,
+    fleet: str | None = None,
+) -> MissionData:
+    """Validate records, group them by (fleet, mission_id) and build emission likelihoods.
+
+    ``records`` yields (line number, parsed JSON or RecordError). Bad records are skipped and
+    counted by reason; a second record of the same robot in a mission counts as "duplicate".
+    """
+    skipped: Counter[str] = Counter()
+    missions: dict[tuple[str, str], dict[str, Episode]] = defaultdict(dict)
+    for _lineno, rec in records:
+        if isinstance(rec, RecordError):
+            skipped[rec.reason] += 1
+            continue
+        try:
+            ep = parse_record(rec, graph, fleet=fleet)
+        except RecordError as exc:
+            skipped[exc.reason] += 1
+            continue
+        robots = missions[(ep.fleet, ep.mission_id)]
+        if ep.robot_id in robots:
+            skipped["duplicate"] += 1
+            continue
+        robots[ep.robot_id] = ep
+    M = len(missions)
+    n = graph.n
+    T = max((len(ep.nodes) for robots in missions.values() for ep in robots.values()), default=1)
+    lik = np.ones((M, T, n), dtype=np.float64)
+    length = np.zeros(M, dtype=np.int64)
+    detect_cache: dict[str, np.ndarray] = {}
+    used = 0
+    for m, robots in enumerate(missions.values()):
+        for ep in robots.values():
+            det = detect_cache.get(ep.sensor.detection)
+            if det is None:
+                ptr, idx = graph.detection_sets(ep.sensor.detection)
+                det = np.zeros((n, n), dtype=bool)
+                det[np.repeat(np.arange(n), np.diff(ptr)), idx] = True
+                detect_cache[ep.sensor.detection] = det
+            (in0, in1), (out0, out1) = ep.sensor.likelihoods()
+            Tr = len(ep.nodes)
+            l_in = np.where(ep.z == 1, in1, in0)
+            l_out = np.where(ep.z == 1, out1, out0)
+            if capture_aware:
+                t = np.arange(Tr)
+                final = ep.captured and ep.capture_time is not None
+                before_capture = t < ep.capture_time if final else np.ones(Tr, dtype=bool)
+                false_alarm = (ep.z == 1) & before_capture
+                l_in = np.where(false_alarm, 0.0, l_in)
+                if final and ep.captured_by == ep.robot_id and ep.capture_time == Tr - 1:
+                    l_out[Tr - 1] = 0.0
+            lik[m, :Tr] *= np.where(det[ep.nodes], l_in[:, None], l_out[:, None])
+            length[m] = max(length[m], Tr)
+            used += 1
+    return MissionData(lik=lik, length=length, used_records=used, skipped=skipped)
+
+
+@dataclass
+class Estimate:
+    model: TargetModel
+    method: str
+    iterations: int
+    log_likelihood: list[float]
+    converged: bool
+    wall_seconds: float
+
+    def to_json(self, graph: Graph, data: MissionData) -> dict[str, Any]:
+        out = self.model.to_json(graph)
+        out.update(
+            method=self.method,
+            iterations=self.iterations,
+            converged=self.converged,
+            log_likelihood=self.log_likelihood,
+            missions=len(data.length),
+            records_used=data.used_records,
+            records_skipped=dict(data.skipped),
+            wall_seconds=round(self.wall_seconds, 3),
+            graph_id=graph.graph_id,
+        )
+        return out
+
+
+def _forward_backward(
+    G: torch.Tensor, b0: torch.Tensor, L: torch.Tensor, valid: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Scaled forward-backward, time-major. G (n, n), b0 (n,), L (T, M, n), valid (T, M) bool.
+
+    Returns alpha (T, M, n) (filtered, normalised), beta (T, M, n) (scaled), c (T, M) scales
+    with log P(observations) = sum_t log c_t over valid t.
+    """
+    T, M, _n = L.shape
+    alpha = torch.empty_like(L)
+    c = torch.empty(T, M, dtype=L.dtype)
+    a = b0.unsqueeze(0) * L[0]
+    for t in range(T):
+        if t > 0:
+            a = (alpha[t - 1] @ G) * L[t]  # Eq. 6: Lambda_c Gamma^T b, as row vectors
+        s = a.sum(1)
+        s = torch.where(s > 0, s, torch.full_like(s, 1e-300))
+        c[t] = s
+        alpha[t] = a / s.unsqueeze(1)
+    beta = torch.ones_like(L)
+    Gt = G.T.contiguous()
+    for t in range(T - 2, -1, -1):
+        w = (L[t + 1] * beta[t + 1]) / c[t + 1].unsqueeze(1)
+        beta[t] = torch.where(valid[t + 1].unsqueeze(1), w @ Gt, 1.0)
+    return alpha, beta, c
+
+
+def em(
+    graph: Graph,
+    data: MissionData,
+    init: TargetModel | None = None,
+    max_iter: int = 1000,
+    tol: float = 1e-6,
+    pseudo_count: float = 0.0,
+    accelerate: bool = True,
+    progress: Callable[[int, float], None] | None = None,
+) -> Estimate:
+    """Baum-Welch for Gamma_hat and b0 with the sensor known (module docstring).
+
+    ``init`` gives the support and starting point (default: the uniform walk on N[u]); a
+    ``pseudo_count`` adds that many expected transitions to each supported entry (a Dirichlet
+    prior; 0 is maximum likelihood). ``accelerate`` uses SQUAREM (Varadhan and Roland, 2008):
+    from two EM steps it extrapolates along the EM path, keeps the result only if it raises the
+    likelihood, and otherwise falls back to the plain steps, so the likelihood never decreases.
+    Converged when the relative log-likelihood gain of an iteration falls below ``tol``;
+    ``iterations`` counts forward-backward passes.
+    """
+    t0 = time.perf_counter()
+    init = init or uniform_walk(graph)
+    if len(data.length) == 0:
+        raise ValueError("no usable missions in the records")
+    L = torch.as_tensor(data.lik).transpose(0, 1).contiguous()  # (T, M, n)
+    T, _M, n = L.shape
+    valid = torch.arange(T).unsqueeze(1) < torch.as_tensor(data.length).unsqueeze(0)  # (T, M)
+    G = torch.as_tensor(init.dense())
+    support = G > 0
+    b0 = torch.as_tensor(init.b0)
+    passes = 0
+
+    def step(G: torch.Tensor, b0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, float]:
+        """One EM update; also returns the log-likelihood of its input."""
+        nonlocal passes
+        passes += 1
+        alpha, beta, c = _forward_backward(G, b0, L, valid)
+        ll = float(torch.where(valid, c.log(), torch.zeros_like(c)).sum())
+        # E-step: xi_t(u, v) = alpha_t(u) G(u, v) L_{t+1}(v) beta_{t+1}(v) / c_{t+1}, summed over t, missions
+        w = (L[1:] * beta[1:]) / c[1:].unsqueeze(2) * valid[1:].unsqueeze(2)
+        counts = G * (alpha[:-1].reshape(-1, n).T @ w.reshape(-1, n)) + pseudo_count * support
+        rows = counts.sum(1, keepdim=True)
+        # M-step: rows stochastic on the support; a row with no expected transition keeps its value
+        G_new = torch.where(rows > 0, counts / rows.clamp_min(1e-300), G)
+        post0 = alpha[0] * beta[0]
+        b0_new = (post0 / post0.sum(1, keepdim=True)).mean(0)
+        return G_new, b0_new, ll
+
+    def project(G: torch.Tensor, b0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        G = torch.where(support, G.clamp_min(1e-10), torch.zeros_like(G))
+        b0 = b0.clamp_min(1e-12)
+        return G / G.sum(1, keepdim=True), b0 / b0.sum()
+
+    history: list[float] = []
+    converged = False
+    while passes < max_iter:
+        G1, b1, ll = step(G, b0)
+        history.append(ll)
+        if progress:
+            progress(passes, ll)
+        if len(history) > 1 and abs(history[-1] - history[-2]) <= tol * abs(history[-2]):
+            converged = True
+            break
+        if not accelerate:
+            G, b0 = G1, b1
+            continue
+        G2, b2, ll1 = step(G1, b1)
+        rG, rb = G1 - G, b1 - b0
+        vG, vb = G2 - 2 * G1 + G, b2 - 2 * b1 + b0
+        vnorm = float((vG**2).sum() + (vb**2).sum())
+        if vnorm <= 0:
+            G, b0 = G2, b2
+            continue
+        a = min(-1.0, -((float((rG**2).sum() + (rb**2).sum()) / vnorm) ** 0.5))
+        Gx, bx = project(G - 2 * a * rG + a * a * vG, b0 - 2 * a * rb + a * a * vb)
+        G3, b3, llx = step(Gx, bx)
+        G, b0 = (G3, b3) if llx >= ll1 else (G2, b2)
+    model = from_matrix(graph, G.numpy(), b0.numpy() / b0.sum().item(), kind="em")
+    return Estimate(model, "em", passes, history, converged, time.perf_counter() - t0)
+
+
+def eq8(graph: Graph, data: MissionData, rounds: int = 1, b0: np.ndarray | None = None) -> Estimate:
+    """The paper's Eq. 8: Gamma_hat^T = B_{1:T} B_{0:T-1}^T (B_{0:T-1} B_{0:T-1}^T)^-1.
+
+    Collective beliefs (Eq. 6) are filtered with the current Gamma_hat (Gamma_hat_0 = I, as in
+    Algorithm 2), stacked over all missions' valid steps, and the least-squares solution is
+    projected: entries off the closed neighbourhoods and negative entries set to 0, rows
+    renormalised (a row left empty becomes the uniform walk's row).
+    """
+    t0 = time.perf_counter()
+    L = torch.as_tensor(data.lik).transpose(0, 1).contiguous()  # (T, M, n)
+    T, _M, n = L.shape
+    valid = torch.arange(T).unsqueeze(1) < torch.as_tensor(data.length).unsqueeze(0)  # (T, M)
+    G = torch.eye(n, dtype=torch.float64)
+    prior = torch.as_tensor(np.full(n, 1.0 / n) if b0 is None else b0)
+    support = torch.as_tensor(graph.adjacency(closed=True))
+    fallback = torch.as_tensor(uniform_walk(graph).dense())
+    for _ in range(max(1, rounds)):
+        alpha, _beta, _c = _forward_backward(G, prior, L, valid)
+        pair = valid[1:]  # transitions t -> t+1 inside a mission
+        B0 = alpha[:-1][pair]  # (K, n) rows b_t
+        B1 = alpha[1:][pair]  # (K, n) rows b_{t+1}
+        gt = (B1.T @ B0) @ torch.linalg.pinv(B0.T @ B0)  # Gamma^T
+        g = gt.T.clamp_min(0) * support
+        s = g.sum(1, keepdim=True)
+        G = torch.where(s > 0, g / s.clamp_min(1e-300), fallback)
+    model = from_matrix(graph, G.numpy(), prior.numpy(), kind="eq8")
+    return Estimate(model, "eq8", max(1, rounds), [], True, time.perf_counter() - t0)
+
+
+def mean_row_tv(a: TargetModel | np.ndarray, b: TargetModel | np.ndarray) -> float:
+    """Mean over rows of the total-variation distance 0.5 * sum_v |a(u, v) - b(u, v)|."""
+    A = a.dense() if isinstance(a, TargetModel) else a
+    Bm = b.dense() if isinstance(b, TargetModel) else b
+    return float(0.5 * np.abs(A - Bm).sum(1).mean())

@@ -1,0 +1,192 @@
+"""Episode records (SPEC section 5): validation, parsing and writing.
+
+A record is what one robot reports after one mission. ``parse_record`` checks everything a
+receiver must check (schema, fleet, graph_id, sensor bounds, the t sequence, moves that stay or
+follow an edge, z values, sizes, the outcome) and raises ``RecordError`` whose ``reason`` is a
+short stable code (for counting rejections) and whose message says what is wrong and where.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shared.graph import Graph
+from shared.models import DETECTIONS, ModelError, Sensor
+
+SCHEMA = "mures.episode/1"
+MAX_STEPS = 100_000
+MAX_RECORD_BYTES = 16 * 1024 * 1024
+ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,128}$")  # usable as one Zenoh key segment
+
+
+class RecordError(ValueError):
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Episode:
+    """A validated record. ``nodes``/``z`` are (T+1,) arrays over t = 0..T, nodes as graph rows."""
+
+    fleet: str
+    mission_id: str
+    robot_id: str
+    policy_version: int | None
+    sensor: Sensor
+    nodes: np.ndarray
+    z: np.ndarray
+    captured: bool
+    capture_time: int | None
+    captured_by: str | None
+
+
+def _need(rec: dict[str, Any], key: str, kind: type | tuple[type, ...]) -> Any:
+    if key not in rec:
+        raise RecordError("missing-field", f"field {key!r} is missing")
+    v = rec[key]
+    if not isinstance(v, kind) or isinstance(v, bool):
+        raise RecordError("bad-field", f"field {key!r} has the wrong type ({type(v).__name__})")
+    return v
+
+
+def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
+    """Validate one record against ``graph`` (and ``fleet`` if given) and parse it."""
+    if not isinstance(rec, dict):
+        raise RecordError("not-object", f"a record must be a JSON object, got {type(rec).__name__}")
+    if rec.get("schema") != SCHEMA:
+        raise RecordError("schema", f"schema must be {SCHEMA!r}, got {rec.get('schema')!r}")
+    rec_fleet = _need(rec, "fleet", str)
+    if fleet is not None and rec_fleet != fleet:
+        raise RecordError("fleet", f"record is for fleet {rec_fleet!r}, expected {fleet!r}")
+    mission_id = _need(rec, "mission_id", str)
+    robot_id = _need(rec, "robot_id", str)
+    for name, v in (("fleet", rec_fleet), ("mission_id", mission_id), ("robot_id", robot_id)):
+        if not ID_RE.match(v):
+            raise RecordError("bad-id", f"{name} {v[:40]!r} must be 1-128 characters of A-Z a-z 0-9 _ . -")
+    gid = _need(rec, "graph_id", str)
+    if gid != graph.graph_id:
+        raise RecordError("graph_id", f"graph_id {gid[:20]}... does not match this map ({graph.graph_id[:20]}...)")
+    pv = rec.get("policy_version")
+    if pv is not None and (not isinstance(pv, int) or isinstance(pv, bool) or pv < 0):
+        raise RecordError("bad-field", f"policy_version must be a non-negative integer or null, got {pv!r}")
+    sensor_raw = _need(rec, "sensor", dict)
+    try:
+        sensor = Sensor(
+            eta_fn=sensor_raw.get("eta_fn", 0.0),
+            eta_fp=sensor_raw.get("eta_fp", 0.0),
+            detection=sensor_raw.get("detection", "node"),
+        )
+    except ModelError as exc:
+        raise RecordError("sensor", f"sensor: {exc}") from None
+    if sensor.detection == "custom" and graph.sensing_sets is None:
+        raise RecordError("sensor", f"sensor detection 'custom' but the map has no sensing table (use {DETECTIONS})")
+    steps = _need(rec, "steps", list)
+    if not steps:
+        raise RecordError("steps", "steps is empty")
+    if len(steps) > MAX_STEPS:
+        raise RecordError("size", f"{len(steps)} steps exceed the limit of {MAX_STEPS}")
+    nodes = np.empty(len(steps), dtype=np.int64)
+    z = np.empty(len(steps), dtype=np.int8)
+    index = graph.index
+    for k, st in enumerate(steps):
+        if not isinstance(st, dict):
+            raise RecordError("steps", f"step #{k} is not an object")
+        t, node, zz = st.get("t"), st.get("node"), st.get("z")
+        if t != k or isinstance(t, bool):
+            raise RecordError("t-sequence", f"step #{k} has t = {t!r}; t must run 0, 1, 2, ... without gaps")
+        if isinstance(node, bool) or not isinstance(node, int) or node not in index:
+            raise RecordError("node", f"step t={k}: node {node!r} is not a node of this map")
+        if isinstance(zz, bool) or not isinstance(zz, int) or zz not in (0, 1):
+            raise RecordError("z", f"step t={k}: z must be 0 or 1, got {zz!r}")
+        nodes[k] = index[node]
+        z[k] = int(zz)
+    adj = graph.adjacency(closed=True) if graph.n <= 4096 else None
+    for k in range(1, len(nodes)):
+        u, v = nodes[k - 1], nodes[k]
+        ok = adj[u, v] if adj is not None else v in graph.closed(int(u))
+        if not ok:
+            raise RecordError(
+                "move",
+                f"step t={k}: move {graph.labels[u]} -> {graph.labels[v]} neither stays nor follows an edge",
+            )
+    out = _need(rec, "outcome", dict)
+    captured = out.get("captured")
+    if not isinstance(captured, bool):
+        raise RecordError("outcome", "outcome.captured must be true or false")
+    ct = out.get("capture_time")
+    by = out.get("captured_by")
+    if captured:
+        if not isinstance(ct, int) or isinstance(ct, bool) or not (0 <= ct <= len(steps) - 1):
+            raise RecordError(
+                "outcome", f"outcome.capture_time {ct!r} must be an integer between 0 and the last t ({len(steps) - 1})"
+            )
+        if by is not None and (not isinstance(by, str) or not ID_RE.match(by)):
+            raise RecordError("outcome", f"outcome.captured_by {by!r} is not a robot id")
+    else:
+        ct, by = None, None
+    return Episode(
+        fleet=rec_fleet,
+        mission_id=mission_id,
+        robot_id=robot_id,
+        policy_version=pv,
+        sensor=sensor,
+        nodes=nodes,
+        z=z,
+        captured=captured,
+        capture_time=ct,
+        captured_by=by,
+    )
+
+
+def make_record(
+    graph: Graph,
+    *,
+    fleet: str,
+    mission_id: str,
+    robot_id: str,
+    nodes: list[int] | np.ndarray,
+    z: list[int] | np.ndarray,
+    sensor: Sensor,
+    captured: bool,
+    capture_time: int | None,
+    captured_by: str | None,
+    policy_version: int | None = None,
+) -> dict[str, Any]:
+    """Build a record from rows ``nodes`` and observations ``z`` for t = 0..T."""
+    labels = graph.labels
+    return {
+        "schema": SCHEMA,
+        "fleet": fleet,
+        "mission_id": mission_id,
+        "robot_id": robot_id,
+        "graph_id": graph.graph_id,
+        "policy_version": policy_version,
+        "sensor": sensor.to_json(),
+        "steps": [
+            {"t": t, "node": int(labels[p]), "z": int(zz)} for t, (p, zz) in enumerate(zip(nodes, z, strict=True))
+        ],
+        "outcome": {"captured": captured, "capture_time": capture_time, "captured_by": captured_by},
+    }
+
+
+def read_jsonl(path: str | Path) -> Iterator[tuple[int, Any]]:
+    """Yield (line number, parsed JSON or a RecordError) for each non-empty line."""
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            if not line.strip():
+                continue
+            if len(line) > MAX_RECORD_BYTES:
+                yield lineno, RecordError("size", f"line {lineno} is longer than {MAX_RECORD_BYTES} bytes")
+                continue
+            try:
+                yield lineno, json.loads(line)
+            except json.JSONDecodeError as exc:
+                yield lineno, RecordError("json", f"line {lineno}: not valid JSON ({exc.msg})")

@@ -1,0 +1,221 @@
+"""Batched simulator of the paper setup (SPEC section 1), in torch.
+
+B episodes run side by side, each with N robots on a graph of n nodes. One call of ``step``
+advances every running episode by one time step, in the order of SPEC section 1:
+
+    robots move (a_t in N[p_t])  ->  target moves (e_{t+1} ~ Gamma(e_t, .))  ->  robots observe z_{t+1}
+
+Capture: the first t with e_t in D(p_t^i) and z_t^i = 1 for some robot i (t = 0 included).
+Censoring: no capture by T_max = 3n gives t_cap = T_max and ``censored``. A z = 1 with the target
+outside D(p) is a false alarm: counted, and the mission goes on.
+
+With ``auto_reset`` (throughput mode, for training) a finished episode's slot immediately starts
+a fresh episode; without it (evaluation mode) finished slots freeze until ``reset``. Evaluation
+uses the latter so that every started episode is counted, whatever its length (streaming the
+first-finished episodes out of an auto-reset batch would bias toward short episodes).
+
+Shapes (B episodes, N robots, n nodes): positions (B, N) rows, target (B,), t (B,), z (B, N).
+Deterministic for a seed: all randomness comes from one ``torch.Generator``.
+
+Robustness experiments: ``withdraw_at[i] = k`` withdraws robot i at step k: from t = k on it
+stays where it is, observes nothing (z = 0) and cannot capture.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from shared.graph import Graph
+from shared.models import Sensor, TargetModel
+
+NEVER = 2**62
+
+
+@dataclass
+class Obs:
+    """What the robots see after a step. ``new`` marks slots whose episode just started (t = 0)."""
+
+    pos: torch.Tensor  # (B, N) long, node rows
+    z: torch.Tensor  # (B, N) bool
+    t: torch.Tensor  # (B,) long
+    new: torch.Tensor  # (B,) bool
+    active: torch.Tensor  # (B, N) bool, False once a robot is withdrawn
+    alive: torch.Tensor  # (B,) bool, False for frozen slots (evaluation mode)
+
+
+@dataclass
+class StepResult:
+    """Episodes that ended during a step; entries are meaningful where ``done``."""
+
+    done: torch.Tensor  # (B,) bool
+    capture_time: torch.Tensor  # (B,) long; T_max when censored
+    censored: torch.Tensor  # (B,) bool
+    false_alarms: torch.Tensor  # (B,) long, over the whole episode
+    captured_by: torch.Tensor  # (B,) long robot index, -1 when censored
+
+
+class SearchSim:
+    """The batched paper-setup simulator. See the module docstring for semantics and shapes."""
+
+    def __init__(
+        self,
+        graph: Graph,
+        target: TargetModel,
+        sensor: Sensor,
+        n_robots: int,
+        batch: int,
+        seed: int = 0,
+        device: torch.device | str = "cpu",
+        auto_reset: bool = True,
+        t_max: int | None = None,
+        start: int | None = None,
+        withdraw_at: list[int | None] | None = None,
+    ) -> None:
+        if n_robots < 1:
+            raise ValueError(f"expected at least 1 robot, got {n_robots}")
+        if batch < 1:
+            raise ValueError(f"expected a batch of at least 1 episode, got {batch}")
+        if target.n != graph.n:
+            raise ValueError(f"target model has {target.n} nodes, graph has {graph.n}")
+        dev = torch.device(device)
+        self.graph, self.sensor = graph, sensor
+        self.n, self.N, self.B = graph.n, n_robots, batch
+        self.device = dev
+        self.auto_reset = auto_reset
+        self.t_max = 3 * graph.n if t_max is None else t_max
+        self.start = graph.start if start is None else start
+        self.gen = torch.Generator(device=dev)
+        self.gen.manual_seed(seed)
+        # graph tables
+        self.nbr = torch.as_tensor(graph.nbr, device=dev)  # (n, d) N[p], padded with p
+        self.deg = torch.as_tensor(graph.deg_closed, device=dev)  # (n,)
+        self.adj = torch.as_tensor(graph.adjacency(closed=True), device=dev)  # (n, n)
+        ptr, idx = graph.detection_sets(sensor.detection)
+        det = torch.zeros(graph.n, graph.n, dtype=torch.bool)
+        det[torch.as_tensor(np.repeat(np.arange(graph.n), np.diff(ptr))), torch.as_tensor(idx)] = True
+        self.detect = det.to(dev)  # (n, n): detect[p, e] = e in D(p)
+        # target sampling: per source row, destinations and cumulative probabilities
+        counts = np.bincount(target.src, minlength=graph.n)
+        k = int(counts.max())
+        t_dst = np.repeat(np.arange(graph.n)[:, None], k, axis=1)
+        t_cum = np.ones((graph.n, k))
+        ptrs = np.concatenate([[0], np.cumsum(counts)])
+        for u in range(graph.n):
+            a, b = ptrs[u], ptrs[u + 1]
+            t_dst[u, : b - a] = target.dst[a:b]
+            t_cum[u, : b - a] = np.cumsum(target.prob[a:b])
+        t_cum[:, -1] = 2.0  # guard against rounding: the last candidate catches u ~ 1
+        self.t_dst = torch.as_tensor(t_dst, device=dev)
+        self.t_cum = torch.as_tensor(t_cum, dtype=torch.float64, device=dev)
+        self.b0 = torch.as_tensor(target.b0, dtype=torch.float64, device=dev)
+        self.eta_fn, self.eta_fp = sensor.eta_fn, sensor.eta_fp
+        drop = [NEVER if w is None else int(w) for w in (withdraw_at or [None] * n_robots)]
+        if len(drop) != n_robots:
+            raise ValueError(f"withdraw_at has {len(drop)} entries, expected one per robot ({n_robots})")
+        self.withdraw_at = torch.tensor(drop, dtype=torch.long, device=dev)  # (N,)
+        # state
+        B, N = batch, n_robots
+        self.pos = torch.full((B, N), self.start, dtype=torch.long, device=dev)
+        self.target = torch.zeros(B, dtype=torch.long, device=dev)
+        self.t = torch.zeros(B, dtype=torch.long, device=dev)
+        self.z = torch.zeros(B, N, dtype=torch.bool, device=dev)
+        self.alive = torch.zeros(B, dtype=torch.bool, device=dev)
+        self.pending = torch.zeros(B, dtype=torch.bool, device=dev)  # captured at t = 0
+        self.pending_by = torch.full((B,), -1, dtype=torch.long, device=dev)
+        self.false_alarms = torch.zeros(B, dtype=torch.long, device=dev)
+        self.active = torch.ones(B, N, dtype=torch.bool, device=dev)
+
+    # ------------------------------------------------------------------ internals
+    def _rand(self, *shape: int) -> torch.Tensor:
+        return torch.rand(*shape, generator=self.gen, device=self.device, dtype=torch.float64)
+
+    def _observe(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """z (B, N) and in_D (B, N) for the current positions and target (sensor of SPEC 1)."""
+        in_d = self.detect[self.pos, self.target.unsqueeze(1)] & self.active
+        u = self._rand(self.B, self.N)
+        z = torch.where(in_d, u >= self.eta_fn, u < self.eta_fp) & self.active
+        return z, in_d
+
+    @staticmethod
+    def _first(hits: torch.Tensor) -> torch.Tensor:
+        """Index of the first True per row, -1 where none: (B, N) -> (B,)."""
+        first = hits.to(torch.int8).argmax(dim=1)
+        return torch.where(hits.any(dim=1), first, torch.full_like(first, -1))
+
+    def _start_episodes(self, mask: torch.Tensor) -> None:
+        """Start fresh episodes in the slots of ``mask`` (B,): draw e_0 ~ b0, robots on s, observe z_0."""
+        e0 = torch.multinomial(self.b0, self.B, replacement=True, generator=self.gen)
+        m1 = mask.unsqueeze(1)
+        self.target = torch.where(mask, e0, self.target)
+        self.pos = torch.where(m1, torch.full_like(self.pos, self.start), self.pos)
+        self.t = torch.where(mask, torch.zeros_like(self.t), self.t)
+        self.active = torch.where(m1, (self.withdraw_at > 0).expand(self.B, self.N), self.active)
+        z, in_d = self._observe()
+        self.z = torch.where(m1, z, self.z)
+        hits = z & in_d & m1
+        self.false_alarms = torch.where(mask, (z & ~in_d).sum(1), self.false_alarms)
+        self.pending = torch.where(mask, hits.any(1), self.pending)
+        self.pending_by = torch.where(mask, self._first(hits), self.pending_by)
+        self.alive = self.alive | mask
+        self._new = mask
+
+    def _obs(self) -> Obs:
+        return Obs(self.pos, self.z, self.t, self._new, self.active, self.alive)
+
+    # ------------------------------------------------------------------ API
+    def reset(self) -> Obs:
+        """Start B fresh episodes."""
+        self._start_episodes(torch.ones(self.B, dtype=torch.bool, device=self.device))
+        return self._obs()
+
+    def step(self, actions: torch.Tensor) -> tuple[Obs, StepResult]:
+        """Advance every running episode by one step. actions: (B, N) node rows in N[p]."""
+        if actions.shape != (self.B, self.N):
+            raise ValueError(f"expected actions of shape {(self.B, self.N)}, got {tuple(actions.shape)}")
+        actions = actions.to(device=self.device, dtype=torch.long)
+        moving = self.alive & ~self.pending  # (B,)
+        act = torch.where(self.active & moving.unsqueeze(1), actions, self.pos)
+        if not bool(self.adj[self.pos, act].all()):
+            bad = (~self.adj[self.pos, act]).nonzero()[0]
+            b, i = int(bad[0]), int(bad[1])
+            raise ValueError(
+                f"episode slot {b}, robot {i}: action to node {self.graph.labels[int(act[b, i])]} "
+                f"is not in N[{self.graph.labels[int(self.pos[b, i])]}]"
+            )
+        # robots move, then the target moves (SPEC section 1 order)
+        self.pos = act
+        u = self._rand(self.B, 1)
+        k = (u > self.t_cum[self.target]).sum(1)
+        self.target = torch.where(moving, self.t_dst[self.target, k], self.target)
+        self.t = self.t + moving.long()
+        self.active = self.active & (self.withdraw_at > self.t.unsqueeze(1))
+        # observe z_{t+1}
+        z, in_d = self._observe()
+        self.z = torch.where(moving.unsqueeze(1), z, self.z)
+        self.false_alarms = self.false_alarms + ((z & ~in_d).sum(1) * moving)
+        hits = z & in_d & moving.unsqueeze(1)
+        captured = hits.any(1)
+        censored = moving & ~captured & (self.t >= self.t_max)
+        done = captured | censored | (self.alive & self.pending)
+        result = StepResult(
+            done=done,
+            capture_time=self.t.clone(),
+            censored=censored,
+            false_alarms=self.false_alarms.clone(),
+            captured_by=torch.where(self.pending, self.pending_by, self._first(hits)),
+        )
+        self.pending = self.pending & ~done
+        self._new = torch.zeros_like(done)
+        if self.auto_reset:
+            if bool(done.any()):
+                self._start_episodes(done)
+        else:
+            self.alive = self.alive & ~done
+        return self._obs(), result
+
+    @property
+    def any_alive(self) -> bool:
+        return bool(self.alive.any())
