@@ -1,0 +1,132 @@
+"""The batched simulator against the paper setup (SPEC section 1) and an independent plain-Python one."""
+
+import math
+
+import numpy as np
+import torch
+
+from shared.evaluate import evaluate
+from shared.graph import builtin_graph, graph_from_dict
+from shared.models import Sensor, from_matrix, uniform_walk
+from shared.searchers import RandomSearcher
+from shared.sim import SearchSim
+
+
+def reference_random_search(graph, model, sensor, N, episodes, seed):
+    """A direct, one-episode-at-a-time transcription of SPEC section 1 with the random searcher."""
+    rng = np.random.default_rng(seed)
+    G = model.dense()
+    ptr, idx = graph.detection_sets(sensor.detection)
+    t_max = 3 * graph.n
+    cts, fas = [], []
+    for _ in range(episodes):
+        pos = [graph.start] * N
+        e = rng.choice(graph.n, p=model.b0)
+        t, fa = 0, 0
+        while True:
+            captured = False
+            for p in pos:
+                inside = e in idx[ptr[p] : ptr[p + 1]]
+                zz = rng.random() < (1 - sensor.eta_fn if inside else sensor.eta_fp)
+                fa += zz and not inside
+                captured |= zz and inside
+            if captured or t == t_max:
+                break
+            pos = [int(rng.choice(graph.closed(p))) for p in pos]  # robots move
+            e = rng.choice(graph.n, p=G[e])  # then the target
+            t += 1
+        cts.append(t)
+        fas.append(fa)
+    return np.array(cts, float), np.array(fas, float)
+
+
+def test_matches_an_independent_reference_implementation():
+    g = builtin_graph("office")
+    model, sensor = uniform_walk(g), Sensor(eta_fn=0.2, eta_fp=0.02)
+    ref_ct, ref_fa = reference_random_search(g, model, sensor, N=2, episodes=3000, seed=5)
+    res = evaluate(g, model, sensor, 2, lambda s: RandomSearcher(g, seed=s), episodes=3000, seed=5)
+    ct, fa = res.capture_time.astype(float), res.false_alarms.astype(float)
+    for a, b in ((ct, ref_ct), (fa, ref_fa)):
+        se = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
+        assert abs(a.mean() - b.mean()) < 4 * se, (a.mean(), b.mean(), se)
+
+
+class Scripted:
+    """Every robot moves toward a fixed node along a given next-hop table."""
+
+    def __init__(self, hop):
+        self.hop = torch.as_tensor(hop)
+
+    def act(self, obs):
+        return self.hop[obs.pos]
+
+
+def two_rooms(stay_target_at=1):
+    g = graph_from_dict({"nodes": [0, 1], "edges": [[0, 1]], "start_node": 0})
+    model = from_matrix(g, np.eye(2), np.eye(2)[stay_target_at])  # a target that never moves
+    return g, model
+
+
+def test_capture_censoring_and_move_order():
+    g, model = two_rooms()
+    go = SearchSim(g, model, Sensor(), n_robots=1, batch=4, auto_reset=False)
+    obs = go.reset()
+    obs, res = go.step(Scripted([1, 1]).act(obs))
+    assert res.done.all() and (res.capture_time == 1).all() and not res.censored.any()
+    assert (res.captured_by == 0).all()
+    stay = SearchSim(g, model, Sensor(), n_robots=1, batch=4, auto_reset=False)
+    obs = stay.reset()
+    steps = 0
+    while stay.any_alive:
+        obs, res = stay.step(Scripted([0, 0]).act(obs))
+        steps += 1
+    assert steps == 6 and res.censored.all() and (res.capture_time == 6).all()  # T_max = 3n
+    assert (res.captured_by == -1).all()
+
+
+def test_capture_at_t0_and_false_alarms():
+    g, model = two_rooms(stay_target_at=0)  # target on the start node: captured at t = 0
+    sim = SearchSim(g, model, Sensor(), n_robots=3, batch=5, auto_reset=False)
+    obs = sim.reset()
+    obs, res = sim.step(Scripted([1, 1]).act(obs))
+    assert res.done.all() and (res.capture_time == 0).all()
+    g, model = two_rooms(stay_target_at=1)
+    sim = SearchSim(g, model, Sensor(eta_fp=0.4), n_robots=1, batch=2000, auto_reset=False, seed=3)
+    obs = sim.reset()
+    while sim.any_alive:
+        obs, res_last = sim.step(Scripted([0, 0]).act(obs))
+    # 7 observations (t = 0..6) at node 0, each a false alarm with probability 0.4
+    assert abs(res_last.false_alarms.float().mean().item() - 7 * 0.4) < 0.1
+
+
+def test_withdrawn_robot_neither_moves_nor_captures():
+    g, model = two_rooms()
+    sim = SearchSim(g, model, Sensor(), n_robots=2, batch=3, auto_reset=False, withdraw_at=[0, 3])
+    obs = sim.reset()
+    hist = []
+    while sim.any_alive:
+        obs, res = sim.step(torch.tensor([[1, 0]] * 3))
+        hist.append(obs.pos.clone())
+    assert all((p[:, 0] == 0).all() for p in hist)  # robot 0 withdrawn at t = 0 never left
+    assert res.censored.all()
+
+
+def test_deterministic_for_a_seed_and_auto_reset():
+    g = builtin_graph("museum")
+    model, sensor = uniform_walk(g), Sensor(0.1, 0.01)
+
+    def run(seed):
+        sim = SearchSim(g, model, sensor, n_robots=3, batch=64, seed=seed)
+        searcher = RandomSearcher(g, seed=seed)
+        obs = sim.reset()
+        done_ct = []
+        for _ in range(300):
+            obs, res = sim.step(searcher.act(obs))
+            done_ct.append(res.capture_time[res.done])
+            assert (obs.t[res.done] == 0).all() and obs.new[res.done].all()
+            assert (obs.pos[res.done] == g.start).all()
+        return torch.cat(done_ct)
+
+    a, b, c = run(1), run(1), run(2)
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    assert len(a) > 64  # slots were reused for fresh episodes
