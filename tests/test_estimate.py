@@ -31,7 +31,7 @@ def simulated_records(graph, truth, sensor, N, missions, seed):
                     captured=not cens,
                     capture_time=None if cens else int(res.capture_time[b]),
                     captured_by=None if cens else f"r{int(res.captured_by[b])}",
-                )  # fmt: skip
+                )
             )
     return out
 

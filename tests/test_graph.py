@@ -9,7 +9,7 @@ from shared.graph import GraphError, builtin_graph, graph_from_dict, grid_graph,
 
 
 def test_builtin_maps_match_the_reference_data():
-    ref = json.load(open(_reference()))
+    ref = json.loads(_reference().read_text())
     for key, n, m, start in (("office", 60, 65, 43), ("museum", 70, 93, 1)):
         g = builtin_graph(key)
         assert (g.n, g.m) == (n, m)
