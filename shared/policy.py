@@ -1,0 +1,64 @@
+"""Per-robot policy networks (SPEC section 3), evaluated for the whole team at once.
+
+Robot i's state is s = (onehot(p), b) in R^{2n}; its policy is an MLP 2n -> 2n -> n whose
+logits are masked to N[p] before the softmax. One network per robot (theta_i): the N networks'
+weights are stacked along a leading robot dimension so that a single batched matmul evaluates
+every robot, and ``cross`` evaluates every network on every robot's states (what the
+cross-entropy term of Eq. 9 needs).
+
+Shapes: N robots, n nodes, H = 2n hidden units; states are given as positions (..., N) and
+beliefs (..., N, n) and never materialised as one-hot vectors (the one-hot half of the first
+layer is a row gather).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+NEG_INF = -1e9
+
+
+class TeamPolicy(nn.Module):
+    """N independent MLPs 2n -> 2n -> n with masked softmax, stacked for batched evaluation."""
+
+    def __init__(self, n: int, n_robots: int, nbr_mask: torch.Tensor, hidden: int | None = None) -> None:
+        super().__init__()
+        H = hidden or 2 * n
+        self.n, self.N, self.H = n, n_robots, H
+        if nbr_mask.shape != (n, n):
+            raise ValueError(f"expected an (n, n) = ({n}, {n}) neighbourhood mask, got {tuple(nbr_mask.shape)}")
+        self.register_buffer("mask", nbr_mask.bool())  # (n, n): mask[p, a] = a in N[p]
+        k1, k2 = 1 / math.sqrt(2 * n), 1 / math.sqrt(H)
+        # layer 1 split into its one-hot(p) half (a gather) and its belief half (a matmul)
+        self.w_pos = nn.Parameter(torch.empty(n_robots, n, H).uniform_(-k1, k1))  # (N, n, H)
+        self.w_bel = nn.Parameter(torch.empty(n_robots, n, H).uniform_(-k1, k1))  # (N, n, H)
+        self.b1 = nn.Parameter(torch.empty(n_robots, H).uniform_(-k1, k1))  # (N, H)
+        self.w2 = nn.Parameter(torch.empty(n_robots, H, n).uniform_(-k2, k2))  # (N, H, n)
+        self.b2 = nn.Parameter(torch.empty(n_robots, n).uniform_(-k2, k2))  # (N, n)
+
+    def logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """Each robot's own network on its own state: pos (B, N), belief (B, N, n) -> (B, N, n).
+
+        Entries outside N[p] are NEG_INF.
+        """
+        robot = torch.arange(self.N, device=pos.device)
+        h = self.w_pos[robot, pos] + torch.einsum("bni,nih->bnh", belief, self.w_bel) + self.b1
+        out = torch.einsum("bnh,nha->bna", torch.relu(h), self.w2) + self.b2
+        return out.masked_fill(~self.mask[pos], NEG_INF)
+
+    def cross_logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """Every network j on every robot i's state: pos (B, N), belief (B, N, n) -> (B, N_i, N_j, n)."""
+        h = (
+            self.w_pos[:, pos].permute(1, 2, 0, 3)  # (B, N_i, N_j, H)
+            + torch.einsum("bsi,nih->bsnh", belief, self.w_bel)
+            + self.b1
+        )
+        out = torch.einsum("bsnh,nha->bsna", torch.relu(h), self.w2) + self.b2
+        return out.masked_fill(~self.mask[pos].unsqueeze(2), NEG_INF)
+
+    def log_probs(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """log pi_i(. | s^i): (B, N, n), -inf-like outside N[p]."""
+        return torch.log_softmax(self.logits(pos, belief), dim=-1)
