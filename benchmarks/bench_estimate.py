@@ -11,10 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from shared.estimate import collect_missions, em, eq8, mean_row_tv
-from shared.evaluate import evaluate
+from shared.evaluate import episode_records, evaluate
 from shared.graph import load_graph_file
 from shared.models import Sensor, lazy_walk, uniform_walk
-from shared.records import make_record
 from shared.searchers import RandomSearcher
 
 MAP = Path(__file__).resolve().parents[1] / "examples" / "maps" / "warehouse.json"
@@ -28,19 +27,7 @@ def main() -> None:
     g = load_graph_file(MAP)
     truth, sensor, N = lazy_walk(g, 0.9), Sensor(eta_fn=0.1), 3
     res = evaluate(g, truth, sensor, N, lambda s: RandomSearcher(g, seed=s), args.missions, args.seed, record=True)
-    recs = []
-    tr = res.trajectories[0]
-    for b in range(args.missions):
-        L, cens = int(tr.length[b]), bool(res.censored[b])
-        for i in range(N):
-            recs.append(
-                make_record(
-                    g, fleet="default", mission_id=f"m{b}", robot_id=f"r{i}", nodes=tr.pos[:L, b, i],
-                    z=tr.z[:L, b, i], sensor=sensor, captured=not cens,
-                    capture_time=None if cens else int(res.capture_time[b]),
-                    captured_by=None if cens else f"r{int(res.captured_by[b])}",
-                )
-            )  # fmt: skip
+    recs = list(episode_records(g, res, sensor))
     t0 = time.perf_counter()
     data = collect_missions(enumerate(recs), g)
     est = em(g, data)

@@ -22,10 +22,10 @@ import numpy as np
 import torch
 
 from shared.estimate import collect_missions, em, eq8, mean_row_tv
-from shared.evaluate import evaluate
+from shared.evaluate import episode_records, evaluate
 from shared.graph import BUILTIN_MAPS, Graph, GraphError, builtin_graph, load_graph_file
 from shared.models import ModelError, Sensor, TargetModel, parse_target
-from shared.records import make_record, read_jsonl
+from shared.records import read_jsonl
 from shared.searchers import REFERENCE_SEARCHERS, make_searcher
 
 
@@ -155,27 +155,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     tmp = out.with_name(out.name + ".tmp")
     written = 0
     with open(tmp, "w", encoding="utf-8") as fh:
-        k = 0
-        for tr in res.trajectories:
-            for b in range(tr.pos.shape[1]):
-                length = int(tr.length[b])
-                censored = bool(res.censored[k])
-                for i in range(args.robots):
-                    rec = make_record(
-                        graph,
-                        fleet=args.fleet,
-                        mission_id=f"sim-{args.seed}-{k:06d}",
-                        robot_id=f"r{i}",
-                        nodes=tr.pos[:length, b, i],
-                        z=tr.z[:length, b, i],
-                        sensor=sensor,
-                        captured=not censored,
-                        capture_time=None if censored else int(res.capture_time[k]),
-                        captured_by=None if censored else f"r{int(res.captured_by[k])}",
-                    )
-                    fh.write(json.dumps(rec, separators=(",", ":")) + "\n")
-                    written += 1
-                k += 1
+        for rec in episode_records(graph, res, sensor, fleet=args.fleet, mission_prefix=f"sim-{args.seed}"):
+            fh.write(json.dumps(rec, separators=(",", ":")) + "\n")
+            written += 1
     os.replace(tmp, out)
     if args.truth:
         Path(args.truth).write_text(json.dumps({**target.to_json(graph), "kind": target.kind}) + "\n")

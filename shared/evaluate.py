@@ -7,7 +7,7 @@ in chunks of at most ``chunk`` slots, each chunk seeded from (seed, chunk index)
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,6 +16,7 @@ import torch
 
 from shared.graph import Graph
 from shared.models import Sensor, TargetModel
+from shared.records import make_record
 from shared.searchers import Searcher
 from shared.sim import SearchSim
 
@@ -130,3 +131,30 @@ def evaluate(
         wall_seconds=time.perf_counter() - t0,
         trajectories=trajs,
     )
+
+
+def episode_records(
+    graph: Graph, result: EvalResult, sensor: Sensor, fleet: str = "default", mission_prefix: str = "sim"
+) -> Iterator[dict[str, Any]]:
+    """Episode records (SPEC section 5), one per robot per mission, from a ``record=True`` run.
+
+    Robots are named r0..r{N-1}; missions ``{mission_prefix}-{k:06d}`` in episode order.
+    """
+    k = 0
+    for tr in result.trajectories:
+        for b in range(tr.pos.shape[1]):
+            length, censored = int(tr.length[b]), bool(result.censored[k])
+            for i in range(tr.pos.shape[2]):
+                yield make_record(
+                    graph,
+                    fleet=fleet,
+                    mission_id=f"{mission_prefix}-{k:06d}",
+                    robot_id=f"r{i}",
+                    nodes=tr.pos[:length, b, i],
+                    z=tr.z[:length, b, i],
+                    sensor=sensor,
+                    captured=not censored,
+                    capture_time=None if censored else int(result.capture_time[k]),
+                    captured_by=None if censored else f"r{int(result.captured_by[k])}",
+                )
+            k += 1

@@ -5,35 +5,16 @@ import numpy as np
 import pytest
 
 from shared.estimate import collect_missions, em, eq8, mean_row_tv
-from shared.evaluate import evaluate
+from shared.evaluate import episode_records, evaluate
 from shared.graph import grid_graph
 from shared.models import Sensor, lazy_walk, uniform_walk
-from shared.records import RecordError, make_record, parse_record, read_jsonl
+from shared.records import RecordError, parse_record, read_jsonl
 from shared.searchers import RandomSearcher
 
 
 def simulated_records(graph, truth, sensor, N, missions, seed):
     res = evaluate(graph, truth, sensor, N, lambda s: RandomSearcher(graph, seed=s), missions, seed, record=True)
-    tr = res.trajectories[0]
-    out = []
-    for b in range(missions):
-        L, cens = int(tr.length[b]), bool(res.censored[b])
-        for i in range(N):
-            out.append(
-                make_record(
-                    graph,
-                    fleet="default",
-                    mission_id=f"m{b}",
-                    robot_id=f"r{i}",
-                    nodes=tr.pos[:L, b, i],
-                    z=tr.z[:L, b, i],
-                    sensor=sensor,
-                    captured=not cens,
-                    capture_time=None if cens else int(res.capture_time[b]),
-                    captured_by=None if cens else f"r{int(res.captured_by[b])}",
-                )
-            )
-    return out
+    return list(episode_records(graph, res, sensor))
 
 
 @pytest.fixture(scope="module")
