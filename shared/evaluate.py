@@ -7,6 +7,7 @@ in chunks of at most ``chunk`` slots, each chunk seeded from (seed, chunk index)
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -78,8 +79,6 @@ def evaluate(
 
     ``record`` keeps every step's positions and observations (for writing episode records).
     """
-    import time
-
     if episodes < 1:
         raise ValueError(f"expected at least 1 episode, got {episodes}")
     t0 = time.perf_counter()

@@ -12,6 +12,7 @@ import hashlib
 import json
 from collections import deque
 from dataclasses import dataclass, field
+from functools import cached_property
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -111,6 +112,11 @@ class Graph:
             return self.index[label]
         except KeyError:
             raise GraphError(f"node {label} is not in graph {self.name!r}") from None
+
+    @cached_property
+    def closed_adjacency(self) -> np.ndarray:
+        """(n, n) bool, computed once: [p, a] is True when a is in N[p]. Do not modify."""
+        return self.adjacency(closed=True)
 
     def adjacency(self, closed: bool = True) -> np.ndarray:
         """(n, n) bool adjacency; with ``closed`` the diagonal is set (N[p])."""

@@ -108,7 +108,7 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
             raise RecordError("z", f"step t={k}: z must be 0 or 1, got {zz!r}")
         nodes[k] = index[node]
         z[k] = int(zz)
-    adj = graph.adjacency(closed=True) if graph.n <= 4096 else None
+    adj = graph.closed_adjacency if graph.n <= 4096 else None
     for k in range(1, len(nodes)):
         u, v = nodes[k - 1], nodes[k]
         ok = adj[u, v] if adj is not None else v in graph.closed(int(u))

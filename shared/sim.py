@@ -127,6 +127,7 @@ class SearchSim:
         self.pending_by = torch.full((B,), -1, dtype=torch.long, device=dev)
         self.false_alarms = torch.zeros(B, dtype=torch.long, device=dev)
         self.active = torch.ones(B, N, dtype=torch.bool, device=dev)
+        self._new = torch.zeros(B, dtype=torch.bool, device=dev)
 
     # ------------------------------------------------------------------ internals
     def _rand(self, *shape: int) -> torch.Tensor:
