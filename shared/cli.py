@@ -15,6 +15,7 @@ import json
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ from shared.evaluate import episode_records, evaluate
 from shared.graph import BUILTIN_MAPS, Graph, GraphError, builtin_graph, load_graph_file
 from shared.models import ModelError, Sensor, TargetModel, parse_target
 from shared.records import read_jsonl
-from shared.searchers import REFERENCE_SEARCHERS, make_searcher
+from shared.searchers import REFERENCE_SEARCHERS, Searcher, make_searcher
 
 
 class CliError(Exception):
@@ -104,16 +105,20 @@ def _device(name: str) -> torch.device:
 
 
 # ---------------------------------------------------------------------- evaluate
+def _searcher_factory(
+    args: argparse.Namespace, graph: Graph, target: TargetModel, sensor: Sensor, device: torch.device
+) -> Callable[[int], Searcher]:
+    """seed -> searcher for evaluate(); checks the name once, before any simulation."""
+    if args.searcher not in REFERENCE_SEARCHERS:
+        raise CliError(f"unknown searcher {args.searcher!r} (expected one of {', '.join(REFERENCE_SEARCHERS)})")
+    return lambda seed: make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device)
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     graph, target, sensor = _world(args)
     device = _device(args.device)
-    if args.searcher not in REFERENCE_SEARCHERS:
-        raise CliError(f"unknown searcher {args.searcher!r} (expected one of {', '.join(REFERENCE_SEARCHERS)})")
-    res = evaluate(
-        graph, target, sensor, args.robots,
-        lambda seed: make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device),
-        episodes=args.episodes, seed=args.seed, device=device,
-    )  # fmt: skip
+    factory = _searcher_factory(args, graph, target, sensor, device)
+    res = evaluate(graph, target, sensor, args.robots, factory, episodes=args.episodes, seed=args.seed, device=device)
     summary: dict[str, Any] = {
         "map": graph.name,
         "graph_id": graph.graph_id,
@@ -144,13 +149,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     graph, target, sensor = _world(args)
     device = _device(args.device)
-    if args.searcher not in REFERENCE_SEARCHERS:
-        raise CliError(f"unknown searcher {args.searcher!r} (expected one of {', '.join(REFERENCE_SEARCHERS)})")
+    factory = _searcher_factory(args, graph, target, sensor, device)
     res = evaluate(
-        graph, target, sensor, args.robots,
-        lambda seed: make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device),
-        episodes=args.missions, seed=args.seed, device=device, record=True,
-    )  # fmt: skip
+        graph, target, sensor, args.robots, factory, episodes=args.missions, seed=args.seed, device=device, record=True
+    )
     out = Path(args.out)
     tmp = out.with_name(out.name + ".tmp")
     written = 0

@@ -145,15 +145,7 @@ def from_matrix(graph: Graph, gamma: Any, b0: Any = None, kind: str = "matrix") 
         raise ModelError(f"gamma row of node {graph.labels[r]} sums to {sums[r]:.6g}, not 1")
     g = g / sums[:, None]
     src = np.repeat(np.arange(n, dtype=np.int64), graph.deg_closed)
-    dst = graph.closed_idx
-    return TargetModel(
-        n=n,
-        src=src,
-        dst=dst.copy(),
-        prob=g[src, dst],
-        b0=uniform_b0(n) if b0 is None else _check_b0(b0, n),
-        kind=kind,
-    )
+    return _from_rows(graph, g[src, graph.closed_idx], kind, b0)
 
 
 def load_model_file(graph: Graph, path: str | Path) -> TargetModel:
