@@ -54,11 +54,15 @@ def rollout(
     ``collective``: every robot uses the collective belief (C-CE-PG).
     """
     B, N = sim.B, sim.N
+
+    def lik(pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Lambda's diagonal per robot (B', N, n): own (Eq. 2) or collective (Eq. 7)."""
+        if collective:
+            return belief.collective_likelihood(pos, z).unsqueeze(1).expand(-1, N, -1)
+        return belief.likelihood(pos, z)
+
     obs = sim.reset()
-    lik = belief.likelihood(obs.pos, obs.z)  # (B, N, n)
-    if collective:
-        lik = belief.collective_likelihood(obs.pos, obs.z).unsqueeze(1).expand(-1, N, -1)
-    b = belief.initial(lik)
+    b = belief.initial(lik(obs.pos, obs.z))
     logs: dict[str, list[torch.Tensor]] = {k: [] for k in ("pos", "belief", "action", "t", "episode")}
     capture_time = torch.zeros(B, dtype=torch.long, device=sim.device)
     censored = torch.zeros(B, dtype=torch.bool, device=sim.device)
@@ -74,11 +78,7 @@ def rollout(
         obs, res = sim.step(actions)
         capture_time = torch.where(res.done, res.capture_time, capture_time)
         censored = torch.where(res.done, res.censored, censored)
-        p, z = obs.pos[idx], obs.z[idx]
-        lik = (
-            belief.collective_likelihood(p, z).unsqueeze(1).expand(-1, N, -1) if collective else belief.likelihood(p, z)
-        )
-        b[idx] = belief.update(bel_a, lik)
+        b[idx] = belief.update(bel_a, lik(obs.pos[idx], obs.z[idx]))
     return Rollout(*(torch.cat(logs[k]) for k in ("pos", "belief", "action", "t", "episode")), capture_time, censored)
 
 
@@ -115,8 +115,6 @@ def cepg_loss(policy: TeamPolicy, ro: Rollout, beta: torch.Tensor, eps: float) -
     pi_j = logp.exp().detach()  # (S, N_i, N_j, n)
     h = -(pi_j * log_smooth.unsqueeze(2)).sum(-1)  # (S, N_i, N_j): H(pi_j, pi~_i) per state
     off = ~torch.eye(N, dtype=torch.bool, device=G.device)
-    ce = (h * off).sum(-1).sum(0) / (S * max(N - 1, 1))  # (N,)
-    if N == 1:
-        ce = torch.zeros_like(ce)
+    ce = (h * off).sum(-1).sum(0) / (S * max(N - 1, 1))  # (N,); 0 for a single robot
     objective = beta * pg + (1 - beta) * ce  # Eq. 9 per robot
     return LossTerms(loss=-objective.sum(), pg=pg.detach(), ce=ce.detach())

@@ -252,7 +252,7 @@ def eq8(graph: Graph, data: MissionData, rounds: int = 1, b0: np.ndarray | None 
     valid = torch.arange(T).unsqueeze(1) < torch.as_tensor(data.length).unsqueeze(0)  # (T, M)
     G = torch.eye(n, dtype=torch.float64)
     prior = torch.as_tensor(np.full(n, 1.0 / n) if b0 is None else b0)
-    support = torch.as_tensor(graph.adjacency(closed=True))
+    support = torch.as_tensor(graph.closed_adjacency)
     fallback = torch.as_tensor(uniform_walk(graph).dense())
     for _ in range(max(1, rounds)):
         alpha, _beta, _c = _forward_backward(G, prior, L, valid)

@@ -131,7 +131,7 @@ def from_matrix(graph: Graph, gamma: Any, b0: Any = None, kind: str = "matrix") 
     if np.any(g < 0):
         r, c = np.argwhere(g < 0)[0]
         raise ModelError(f"gamma[{graph.labels[r]}][{graph.labels[c]}] = {g[r, c]} is negative")
-    off = (g > 0) & ~graph.adjacency(closed=True)
+    off = (g > 0) & ~graph.closed_adjacency
     if off.any():
         r, c = np.argwhere(off)[0]
         raise ModelError(

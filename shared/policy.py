@@ -3,7 +3,7 @@
 Robot i's state is s = (onehot(p), b) in R^{2n}; its policy is an MLP 2n -> 2n -> n whose
 logits are masked to N[p] before the softmax. One network per robot (theta_i): the N networks'
 weights are stacked along a leading robot dimension so that a single batched matmul evaluates
-every robot, and ``cross`` evaluates every network on every robot's states (what the
+every robot, and ``cross_logits`` evaluates every network on every robot's states (what the
 cross-entropy term of Eq. 9 needs).
 
 Shapes: N robots, n nodes, H = 2n hidden units; states are given as positions (..., N) and

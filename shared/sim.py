@@ -92,7 +92,7 @@ class SearchSim:
         # graph tables
         self.nbr = torch.as_tensor(graph.nbr, device=dev)  # (n, d) N[p], padded with p
         self.deg = torch.as_tensor(graph.deg_closed, device=dev)  # (n,)
-        self.adj = torch.as_tensor(graph.adjacency(closed=True), device=dev)  # (n, n)
+        self.adj = torch.as_tensor(graph.closed_adjacency, device=dev)  # (n, n)
         ptr, idx = graph.detection_sets(sensor.detection)
         det = torch.zeros(graph.n, graph.n, dtype=torch.bool)
         det[torch.as_tensor(np.repeat(np.arange(graph.n), np.diff(ptr))), torch.as_tensor(idx)] = True
