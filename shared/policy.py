@@ -49,6 +49,12 @@ class TeamPolicy(nn.Module):
         out = torch.einsum("bnh,nha->bna", torch.relu(h), self.w2) + self.b2
         return out.masked_fill(~self.mask[pos], NEG_INF)
 
+    def logits_for(self, nets: torch.Tensor, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """Robot k runs network nets[k] (k robots, any k): pos (B, k), belief (B, k, n) -> (B, k, n)."""
+        h = self.w_pos[nets, pos] + torch.einsum("bki,kih->bkh", belief, self.w_bel[nets]) + self.b1[nets]
+        out = torch.einsum("bkh,kha->bka", torch.relu(h), self.w2[nets]) + self.b2[nets]
+        return out.masked_fill(~self.mask[pos], NEG_INF)
+
     def cross_logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         """Every network j on every robot i's state: pos (B, N), belief (B, N, n) -> (B, N_i, N_j, n)."""
         h = (

@@ -1,0 +1,301 @@
+"""CE-PG training, Algorithm 2 of the paper (centralised training in simulation).
+
+Each update simulates a batch of B complete episodes with the team's current stochastic policies
+(shared/cepg.py ``rollout``), takes one Adam step on the CE-PG loss (Eq. 9-13), and logs the
+batch's capture times. The simulator moves the target with the *true* model; the robots' beliefs
+use Gamma_hat and b0, which start at the paper's Gamma_hat_0 = I and uniform b0 (or a given
+model) and are re-estimated during training by the engine's EM (shared/estimate.py) from
+episode records of missions flown with the current policies: robots' positions and
+observations only, exactly what a real fleet reports. ``belief="true"`` lets the robots use the
+true model instead (for comparison).
+
+Per-robot learning rates (alpha_i of Eq. 13): Adam's step is linear in its learning rate, so the
+optimiser steps with max(alpha) and each robot's change is scaled by alpha_i / max(alpha).
+
+Scale-out: under torch.distributed (``torchrun``; gloo on CPU, nccl on GPU) each of W
+processes simulates B / W episodes of every update, gradients are summed with all_reduce, and
+every process takes the same step, so the replicas stay identical (checked at the end).
+Rank 0 estimates the model and broadcasts it, and is the only one to write files.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from shared.belief import BatchedBelief
+from shared.cepg import cepg_loss, rollout
+from shared.estimate import collect_missions, em, mean_row_tv
+from shared.evaluate import episode_records, evaluate
+from shared.graph import Graph
+from shared.models import Sensor, TargetModel, from_matrix
+from shared.policy import TeamPolicy
+from shared.sim import SearchSim
+from shared.snapshot import VARIANTS, PolicySearcher, Snapshot
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a training run (stored in the snapshot's metadata)."""
+
+    robots: int
+    episodes: int = 400_000
+    beta: list[float] = field(default_factory=lambda: [0.5])  # one value for all robots, or one per robot
+    lr: list[float] = field(default_factory=lambda: [1e-2])  # Adam learning rate alpha_i, same convention
+    variant: str = "cepg"
+    batch: int = 256  # episodes per update (B), over all processes
+    eps: float = 0.1  # smoothing of the cross entropy (shared/cepg.py)
+    belief: str = "em"  # "em": Gamma_hat_0 then EM re-estimates; "true": robots use the true model
+    em_first: int = 8192  # episodes before the first EM update
+    em_every: int = 100_000  # episodes between later EM updates
+    em_missions: int = 512  # missions recorded for each EM update
+    em_max_iter: int = 300
+    seed: int = 0
+    device: str = "cpu"
+    hidden: int | None = None  # 2n (the paper's) unless given
+
+    def per_robot(self, values: list[float], name: str) -> list[float]:
+        if len(values) == 1:
+            return values * self.robots
+        if len(values) != self.robots:
+            raise ValueError(f"{name}: give one value or one per robot ({self.robots}), got {len(values)}")
+        return list(values)
+
+    def check(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown variant {self.variant!r} (expected one of {', '.join(VARIANTS)})")
+        if self.belief not in ("em", "true"):
+            raise ValueError(f"belief must be 'em' or 'true', got {self.belief!r}")
+        for b in self.per_robot(self.beta, "beta"):
+            if not 0.0 <= b <= 1.0:
+                raise ValueError(f"beta must be in [0, 1], got {b}")
+        for a in self.per_robot(self.lr, "lr"):
+            if not 0.0 < a < 1.0:
+                raise ValueError(f"learning rate must be in (0, 1), got {a}")
+        if not 0.0 < self.eps <= 1.0:
+            raise ValueError(f"eps must be in (0, 1], got {self.eps}")
+        if self.batch < 1 or self.episodes < 1:
+            raise ValueError("batch and episodes must be positive")
+
+
+@dataclass
+class TrainResult:
+    policy: TeamPolicy
+    model: TargetModel  # the robots' belief model at the end
+    summary: dict[str, Any]
+    interrupted: bool
+
+
+def identity_model(graph: Graph) -> TargetModel:
+    """Gamma_hat_0 = I with uniform b0 (paper Table II)."""
+    return from_matrix(graph, np.eye(graph.n), kind="identity")
+
+
+def _world() -> tuple[int, int]:
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _params_digest(policy: TeamPolicy) -> torch.Tensor:
+    """A float64 checksum of the parameters, to compare replicas."""
+    return torch.stack([p.detach().double().sum() for p in policy.parameters()] + [
+        (p.detach().double() ** 2).sum() for p in policy.parameters()
+    ])
+
+
+def train(
+    graph: Graph,
+    target: TargetModel,
+    sensor: Sensor,
+    cfg: TrainConfig,
+    init_model: TargetModel | None = None,
+    init_policy: Snapshot | None = None,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> TrainResult:
+    """Train a team (module docstring). ``target`` is the true model the simulator uses;
+    ``init_model`` is Gamma_hat_0 (default I); ``init_policy`` warm-starts the networks.
+
+    ``progress`` gets a dict after every update; ``should_stop`` is polled after every update
+    and ends training early with the last completed update (``interrupted``).
+    """
+    cfg.check()
+    rank, world = _world()
+    device = torch.device(cfg.device)
+    N, n = cfg.robots, graph.n
+    beta = torch.tensor(cfg.per_robot(cfg.beta, "beta"), device=device)
+    lrs = torch.tensor(cfg.per_robot(cfg.lr, "lr"), device=device)
+    lr_scale = (lrs / lrs.max()).view(N, 1, 1)
+    collective = cfg.variant == "c-cepg"
+
+    torch.manual_seed(cfg.seed)  # identical initial weights on every process
+    policy = TeamPolicy(n, N, torch.as_tensor(graph.adjacency()), hidden=cfg.hidden).to(device)
+    if init_policy is not None:
+        if init_policy.robots != N or init_policy.policy.H != policy.H:
+            raise ValueError(
+                f"warm start: snapshot has {init_policy.robots} robots and {init_policy.policy.H} hidden units, "
+                f"this run {N} and {policy.H}"
+            )
+        policy.load_state_dict(init_policy.policy.state_dict())
+    opt = torch.optim.Adam(policy.parameters(), lr=float(lrs.max()))
+
+    model = target if cfg.belief == "true" else (init_model or identity_model(graph))
+    belief = BatchedBelief(graph, model, sensor, device)
+    local_batch = math.ceil(cfg.batch / world)
+    sim = SearchSim(graph, target, sensor, N, local_batch, seed=cfg.seed * 7_919 + rank, device=device,
+                    auto_reset=False)  # fmt: skip
+    gen = torch.Generator(device=device)
+    gen.manual_seed(cfg.seed * 104_729 + rank)
+
+    curve: list[dict[str, Any]] = []
+    em_log: list[dict[str, Any]] = []
+    episodes = env_steps = updates = 0
+    next_em = cfg.em_first if cfg.belief == "em" else math.inf
+    t0 = time.perf_counter()
+    interrupted = False
+    window: list[tuple[float, float, float, float]] = []  # per update: episodes, sum ct, sum censored, ce
+    curve_every = max(1, cfg.episodes // 200)
+    next_curve = curve_every
+    while episodes < cfg.episodes:
+        ro = rollout(sim, policy, belief, collective, gen)
+        terms = cepg_loss(policy, ro, beta, cfg.eps)
+        opt.zero_grad(set_to_none=False)
+        (terms.loss / world).backward()
+        stats = torch.tensor(
+            [float(ro.length.numel()), float(ro.capture_time.sum()), float(ro.censored.sum()),
+             float(ro.length.sum()), float(terms.ce.mean())], dtype=torch.float64,
+        )  # fmt: skip
+        if world > 1:
+            for p in policy.parameters():
+                dist.all_reduce(p.grad)
+            dist.all_reduce(stats)
+            stats[4] /= world
+        before = [p.detach().clone() for p in policy.parameters()]
+        opt.step()
+        with torch.no_grad():  # per-robot learning rates (module docstring)
+            for p, p0 in zip(policy.parameters(), before, strict=True):
+                scale = lr_scale.view(N, *([1] * (p.dim() - 1)))
+                p.copy_(p0 + scale * (p - p0))
+        updates += 1
+        n_eps, ct_sum, cens_sum, steps, ce = (float(x) for x in stats)
+        episodes += int(n_eps)
+        env_steps += int(steps)
+        window.append((n_eps, ct_sum, cens_sum, ce))
+        if episodes >= next_em:
+            em_log.append(_em_update(graph, target, sensor, cfg, policy, belief, episodes, rank, world, device))
+            model = belief_model(graph, belief, em_log[-1].get("kind", "em"))
+            next_em = episodes + cfg.em_every
+        stop = bool(should_stop and should_stop())
+        if episodes >= next_curve or episodes >= cfg.episodes or stop:
+            w_eps = sum(w[0] for w in window)
+            point = {
+                "episodes": episodes,
+                "mean_capture_time": sum(w[1] for w in window) / w_eps,
+                "censored_fraction": sum(w[2] for w in window) / w_eps,
+                "cross_entropy": sum(w[3] for w in window) / len(window),
+                "wall_seconds": round(time.perf_counter() - t0, 3),
+            }
+            curve.append(point)
+            window.clear()
+            next_curve = episodes + curve_every
+            if progress:
+                elapsed = time.perf_counter() - t0
+                progress({**point, "total": cfg.episodes, "updates": updates, "env_steps": env_steps,
+                          "episodes_per_second": episodes / max(elapsed, 1e-9)})  # fmt: skip
+        if stop:
+            interrupted = episodes < cfg.episodes
+            break
+    wall = time.perf_counter() - t0
+    if world > 1:  # the replicas must agree exactly
+        d = _params_digest(policy)
+        ref = d.clone()
+        dist.broadcast(ref, 0)
+        same = torch.tensor([float(torch.equal(d, ref))], dtype=torch.float64)
+        dist.all_reduce(same, op=dist.ReduceOp.MIN)
+        if same.item() != 1.0:
+            raise RuntimeError("data-parallel replicas diverged: weights differ between processes")
+    summary = {
+        "episodes": episodes,
+        "env_steps": env_steps,
+        "updates": updates,
+        "wall_seconds": round(wall, 3),
+        "episodes_per_second": round(episodes / max(wall, 1e-9), 1),
+        "env_steps_per_second": round(env_steps / max(wall, 1e-9), 1),
+        "processes": world,
+        "interrupted": interrupted,
+        "final_mean_capture_time": curve[-1]["mean_capture_time"] if curve else None,
+        "belief_model": model.kind,
+        "em_updates": em_log,
+        "learning_curve": curve,
+    }
+    return TrainResult(policy=policy, model=model, summary=summary, interrupted=interrupted)
+
+
+def belief_model(graph: Graph, belief: BatchedBelief, kind: str) -> TargetModel:
+    """The BatchedBelief's current (Gamma_hat, b0) as a TargetModel."""
+    g = belief.gamma.double().cpu().numpy()
+    g = g / g.sum(1, keepdims=True)
+    b0 = belief.b0.double().cpu().numpy()
+    return from_matrix(graph, g, b0 / b0.sum(), kind=kind)
+
+
+@torch.no_grad()
+def _em_update(
+    graph: Graph,
+    target: TargetModel,
+    sensor: Sensor,
+    cfg: TrainConfig,
+    policy: TeamPolicy,
+    belief: BatchedBelief,
+    episodes: int,
+    rank: int,
+    world: int,
+    device: torch.device,
+) -> dict[str, Any]:
+    """Algorithm 2's model update: fly ``em_missions`` missions with the current policies, turn
+    them into episode records, and re-estimate Gamma_hat and b0 by EM from those records."""
+    t0 = time.perf_counter()
+    info: dict[str, Any] = {"episodes": episodes}
+    gamma = torch.empty(graph.n, graph.n, dtype=torch.float64)
+    b0 = torch.empty(graph.n, dtype=torch.float64)
+    if rank == 0:
+        current = belief_model(graph, belief, "current")
+        snap = Snapshot(meta={"variant": cfg.variant, "robots": cfg.robots}, policy=policy, model=current,
+                        sensor=sensor)  # fmt: skip
+        res = evaluate(
+            graph, target, sensor, cfg.robots,
+            lambda s: PolicySearcher(snap, graph, sensor, cfg.robots, seed=s, device=device),
+            episodes=cfg.em_missions, seed=cfg.seed * 31 + episodes, device=device, record=True,
+        )  # fmt: skip
+        recs = episode_records(graph, res, sensor, mission_prefix=f"train-{episodes}")
+        data = collect_missions(((0, r) for r in recs), graph)
+        est = em(graph, data, max_iter=cfg.em_max_iter, tol=1e-5)
+        gamma.copy_(torch.as_tensor(est.model.dense()))
+        b0.copy_(torch.as_tensor(est.model.b0))
+        info.update(
+            missions=len(data.length),
+            iterations=est.iterations,
+            converged=est.converged,
+            mean_row_tv_to_true=round(mean_row_tv(est.model, target), 4),
+            kind="em",
+        )
+    if world > 1:
+        dist.broadcast(gamma, 0)
+        dist.broadcast(b0, 0)
+    belief.gamma = gamma.to(device=device, dtype=belief.dtype)
+    belief.b0 = b0.to(device=device, dtype=belief.dtype)
+    info["seconds"] = round(time.perf_counter() - t0, 3)
+    info.setdefault("kind", "em")
+    return info
+
+
+def config_dict(cfg: TrainConfig) -> dict[str, Any]:
+    return asdict(cfg)
