@@ -37,7 +37,7 @@ class Rollout:
     """Every decision of B complete episodes, flattened over (episode, t): S decisions in all.
 
     pos (S, N), belief (S, N, n), action (S, N), t (S,), episode (S,) index into the B episodes,
-    ret (S,) the return from t on; length (B,) decisions per episode (T_i of Eq. 12);
+    ret (S,) the team's return from t on, or (S, N) one per robot; length (B,) decisions per episode (T_i of Eq. 12);
     capture_time (B,), censored (B,).
     """
 
@@ -52,14 +52,20 @@ class Rollout:
     censored: torch.Tensor
 
 
-def sample(probs: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+def sample(probs: torch.Tensor, gen: torch.Generator | None, u: torch.Tensor | None = None) -> torch.Tensor:
     """One draw per row of ``probs`` (..., n) by inverting the CDF: (...,) long.
 
-    Same distribution as torch.multinomial, several times faster for many small rows.
+    Same distribution as torch.multinomial, several times faster for many small rows. Entries
+    with probability 0 are never drawn: ``<=`` steps over leading zeros when u = 0, and the
+    index is capped at the row's last positive entry when rounding puts u * total at the top.
+    ``u`` (..., 1) in [0, 1) replaces the random draw (tests).
     """
-    u = torch.rand(probs.shape[:-1] + (1,), generator=gen, device=probs.device, dtype=probs.dtype)
+    if u is None:
+        u = torch.rand(probs.shape[:-1] + (1,), generator=gen, device=probs.device, dtype=probs.dtype)
     cdf = probs.cumsum(-1)
-    return (cdf < u * cdf[..., -1:]).sum(-1).clamp_max(probs.shape[-1] - 1)
+    idx = (cdf <= u * cdf[..., -1:]).sum(-1)
+    last = ((probs > 0) * torch.arange(1, probs.shape[-1] + 1, device=probs.device)).argmax(-1)
+    return torch.minimum(idx, last)
 
 
 @torch.no_grad()
@@ -109,37 +115,55 @@ class LossTerms:
     ce: torch.Tensor  # (N,) mean over j != i of H(pi_j, pi~_i)
 
 
-def cepg_loss(policy: TeamPolicy, ro: Rollout, beta: torch.Tensor, eps: float) -> LossTerms:
+def cepg_loss(
+    policy: TeamPolicy,
+    ro: Rollout,
+    beta: torch.Tensor,
+    eps: float,
+    ce_fraction: float = 1.0,
+    gen: torch.Generator | None = None,
+    j_unit: float = 1.0,
+) -> LossTerms:
     """-J~ summed over robots (each theta_i gets only its own gradient, Eq. 10).
 
     Both terms of Eq. 9 keep their natural units, estimated over the rollout's B episodes: J in
     steps (the return is -t_cap), its gradient by Eq. 11 summed over each episode's steps; H in
     nats, averaged over each episode's own steps (the 1/T_i of Eq. 12).
+
+    ``ce_fraction`` < 1 estimates H on that random fraction of the decisions, weighted by its
+    inverse (unbiased); the N x N cross evaluation is most of the loss's cost.
     """
     N = policy.N
     B = ro.length.shape[0]
     # Eq. 11: returns G_t and the baseline b_t, the batch mean return of the episodes still
     # running at step t (unbiased: it does not depend on the action taken at t)
-    G = ro.ret  # (S,)
+    G = (ro.ret / j_unit).reshape(ro.t.shape[0], -1)  # (S, 1) team return, or (S, N) per robot
     T1 = int(ro.t.max()) + 1
-    sums = torch.zeros(T1, device=G.device).index_add_(0, ro.t, G)
-    cnts = torch.zeros(T1, device=G.device).index_add_(0, ro.t, torch.ones_like(G))
-    adv = G - (sums / cnts)[ro.t]  # (S,)
+    sums = torch.zeros(T1, G.shape[1], device=G.device).index_add_(0, ro.t, G)
+    cnts = torch.zeros(T1, device=G.device).index_add_(0, ro.t, torch.ones_like(G[:, 0]))
+    adv = G - (sums / cnts.unsqueeze(1))[ro.t]  # (S, 1) or (S, N)
     # robot i's own network on its own states, with gradient: (S, N, n)
     own = torch.log_softmax(policy.logits(ro.pos, ro.belief), dim=-1)
     logp_a = own.gather(2, ro.action.unsqueeze(2)).squeeze(2)  # (S, N): log pi_i(a_t | s_t)
-    pg = (logp_a * adv.unsqueeze(1)).sum(0) / B  # (N,): surrogate whose gradient is Eq. 11
+    pg = (logp_a * adv).sum(0) / B  # (N,): surrogate whose gradient is Eq. 11
     # Eq. 12 with the eps-smoothed pi~_i (module docstring). pi_j is a constant for theta_i
     # (Eq. 10), so the N x N cross evaluation needs no gradient.
-    with torch.no_grad():
-        pi_j = torch.softmax(policy.cross_logits(ro.pos, ro.belief), dim=-1)  # (S, N_i, N_j, n)
-    mask = policy.mask[ro.pos]  # (S, N, n)
+    S = ro.t.shape[0]
+    if ce_fraction < 1.0:
+        k = max(1, round(ce_fraction * S))
+        sub = torch.randperm(S, generator=gen, device=G.device)[:k]  # the decisions H is estimated on
+        weight = S / k
+    else:
+        sub, weight = torch.arange(S, device=G.device), 1.0
+    pos, own_s = ro.pos[sub], own[sub]
+    pi_j = policy.cross_probs(pos, ro.belief[sub])  # (K, N_i, N_j, n)
+    mask = policy.mask[pos]  # (K, N, n)
     uniform = mask / mask.sum(-1, keepdim=True)
-    smooth = torch.where(mask, (1 - eps) * own.exp() + eps * uniform, 1.0)  # 1 outside N[p]: log = 0, no NaN grads
-    h = -(pi_j * torch.log(smooth).unsqueeze(2)).sum(-1)  # (S, N_i, N_j): H(pi_j, pi~_i) per state
+    smooth = torch.where(mask, (1 - eps) * own_s.exp() + eps * uniform, 1.0)  # 1 outside N[p]: log = 0, no NaN
+    h = -(pi_j * torch.log(smooth).unsqueeze(2)).sum(-1)  # (K, N_i, N_j): H(pi_j, pi~_i) per state
     off = ~torch.eye(N, dtype=torch.bool, device=G.device)
-    h_i = (h * off).sum(-1) / max(N - 1, 1)  # (S, N): mean over j != i; 0 for a single robot
-    T_i = ro.length[ro.episode].clamp_min(1).to(torch.float32)  # (S,): each step's episode length
-    ce = (h_i / T_i.unsqueeze(1)).sum(0) / B  # (N,): Eq. 12's per-episode mean, averaged over episodes
+    h_i = (h * off).sum(-1) / max(N - 1, 1)  # (K, N): mean over j != i; 0 for a single robot
+    T_i = ro.length[ro.episode[sub]].clamp_min(1).to(torch.float32)  # (K,): each decision's episode length
+    ce = weight * (h_i / T_i.unsqueeze(1)).sum(0) / B  # (N,): Eq. 12's per-episode mean, averaged over episodes
     objective = beta * pg + (1 - beta) * ce  # Eq. 9 per robot
     return LossTerms(loss=-objective.sum(), pg=pg.detach(), ce=ce.detach())

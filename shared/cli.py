@@ -3,6 +3,7 @@
     mures evaluate  (--env office|museum | --graph FILE) --robots N --searcher NAME ...
     mures simulate  (--env | --graph) --robots N --missions M --out FILE.jsonl ...
     mures estimate  (--env | --graph) --episodes FILE.jsonl --out model.json ...
+    mures train     (--env | --graph) --robots N --out DIR [--beta 0.5] [--episodes 400000] ...
     mures map       (--env | --graph)
 
 Bad arguments and bad input files end with one line ``mures: error: ...`` and exit status 2.
@@ -12,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -28,6 +31,7 @@ from shared.graph import BUILTIN_MAPS, Graph, GraphError, builtin_graph, load_gr
 from shared.models import ModelError, Sensor, TargetModel, parse_target
 from shared.records import read_jsonl
 from shared.searchers import REFERENCE_SEARCHERS, Searcher, make_searcher
+from shared.snapshot import VARIANTS, PolicySearcher, SnapshotError, load_snapshot, save_snapshot
 
 
 class CliError(Exception):
@@ -68,8 +72,9 @@ def _add_world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--detection",
         choices=("node", "neighbourhood", "custom"),
-        default="node",
-        help="detection set D(p): {p}, N[p], or the graph file's sensing table (default node)",
+        default=None,
+        help="detection set D(p): {p}, N[p], or the graph file's sensing table (default node; "
+        "neighbourhood for cepg+; a policy snapshot's own when evaluating one)",
     )
     p.add_argument(
         "--target",
@@ -85,10 +90,11 @@ def _graph(args: argparse.Namespace) -> Graph:
     return builtin_graph(args.env) if args.env else load_graph_file(args.graph)
 
 
-def _world(args: argparse.Namespace) -> tuple[Graph, TargetModel, Sensor]:
+def _world(args: argparse.Namespace, detection: str = "node") -> tuple[Graph, TargetModel, Sensor]:
+    """The map, the true target model and the sensor; ``detection`` when --detection is not given."""
     graph = _graph(args)
     target = parse_target(graph, args.target)
-    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection)
+    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection or detection)
     if sensor.detection == "custom":
         graph.detection_sets("custom")  # raises a clear error when the graph has no table
     return graph, target, sensor
@@ -108,14 +114,32 @@ def _device(name: str) -> torch.device:
 def _searcher_factory(
     args: argparse.Namespace, graph: Graph, target: TargetModel, sensor: Sensor, device: torch.device
 ) -> Callable[[int], Searcher]:
-    """seed -> searcher for evaluate(); checks the name once, before any simulation."""
+    """seed -> searcher for evaluate(); checks the name (and loads a snapshot) once, before any simulation."""
+    if args.searcher.startswith("policy:"):
+        snap = load_snapshot(args.searcher.removeprefix("policy:"), graph, device=device)
+        note = snap.team_note(args.robots)
+        if note:
+            print(f"mures: note: {note}", file=sys.stderr)
+        return lambda seed: PolicySearcher(snap, graph, sensor, args.robots, seed=seed, device=device)
     if args.searcher not in REFERENCE_SEARCHERS:
-        raise CliError(f"unknown searcher {args.searcher!r} (expected one of {', '.join(REFERENCE_SEARCHERS)})")
+        names = ", ".join((*REFERENCE_SEARCHERS, "policy:DIR"))
+        raise CliError(f"unknown searcher {args.searcher!r} (expected one of {names})")
     return lambda seed: make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device)
 
 
+def _snapshot_detection(args: argparse.Namespace) -> str:
+    """A policy is evaluated with the detection it was trained for unless --detection says otherwise."""
+    if args.searcher.startswith("policy:") and args.detection is None:
+        meta = Path(args.searcher.removeprefix("policy:")) / "policy.json"
+        try:
+            return str(json.loads(meta.read_text(encoding="utf-8"))["sensor"]["detection"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return "node"  # load_snapshot reports the problem
+    return "node"
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    graph, target, sensor = _world(args)
+    graph, target, sensor = _world(args, _snapshot_detection(args))
     device = _device(args.device)
     factory = _searcher_factory(args, graph, target, sensor, device)
     res = evaluate(graph, target, sensor, args.robots, factory, episodes=args.episodes, seed=args.seed, device=device)
@@ -218,6 +242,130 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------- train
+def _floats(text: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or comma-separated numbers, got {text!r}") from None
+    if not vals or any(math.isnan(v) for v in vals):
+        raise argparse.ArgumentTypeError(f"expected a number or comma-separated numbers, got {text!r}")
+    return vals
+
+
+class _Progress:
+    """A one-line progress bar on a terminal; a line every 10% otherwise (logs)."""
+
+    def __init__(self, stream: Any = sys.stderr) -> None:
+        self.stream = stream
+        self.tty = stream.isatty()
+        self.next_pct = 10
+
+    def __call__(self, p: dict[str, Any]) -> None:
+        frac = min(1.0, p["episodes"] / p["total"])
+        rate = p["episodes_per_second"]
+        eta = (p["total"] - p["episodes"]) / max(rate, 1e-9)
+        text = (
+            f"{p['episodes']:>9,}/{p['total']:,} episodes  {rate:7.0f} eps/s  "
+            f"capture time {p['mean_capture_time']:6.2f}  CE {p['cross_entropy']:.2f}  ETA {max(eta, 0):4.0f} s"
+        )
+        if self.tty:
+            bar = "#" * int(24 * frac)
+            self.stream.write(f"\r[{bar:<24}] {text}")
+            self.stream.flush()
+        elif frac * 100 >= self.next_pct or frac >= 1.0:
+            self.next_pct = int(frac * 10) * 10 + 10
+            print(text, file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _init_distributed(device: torch.device) -> int:
+    """Join the torchrun process group when launched by torchrun; returns this process's rank."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return 0
+    import torch.distributed as dist
+
+    backend = "nccl" if device.type == "cuda" else "gloo"
+    if device.type == "cuda":
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+    dist.init_process_group(backend=backend)
+    return dist.get_rank()
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from shared.train import TrainConfig, config_dict, train
+
+    if args.variant not in VARIANTS:
+        raise CliError(f"unknown variant {args.variant!r}")
+    detection = "neighbourhood" if args.variant == "cepg+" else "node"
+    if args.variant == "cepg+" and args.detection == "node":
+        raise CliError("cepg+ trains with a sensing range: use --detection neighbourhood or custom, or leave it out")
+    graph, target, sensor = _world(args, detection)
+    device = _device(args.device)
+    out = Path(args.out)
+    if out.exists() and not (out / "policy.json").is_file():
+        raise CliError(f"--out {out} exists and is not a policy snapshot; refusing to replace it")
+    init_model = None
+    if args.model:
+        from shared.models import load_model_file
+
+        init_model = load_model_file(graph, args.model)
+    init_policy = load_snapshot(args.init, graph) if args.init else None
+    cfg = TrainConfig(
+        robots=args.robots, episodes=args.episodes, beta=args.beta, lr=args.lr, variant=args.variant,
+        batch=args.batch, eps=args.eps, belief="true" if args.true_model else "em", em_first=args.em_first,
+        em_every=args.em_every, em_missions=args.em_missions, seed=args.seed, device=str(device),
+    )  # fmt: skip
+    try:
+        cfg.check()
+        cfg.per_robot(cfg.beta, "--beta")
+        cfg.per_robot(cfg.lr, "--lr")
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    rank = _init_distributed(device)
+    stop = {"requested": False}
+
+    def on_sigint(_sig: int, _frame: Any) -> None:
+        if stop["requested"]:
+            raise KeyboardInterrupt
+        stop["requested"] = True
+        print("\nmures: stopping after the current update (Ctrl-C again to abort without a snapshot)",
+              file=sys.stderr)  # fmt: skip
+
+    old_handler = signal.signal(signal.SIGINT, on_sigint)
+    bar = _Progress() if rank == 0 and not args.quiet else None
+    if rank == 0:
+        print(
+            f"training {args.variant} on {graph.name} (n={graph.n}), N={args.robots}, beta={args.beta}, "
+            f"{args.episodes:,} episodes, {'true model' if args.true_model else 'EM-estimated model'}",
+            file=sys.stderr,
+        )
+    try:
+        res = train(graph, target, sensor, cfg, init_model=init_model, init_policy=init_policy, progress=bar,
+                    should_stop=lambda: stop["requested"])  # fmt: skip
+    finally:
+        signal.signal(signal.SIGINT, old_handler)
+        if bar:
+            bar.close()
+    if rank == 0:
+        config = {**config_dict(cfg), "target": target.kind, "map": graph.name}
+        save_snapshot(out, res.policy, graph, res.model, sensor, args.variant, cfg.per_robot(cfg.beta, "beta"),
+                      config, res.summary)  # fmt: skip
+        s = res.summary
+        print(
+            f"{'interrupted: ' if res.interrupted else ''}{s['episodes']:,} episodes ({s['env_steps']:,} team steps) "
+            f"in {s['wall_seconds']:.1f} s, {s['episodes_per_second']:.0f} episodes/s; "
+            f"last capture time {s['final_mean_capture_time']:.2f}; wrote {out}"
+        )
+    return 130 if res.interrupted else 0
+
+
 # ---------------------------------------------------------------------- map
 def cmd_map(args: argparse.Namespace) -> int:
     g = _graph(args)
@@ -241,7 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="evaluate a searcher in simulation and print capture-time statistics")
     _add_world_args(p)
-    p.add_argument("--searcher", required=True, help=f"one of {', '.join(REFERENCE_SEARCHERS)}")
+    p.add_argument("--searcher", required=True, help=f"one of {', '.join(REFERENCE_SEARCHERS)}, or policy:DIR")
     p.add_argument("--episodes", type=_positive_int, default=1500, help="episodes (default 1500)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_evaluate)
@@ -267,6 +415,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth", metavar="MODEL", help="a known model (lazy:STAY, uniform, or .json): report the TV")
     p.set_defaults(func=cmd_estimate)
 
+    p = sub.add_parser("train", help="train a team with CE-PG in simulation and write a policy snapshot")
+    _add_world_args(p)
+    p.add_argument("--out", required=True, metavar="DIR", help="snapshot directory to write")
+    p.add_argument("--episodes", type=_positive_int, default=400_000, help="training episodes (default 400000)")
+    p.add_argument("--beta", type=_floats, default=[0.5], help="beta, one or one per robot (default 0.5; 1 = PG)")
+    p.add_argument("--lr", type=_floats, default=[1e-2], help="Adam learning rate, one or one per robot (default 0.01)")
+    p.add_argument("--variant", choices=VARIANTS, default="cepg", help="cepg (default), cepg+ or c-cepg")
+    p.add_argument("--batch", type=_positive_int, default=256, help="episodes per update (default 256)")
+    p.add_argument("--eps", type=float, default=0.1, help="cross-entropy smoothing epsilon (default 0.1)")
+    p.add_argument("--true-model", action="store_true", help="robots' beliefs use the true target model (no EM)")
+    p.add_argument("--model", metavar="model.json", help="Gamma_hat_0 and b0 for the beliefs (default I, uniform)")
+    p.add_argument("--em-first", type=_positive_int, default=8192, help="episodes before the first EM update")
+    p.add_argument("--em-every", type=_positive_int, default=100_000, help="episodes between EM updates")
+    p.add_argument("--em-missions", type=_positive_int, default=512, help="missions recorded per EM update")
+    p.add_argument("--init", metavar="DIR", help="start from this snapshot's weights")
+    p.add_argument("--threads", type=_positive_int, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=cmd_train)
+
     p = sub.add_parser("map", help="print a map's size and graph_id")
     _add_map_args(p)
     p.set_defaults(func=cmd_map)
@@ -278,7 +445,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except (CliError, GraphError, ModelError) as exc:
+    except (CliError, GraphError, ModelError, SnapshotError) as exc:
         print(f"mures: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:

@@ -57,13 +57,21 @@ class TeamPolicy(nn.Module):
 
     def cross_logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         """Every network j on every robot i's state: pos (B, N), belief (B, N, n) -> (B, N_i, N_j, n)."""
-        h = (
-            self.w_pos[:, pos].permute(1, 2, 0, 3)  # (B, N_i, N_j, H)
-            + torch.einsum("bsi,nih->bsnh", belief, self.w_bel)
-            + self.b1
-        )
-        out = torch.einsum("bsnh,nha->bsna", torch.relu(h), self.w2) + self.b2
+        B, N, n = belief.shape
+        # layer 1's belief half for every (state i, network j) pair as one GEMM: (B N_i, n) @ (n, N_j H)
+        hb = (belief.reshape(B * N, n) @ self.w_bel.permute(1, 0, 2).reshape(n, N * self.H)).view(B, N, N, self.H)
+        h = torch.relu(hb + self.w_pos[:, pos].permute(1, 2, 0, 3) + self.b1)  # (B, N_i, N_j, H)
+        out = torch.einsum("bsnh,nha->bsna", h, self.w2) + self.b2
         return out.masked_fill(~self.mask[pos].unsqueeze(2), NEG_INF)
+
+    @torch.no_grad()
+    def cross_probs(self, pos: torch.Tensor, belief: torch.Tensor, chunk: int = 1024) -> torch.Tensor:
+        """softmax of ``cross_logits``, without gradient, computed in chunks of states that stay
+        in cache: (B, N) , (B, N, n) -> (B, N_i, N_j, n)."""
+        out = torch.empty(pos.shape[0], self.N, self.N, self.n, dtype=belief.dtype, device=belief.device)
+        for a in range(0, pos.shape[0], chunk):
+            out[a : a + chunk] = torch.softmax(self.cross_logits(pos[a : a + chunk], belief[a : a + chunk]), dim=-1)
+        return out
 
     def log_probs(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         """log pi_i(. | s^i): (B, N, n), -inf-like outside N[p]."""

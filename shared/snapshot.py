@@ -43,6 +43,7 @@ from shared.sim import Obs
 FORMAT = "mures.policy/1"
 WEIGHTS = "weights.pt"
 META = "policy.json"
+SUMMARY = "training_summary.json"
 VARIANTS = ("cepg", "cepg+", "c-cepg")
 
 
@@ -122,7 +123,8 @@ def save_snapshot(
     try:
         (tmp / WEIGHTS).write_bytes(weights)
         (tmp / META).write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
-        for f in (tmp / WEIGHTS, tmp / META):
+        (tmp / SUMMARY).write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")
+        for f in (tmp / WEIGHTS, tmp / META, tmp / SUMMARY):
             with open(f, "rb") as fh:
                 os.fsync(fh.fileno())
         if path.exists():

@@ -49,9 +49,12 @@ class TrainConfig:
     episodes: int = 400_000
     beta: list[float] = field(default_factory=lambda: [0.5])  # one value for all robots, or one per robot
     lr: list[float] = field(default_factory=lambda: [1e-2])  # Adam learning rate alpha_i, same convention
+    lr_final: float = 0.1  # the learning rate decays linearly to this fraction of itself over the run
     variant: str = "cepg"
     batch: int = 256  # episodes per update (B), over all processes
     eps: float = 0.1  # smoothing of the cross entropy (shared/cepg.py)
+    ce_fraction: float = 0.25  # share of decisions the cross entropy is estimated on (shared/cepg.py)
+    j_unit: float = 1.0  # J's unit in steps (shared/cepg.py)
     belief: str = "em"  # "em": Gamma_hat_0 then EM re-estimates; "true": robots use the true model
     em_first: int = 8192  # episodes before the first EM update
     em_every: int = 100_000  # episodes between later EM updates
@@ -79,6 +82,10 @@ class TrainConfig:
         for a in self.per_robot(self.lr, "lr"):
             if not 0.0 < a < 1.0:
                 raise ValueError(f"learning rate must be in (0, 1), got {a}")
+        if not 0.0 < self.ce_fraction <= 1.0:
+            raise ValueError(f"ce_fraction must be in (0, 1], got {self.ce_fraction}")
+        if not 0.0 < self.lr_final <= 1.0:
+            raise ValueError(f"lr_final must be in (0, 1], got {self.lr_final}")
         if not 0.0 < self.eps <= 1.0:
             raise ValueError(f"eps must be in (0, 1], got {self.eps}")
         if self.batch < 1 or self.episodes < 1:
@@ -146,6 +153,7 @@ def train(
             )
         policy.load_state_dict(init_policy.policy.state_dict())
     opt = torch.optim.Adam(policy.parameters(), lr=float(lrs.max()))
+    lr_max = float(lrs.max())
 
     model = target if cfg.belief == "true" else (init_model or identity_model(graph))
     belief = BatchedBelief(graph, model, sensor, device)
@@ -166,7 +174,7 @@ def train(
     next_curve = curve_every
     while episodes < cfg.episodes:
         ro = rollout(sim, policy, belief, collective, gen)
-        terms = cepg_loss(policy, ro, beta, cfg.eps)
+        terms = cepg_loss(policy, ro, beta, cfg.eps, cfg.ce_fraction, gen, cfg.j_unit)
         opt.zero_grad(set_to_none=False)
         (terms.loss / world).backward()
         stats = torch.tensor(
@@ -179,6 +187,8 @@ def train(
             dist.all_reduce(stats)
             stats[4] /= world
         before = [p.detach().clone() for p in policy.parameters()]
+        for group in opt.param_groups:  # linear decay: a steadier final policy
+            group["lr"] = lr_max * (1.0 - (1.0 - cfg.lr_final) * min(1.0, episodes / cfg.episodes))
         opt.step()
         with torch.no_grad():  # per-robot learning rates (module docstring)
             for p, p0 in zip(policy.parameters(), before, strict=True):

@@ -52,3 +52,18 @@ def test_each_robot_gets_only_its_own_gradient_and_ce_is_bounded():
     lp = pol.log_probs(ro.pos, ro.belief)[:, 0]  # robot 0's own network only
     lp.gather(1, ro.action[:, :1]).sum().backward()
     assert pol.w2.grad[1:].abs().sum() == 0 and pol.w2.grad[0].abs().sum() > 0
+
+
+def test_sample_never_draws_a_zero_probability_action():
+    from shared.cepg import sample
+
+    gen = torch.Generator().manual_seed(0)
+    probs = torch.tensor([[0.0, 0.5, 0.0, 0.5, 0.0], [0.0, 0.0, 1.0, 0.0, 0.0]]).repeat(50_000, 1)
+    draws = sample(probs, gen)
+    assert torch.all(probs.gather(1, draws.unsqueeze(1)) > 0)
+    assert abs(float((draws[::2] == 1).float().mean()) - 0.5) < 0.01
+    # the extreme uniforms: u = 0 and u just below 1 (where u * total can round up to the total)
+    rows = torch.tensor([[0.0, 0.3, 0.0, 0.7, 0.0], [0.0, 0.0, 1.0, 0.0, 0.0]])
+    for u in (0.0, 1.0 - 2**-24, 1.0 - 2**-30):
+        draws = sample(rows, None, torch.full((2, 1), u))
+        assert torch.all(rows.gather(1, draws.unsqueeze(1)) > 0), (u, draws)

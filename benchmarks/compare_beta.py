@@ -1,0 +1,74 @@
+"""CE-PG (beta = 0.5) against vanilla PG (beta = 1): same maps, team sizes, seeds and budget.
+
+Run: python benchmarks/compare_beta.py [--env office] [--robots 2,3,4] [--seeds 0,1,2]
+                                       [--episodes 30000] [--belief em|true] [--eval 1500]
+
+For every (N, seed) both betas train from the same initial weights and simulator seed; each final
+team is evaluated on 1500 episodes (seed 1000 + seed). Printed per run: the final capture time
+(mean, 95% CI) and the mean capture time over all training episodes (the area under the
+learning curve: lower = learned sooner); then, per N, both averaged over seeds with the paired
+difference PG - CE-PG (mean and 95% CI over seeds, t distribution).
+"""
+
+import argparse
+import math
+import statistics
+
+import torch
+
+from shared.evaluate import evaluate
+from shared.graph import builtin_graph
+from shared.models import Sensor, uniform_walk
+from shared.snapshot import PolicySearcher, Snapshot
+from shared.train import TrainConfig, train
+
+T95 = {1: 12.71, 2: 4.30, 3: 3.18, 4: 2.78, 5: 2.57, 6: 2.45, 7: 2.36, 8: 2.31, 9: 2.26}
+
+
+def ci(xs: list[float]) -> tuple[float, float]:
+    m = statistics.fmean(xs)
+    if len(xs) < 2:
+        return m, float("nan")
+    return m, T95.get(len(xs) - 1, 1.96) * statistics.stdev(xs) / math.sqrt(len(xs))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--env", default="office")
+    ap.add_argument("--robots", default="2,3,4")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--episodes", type=int, default=30_000)
+    ap.add_argument("--belief", default="em", choices=("em", "true"))
+    ap.add_argument("--eval", type=int, default=1500)
+    ap.add_argument("--threads", type=int, default=2)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    g = builtin_graph(a.env)
+    m, s = uniform_walk(g), Sensor()
+    print(f"{g.name}, {a.episodes:,} training episodes per run, beliefs: {a.belief}, eval {a.eval} episodes")
+    for N in (int(x) for x in a.robots.split(",")):
+        final: dict[float, list[float]] = {0.5: [], 1.0: []}
+        auc: dict[float, list[float]] = {0.5: [], 1.0: []}
+        for seed in (int(x) for x in a.seeds.split(",")):
+            for beta in (0.5, 1.0):
+                cfg = TrainConfig(robots=N, episodes=a.episodes, beta=[beta], belief=a.belief, seed=seed)
+                res = train(g, m, s, cfg)
+                snap = Snapshot(meta={"variant": "cepg", "robots": N}, policy=res.policy, model=res.model, sensor=s)
+                ev = evaluate(g, m, s, N, lambda sd, snap=snap, N=N: PolicySearcher(snap, g, s, N, seed=sd),
+                              episodes=a.eval, seed=1000 + seed).summary()  # fmt: skip
+                curve = res.summary["learning_curve"]
+                area = sum(p["mean_capture_time"] for p in curve) / len(curve)
+                final[beta].append(ev["mean_capture_time"])
+                auc[beta].append(area)
+                print(f"  N={N} seed={seed} beta={beta:g}: final {ev['mean_capture_time']:6.2f} "
+                      f"+- {ev['ci95_halfwidth']:.2f}   training mean {area:6.2f}   "
+                      f"({res.summary['wall_seconds']:.0f} s)", flush=True)  # fmt: skip
+        for label, d in (("final capture time", final), ("training mean (AUC)", auc)):
+            diff = [p - c for p, c in zip(d[1.0], d[0.5], strict=True)]
+            (mc, hc), (mp, hp), (md, hd) = ci(d[0.5]), ci(d[1.0]), ci(diff)
+            print(f"N={N} {label}: CE-PG {mc:.2f} +- {hc:.2f}, PG {mp:.2f} +- {hp:.2f}, "
+                  f"PG - CE-PG {md:+.2f} +- {hd:.2f} over {len(diff)} seeds")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

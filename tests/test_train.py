@@ -1,0 +1,211 @@
+"""The CE-PG trainer: the paper's toy (Fig. 4), learning, snapshots, the command line, scale-out."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from statistics import median
+
+import numpy as np
+import pytest
+import torch
+
+from shared.evaluate import evaluate
+from shared.graph import builtin_graph
+from shared.models import Sensor, uniform_walk
+from shared.searchers import RandomSearcher
+from shared.snapshot import PolicyAgent, PolicySearcher, SnapshotError, load_snapshot, save_snapshot
+from shared.toy import toy_fig4
+from shared.train import TrainConfig, train
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def split(p_a, at=0.9):
+    """Each robot puts >= ``at`` on a different node."""
+    (a, b) = p_a
+    return (a >= at and b <= 1 - at) or (b >= at and a <= 1 - at)
+
+
+def first_split(run):
+    return next((k for k, p in enumerate(run.p_a) if split(p)), len(run.p_a))
+
+
+def test_toy_fig4_own_rewards_beta_half_splits_and_pg_conglomerates_at_a():
+    """Paper Fig. 4 (b), (c): each robot rewarded for its own meeting."""
+    ce = [toy_fig4(0.5, seed=s, updates=150, reward="own").p_a[-1] for s in range(10)]
+    pg = [toy_fig4(1.0, seed=s, updates=150, reward="own").p_a[-1] for s in range(10)]
+    assert sum(split(p) for p in ce) >= 9, ce
+    assert sum(min(p) >= 0.9 for p in pg) >= 9, pg  # both robots go to A
+
+
+def test_toy_fig4_team_reward_cross_entropy_splits_sooner():
+    """SPEC toy (team reward): CE-PG splits in 9 of 10 seeds; PG reaches the split only by
+    escaping the (0.6, 0.6) saddle, later."""
+    ce = [toy_fig4(0.5, seed=s, updates=150) for s in range(10)]
+    pg = [toy_fig4(1.0, seed=s, updates=150) for s in range(10)]
+    assert sum(split(r.p_a[-1]) for r in ce) >= 9
+    assert median(first_split(r) for r in ce) < median(first_split(r) for r in pg)
+
+
+def small_cfg(**kw):
+    base = dict(robots=2, episodes=6000, batch=256, em_first=2048, em_every=10**9, em_missions=128, seed=3)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def office_run():
+    g = builtin_graph("office")
+    m, s = uniform_walk(g), Sensor()
+    res = train(g, m, s, small_cfg())
+    return g, m, s, res
+
+
+def test_training_learns_and_estimates_the_model(office_run):
+    g, m, s, res = office_run
+    snap_model = res.model
+    assert res.summary["episodes"] >= 6000 and res.summary["env_steps"] > res.summary["episodes"]
+    (em_info,) = res.summary["em_updates"]
+    assert em_info["episodes"] >= 2048 and em_info["missions"] == 128
+    # from 128 missions the estimate is much closer to the truth than Gamma_hat_0 = I is
+    from shared.estimate import mean_row_tv
+    from shared.train import identity_model
+
+    tv_identity = mean_row_tv(identity_model(g), m)  # 0.67 on OFFICE
+    assert em_info["mean_row_tv_to_true"] < tv_identity - 0.1 and snap_model.kind == "em"
+    from shared.snapshot import Snapshot
+
+    snap = Snapshot(meta={"variant": "cepg", "robots": 2}, policy=res.policy, model=res.model, sensor=s)
+    learned = evaluate(g, m, s, 2, lambda sd: PolicySearcher(snap, g, s, 2, seed=sd), episodes=1000, seed=5)
+    rand = evaluate(g, m, s, 2, lambda sd: RandomSearcher(g, seed=sd), episodes=1000, seed=5)
+    a, b = learned.summary(), rand.summary()
+    assert a["ci95"][1] < b["ci95"][0], (a["mean_capture_time"], b["mean_capture_time"])
+
+
+def test_snapshot_round_trip_and_checks(office_run, tmp_path):
+    g, m, s, res = office_run
+    d = save_snapshot(tmp_path / "snap", res.policy, g, res.model, s, "cepg", [0.5, 0.5], {"seed": 3}, res.summary)
+    snap = load_snapshot(d, g)
+    for (k, p), (_, q) in zip(res.policy.named_parameters(), snap.policy.named_parameters(), strict=True):
+        assert torch.equal(p, q), k
+    assert np.allclose(snap.model.dense(), res.model.dense())
+    assert json.loads((d / "training_summary.json").read_text())["episodes"] == res.summary["episodes"]
+    # the weights file is plain tensors
+    assert set(torch.load(d / "weights.pt", weights_only=True)) == {"w_pos", "w_bel", "b1", "w2", "b2"}
+    with pytest.raises(SnapshotError, match="not on 'MUSEUM'"):
+        load_snapshot(d, builtin_graph("museum"))
+    w = bytearray((d / "weights.pt").read_bytes())
+    w[-10] ^= 0xFF
+    (d / "weights.pt").write_bytes(bytes(w))
+    with pytest.raises(SnapshotError, match="sha256"):
+        load_snapshot(d, g)
+    (d / "policy.json").write_text("{not json")
+    with pytest.raises(SnapshotError, match="not valid JSON"):
+        load_snapshot(d, g)
+    with pytest.raises(SnapshotError, match="not a snapshot directory"):
+        load_snapshot(tmp_path / "nothing", g)
+
+
+def test_numpy_agent_matches_the_batched_policy(office_run):
+    """The robot agent's numpy decision step computes the same distribution as the trainer's."""
+    g, m, s, res = office_run
+    from shared.snapshot import Snapshot
+
+    snap = Snapshot(meta={"variant": "cepg", "robots": 2}, policy=res.policy, model=res.model, sensor=s)
+    agent = PolicyAgent(snap, g, robot=1, greedy_actions=True)
+    batched = PolicySearcher(snap, g, s, 2, greedy_actions=True)
+    ev = evaluate(g, m, s, 2, lambda sd: PolicySearcher(snap, g, s, 2, seed=sd), episodes=20, seed=9, record=True)
+    tr = ev.trajectories[0]
+    from shared.sim import Obs
+
+    for b in range(20):
+        L = int(tr.length[b])
+        batched._pred = None
+        for t in range(L - 1):
+            pos = torch.as_tensor(tr.pos[t, b : b + 1])
+            z = torch.as_tensor(tr.z[t, b : b + 1]).bool()
+            obs = Obs(pos, z, torch.tensor([t]), torch.tensor([t == 0]), torch.ones(1, 2, dtype=torch.bool),
+                      torch.ones(1, dtype=torch.bool))  # fmt: skip
+            want = int(batched.act(obs)[0, 1])
+            p, zz = int(tr.pos[t, b, 1]), int(tr.z[t, b, 1])
+            agent.reset(p, zz) if t == 0 else agent.observe(p, zz)
+            assert agent.act(p) == want
+
+
+def mures(*args, **kw):
+    return subprocess.run([sys.executable, "-m", "shared.cli", *args], capture_output=True, text=True, cwd=ROOT, **kw)
+
+
+def test_cli_train_then_evaluate_policy(tmp_path):
+    out = tmp_path / "team"
+    r = mures("train", "--env", "office", "--robots", "3", "--episodes", "1024", "--em-first", "512",
+              "--em-missions", "64", "--seed", "1", "--out", str(out))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "training_summary.json").read_text())
+    for key in ("episodes", "env_steps", "wall_seconds", "learning_curve", "em_updates"):
+        assert key in summary
+    meta = json.loads((out / "policy.json").read_text())
+    assert meta["robots"] == 3 and meta["variant"] == "cepg" and meta["beta"] == [0.5] * 3
+    assert meta["graph_id"] == builtin_graph("office").graph_id and len(meta["model"]["gamma"]) == 60
+    r = mures("evaluate", "--env", "office", "--robots", "2", "--searcher", f"policy:{out}", "--episodes", "300",
+              "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["episodes"] == 300
+    r = mures("evaluate", "--env", "office", "--robots", "5", "--searcher", f"policy:{out}", "--episodes", "50")
+    assert r.returncode == 0 and "network i mod 3" in r.stderr
+    r = mures("evaluate", "--env", "museum", "--robots", "2", "--searcher", f"policy:{out}")
+    assert r.returncode == 2 and "trained on map 'OFFICE'" in r.stderr
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["--beta", "0.5,0.1"], "one per robot (3)"),
+        (["--beta", "1.5"], "beta must be in [0, 1]"),
+        (["--lr", "x"], "comma-separated numbers"),
+        (["--variant", "cepg+", "--detection", "node"], "sensing range"),
+    ],
+)
+def test_cli_train_bad_arguments(tmp_path, args, fragment):
+    r = mures("train", "--env", "office", "--robots", "3", "--out", str(tmp_path / "x"), *args)
+    assert r.returncode == 2 and fragment in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_ctrl_c_leaves_a_valid_snapshot(tmp_path):
+    out = tmp_path / "team"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "shared.cli", "train", "--env", "office", "--robots", "2", "--episodes", "10000000",
+         "--true-model", "--out", str(out)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    time.sleep(6)
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=60)
+    assert p.returncode == 130, stderr
+    assert "interrupted" in stdout
+    snap = load_snapshot(out, builtin_graph("office"))
+    assert snap.meta["summary"]["interrupted"] and 0 < snap.meta["summary"]["episodes"] < 10000000
+
+
+def test_two_process_data_parallel_training_ends_with_identical_weights(tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+         str(ROOT / "tests" / "dist_worker.py"), str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    assert set(w0) == set(w1)
+    for k in w0:
+        assert torch.equal(w0[k], w1[k]), k
+    info = json.loads((tmp_path / "rank0.json").read_text())
+    assert info["processes"] == 2 and info["episodes"] >= 2048
+    init = torch.load(tmp_path / "init.pt", weights_only=True)
+    assert not torch.equal(init["w2"], w0["w2"])  # it trained
