@@ -61,7 +61,7 @@ def sample(probs: torch.Tensor, gen: torch.Generator | None, u: torch.Tensor | N
     ``u`` (..., 1) in [0, 1) replaces the random draw (tests).
     """
     if u is None:
-        u = torch.rand(probs.shape[:-1] + (1,), generator=gen, device=probs.device, dtype=probs.dtype)
+        u = torch.rand((*probs.shape[:-1], 1), generator=gen, device=probs.device, dtype=probs.dtype)
     cdf = probs.cumsum(-1)
     idx = (cdf <= u * cdf[..., -1:]).sum(-1)
     last = ((probs > 0) * torch.arange(1, probs.shape[-1] + 1, device=probs.device)).argmax(-1)

@@ -3,7 +3,8 @@
 Two robots wait at a depot; the target waits at its spot. In one step every robot goes to A or
 to B and the target goes to A with probability ``p_a`` (0.6), else to B. The team's reward is 1
 if any robot meets the target, else 0 (``reward="team"``, SPEC section 3); with ``reward="own"``
-each robot is rewarded only for its own meeting (the paper's t_cap^(i), robot i's capture). Each robot has its own network (the MLP of SPEC section 3
+each robot is rewarded only for its own meeting (the paper's t_cap^(i), robot i's capture).
+Each robot has its own network (the MLP of SPEC section 3
 on a 4-node graph: depot, spot, A, B) whose only allowed actions at the depot are A and B, and
 its state is (onehot(depot), b) with b the point mass on the target's spot.
 
@@ -46,6 +47,17 @@ def toy_fig4(
     """Train the two-robot toy team; returns the learning curves (paper Fig. 4(b), (c))."""
     if reward not in ("team", "own"):
         raise ValueError(f"reward must be 'team' or 'own', got {reward!r}")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tensors of a few dozen numbers: more threads only add overhead
+    try:
+        return _train_toy(beta, seed, updates, batch, lr, eps, p_a, reward)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train_toy(
+    beta: float, seed: int, updates: int, batch: int, lr: float, eps: float, p_a: float, reward: str
+) -> ToyRun:
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed + 1)
     mask = torch.eye(4, dtype=torch.bool)

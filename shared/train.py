@@ -113,9 +113,10 @@ def _world() -> tuple[int, int]:
 
 def _params_digest(policy: TeamPolicy) -> torch.Tensor:
     """A float64 checksum of the parameters, to compare replicas."""
-    return torch.stack([p.detach().double().sum() for p in policy.parameters()] + [
-        (p.detach().double() ** 2).sum() for p in policy.parameters()
-    ])
+    return torch.stack(
+        [p.detach().double().sum() for p in policy.parameters()]
+        + [(p.detach().double() ** 2).sum() for p in policy.parameters()]
+    )
 
 
 def train(

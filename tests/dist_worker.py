@@ -9,10 +9,10 @@ import torch.distributed as dist
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from shared.graph import builtin_graph  # noqa: E402
-from shared.models import Sensor, uniform_walk  # noqa: E402
-from shared.policy import TeamPolicy  # noqa: E402
-from shared.train import TrainConfig, train  # noqa: E402
+from shared.graph import builtin_graph
+from shared.models import Sensor, uniform_walk
+from shared.policy import TeamPolicy
+from shared.train import TrainConfig, train
 
 
 def main() -> None:
