@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml constraints.txt
 # 2 cores), then evaluate it and the reference searchers on the same 1500 episodes.
 DEMO_DIR ?= out/demo-museum
 demo: $(STAMP)
-	$(VENV)/bin/mures train --env museum --robots 4 --episodes 30000 --em-first 4096 --seed 0 --out $(DEMO_DIR)
+	$(VENV)/bin/mures train --env museum --robots 4 --episodes 30000 --em-first 4096 --em-missions 128 --seed 0 --out $(DEMO_DIR)
 	@for s in policy:$(DEMO_DIR) random greedy; do \
 	  $(VENV)/bin/mures evaluate --env museum --robots 4 --searcher $$s --episodes 1500 --seed 1 || exit 1; \
 	done

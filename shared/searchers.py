@@ -35,6 +35,28 @@ class _Neighbourhoods:
         self.valid = torch.arange(d, device=device).unsqueeze(0) < self.deg.unsqueeze(1)  # (n, d)
 
 
+class BeliefTracker:
+    """Each robot's belief across a batch of episodes (Eq. 1, or Eq. 6 with a collective lik):
+    b_t ∝ Lambda_t Gamma^T b_{t-1}, restarting from b0 in slots whose episode just began.
+    Reuses the prediction Gamma^T b made at the previous decision."""
+
+    def __init__(self, belief: BatchedBelief) -> None:
+        self.belief = belief
+        self._pred: torch.Tensor | None = None  # Gamma^T b_t from the last update, (B, N, n)
+
+    def update(self, lik: torch.Tensor, new: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """lik (B, N, n), new (B,) -> (b_t, Gamma^T b_t), both (B, N, n)."""
+        bel = self.belief
+        b0 = bel.b0.expand_as(lik)
+        if self._pred is None or self._pred.shape != lik.shape:
+            prior = b0
+        else:
+            prior = torch.where(new.view(-1, 1, 1), b0, self._pred)
+        b = bel.normalise(lik * prior, lik)
+        self._pred = bel.predict(b)
+        return b, self._pred
+
+
 class RandomSearcher:
     """`random`: every robot picks uniformly from N[p] (SPEC section 4)."""
 
@@ -72,22 +94,13 @@ class GreedySearcher:
     ) -> None:
         self.device = torch.device(device)
         self.tab = _Neighbourhoods(graph, self.device)
-        self.belief = BatchedBelief(graph, model, sensor, self.device)
+        self.beliefs = BeliefTracker(BatchedBelief(graph, model, sensor, self.device))
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(seed)
-        self._pred: torch.Tensor | None = None  # Gamma^T b_t from the last act, (B, N, n)
 
     def act(self, obs: Obs) -> torch.Tensor:
-        bel = self.belief
-        lik = bel.likelihood(obs.pos, obs.z)  # (B, N, n)
-        new = obs.new.view(-1, 1, 1)
-        if self._pred is None or self._pred.shape != lik.shape:
-            prior = bel.b0.expand_as(lik)
-        else:  # Eq. 1 reuses the prediction made for the last decision
-            prior = torch.where(new, bel.b0.expand_as(lik), self._pred)
-        b = bel.normalise(lik * prior, lik)  # b_t, own belief of each robot
-        pred = bel.predict(b)  # (B, N, n): (Gamma^T b_t)(v)
-        self._pred = pred
+        lik = self.beliefs.belief.likelihood(obs.pos, obs.z)  # (B, N, n)
+        _b, pred = self.beliefs.update(lik, obs.new)  # pred (B, N, n): (Gamma^T b_t)(v), own beliefs
         cand = self.tab.nbr[obs.pos]  # (B, N, d)
         valid = self.tab.valid[obs.pos]
         mass = torch.gather(pred, 2, cand).masked_fill(~valid, -1.0)

@@ -38,6 +38,7 @@ from shared.cepg import sample
 from shared.graph import Graph
 from shared.models import ModelError, Sensor, TargetModel, from_matrix
 from shared.policy import TeamPolicy
+from shared.searchers import BeliefTracker
 from shared.sim import Obs
 
 FORMAT = "mures.policy/1"
@@ -221,11 +222,11 @@ class PolicySearcher:
         self.policy = snap.policy.to(self.device)
         self.collective = snap.variant == "c-cepg"
         self.belief = BatchedBelief(graph, snap.model, sensor, self.device)
+        self.beliefs = BeliefTracker(self.belief)
         self.nets = torch.tensor([snap.network_for(i) for i in range(n_robots)], device=self.device)
         self.greedy_actions = greedy_actions
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(seed)
-        self._pred: torch.Tensor | None = None
 
     def _lik(self, obs: Obs) -> torch.Tensor:
         if self.collective:
@@ -235,14 +236,7 @@ class PolicySearcher:
 
     @torch.no_grad()
     def act(self, obs: Obs) -> torch.Tensor:
-        lik = self._lik(obs)  # (B, N, n)
-        b0 = self.belief.b0.expand_as(lik)
-        if self._pred is None or self._pred.shape != lik.shape:
-            prior = b0
-        else:
-            prior = torch.where(obs.new.view(-1, 1, 1), b0, self._pred)
-        b = self.belief.normalise(lik * prior, lik)  # Eq. 1 / Eq. 6
-        self._pred = self.belief.predict(b)
+        b, _pred = self.beliefs.update(self._lik(obs), obs.new)  # Eq. 1 / Eq. 6, (B, N, n)
         logits = self.policy.logits_for(self.nets, obs.pos, b)
         if self.greedy_actions:
             return logits.argmax(-1)

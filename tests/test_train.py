@@ -124,7 +124,6 @@ def test_numpy_agent_matches_the_batched_policy(trained_run):
 
     for b in range(20):
         L = int(tr.length[b])
-        batched._pred = None
         for t in range(L - 1):
             pos = torch.as_tensor(tr.pos[t, b : b + 1])
             z = torch.as_tensor(tr.z[t, b : b + 1]).bool()
