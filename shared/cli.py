@@ -383,6 +383,41 @@ def cmd_map(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------- fleet-sim
+def cmd_fleet_sim(args: argparse.Namespace) -> int:
+    from shared.fleetsim import run_fleet_sim
+
+    graph, target, sensor = _world(args, "node")
+    graph_args = ["--env", args.env] if args.env else ["--graph", str(Path(args.graph).resolve())]
+    if args.server and not (args.zenoh_connect and args.token_file):
+        raise CliError("--server needs --zenoh-connect ENDPOINT and --token-file FILE (the operator token)")
+    retrain = {"episodes": args.retrain_episodes}
+    server_extra = ["--init-policy", str(Path(args.init_policy).resolve())] if args.init_policy else None
+    if args.init_policy:
+        load_snapshot(args.init_policy, graph)  # a clear error before anything starts
+    res = run_fleet_sim(
+        graph, graph_args, target, sensor, args.robots, args.missions, args.seed, args.retrain_every, retrain,
+        Path(args.workdir) if args.workdir else None, quiet=args.json,
+        server=args.server, zenoh_connect=args.zenoh_connect, token_file=args.token_file,
+        agent_token_file=args.agent_token_file, step_delay=args.step_delay, server_extra=server_extra,
+    )  # fmt: skip
+    if args.json:
+        print(json.dumps({k: v for k, v in res.items() if k != "results"}, indent=1))
+        return 0
+    lo, hi = res["ci95"]
+    print(f"missions: {res['missions']} on {res['map']} with {res['robots']} robots (seed {res['seed']}), "
+          f"{res['wall_seconds']:.1f} s")  # fmt: skip
+    print(f"mean capture time: {res['mean_capture_time']:.2f} (95% CI {lo:.2f}..{hi:.2f}), "
+          f"censored {100 * res['censored_fraction']:.1f}%")  # fmt: skip
+    for v, d in res["by_policy_version"].items():
+        print(f"  policy version {v}: {d['missions']} missions, {d['mean_capture_time']:.2f} "
+              f"± {d['ci95_halfwidth']:.2f} steps, censored {100 * d['censored_fraction']:.1f}%")  # fmt: skip
+    print(f"episodes stored: {res['episodes_stored']}; rejected: {sum(res['episodes_rejected'].values())}; "
+          f"policy versions used: {', '.join(map(str, res['policy_versions_used']))}; "
+          f"lockstep step median {res['lockstep_step_ms_median']:.2f} ms")  # fmt: skip
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mures", description="MuRES fleet: multirobot search for a moving target")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -433,6 +468,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=_positive_int, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("fleet-sim", help="run server, simulated world and N robot agents on loopback; fly missions")
+    _add_world_args(p)
+    p.add_argument("--missions", type=_positive_int, required=True, help="missions to fly")
+    p.add_argument("--retrain-every", type=int, default=0, metavar="K", help="retrain over HTTP every K missions")
+    p.add_argument("--retrain-episodes", type=_positive_int, default=20_000, help="CE-PG episodes per retrain")
+    p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")
+    p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step, seconds")
+    p.add_argument("--workdir", help="keep the server's data, agents' state and logs here (default: a temp dir)")
+    p.add_argument("--server", metavar="URL", help="attach to this running server instead of starting one")
+    p.add_argument("--zenoh-connect", metavar="ENDPOINT", help="with --server: the fleet's Zenoh router")
+    p.add_argument("--token-file", metavar="FILE", help="with --server: the operator token")
+    p.add_argument("--agent-token-file", metavar="FILE", help="with --server: the agent token (default --token-file)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_fleet_sim)
 
     p = sub.add_parser("map", help="print a map's size and graph_id")
     _add_map_args(p)

@@ -1,0 +1,525 @@
+"""`robot-agent`: one robot's agent process (README "The fleet").
+
+    robot-agent --robot-id ID --server URL --zenoh-connect ENDPOINT [--fleet NAME]
+                [--token-file F] [--state-dir DIR] [--backend sim|MODULE:CLASS] [--telemetry]
+
+The agent connects to the fleet over Zenoh, declares its liveliness token, waits for missions on
+``mures/<fleet>/missions/*``, flies each with the committed policy and its own belief filter
+(Algorithm 1: decisions use this robot's own positions and observations only), and reports the
+mission's episode record through a durable outbox. It pulls a new policy version over HTTP only
+between missions.
+
+State directory (default ./mures-agent-<robot_id>):
+    map.json                 the server's map (used when the server is unreachable at start)
+    policies/v<k>/           verified policy snapshots; current.json names the one in use
+    outbox/<mission>.json    records not yet acknowledged by the server (resent until ok)
+    outbox/rejected/         records the server refused as invalid (kept, with the reason)
+    journal.jsonl            the mission in progress, step by step; after a crash it becomes a
+                             record (outcome: not captured) so that no observation is lost
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import os
+import queue
+import shutil
+import signal
+import sys
+import tarfile
+import tempfile
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from robot_agent.backend import BackendError, MissionOver, RobotBackend, load_backend
+from shared.fleet import (
+    DEFAULT_FLEET,
+    agent_key,
+    check_id,
+    episode_key,
+    mission_key,
+    parse_message,
+    read_token,
+    telemetry_key,
+    zenoh_config,
+)
+from shared.graph import Graph, graph_from_dict
+from shared.models import Sensor
+from shared.records import make_record
+
+log = logging.getLogger("mures.agent")
+
+END_WAIT_S = 10.0  # how long to wait for the end message after the world said the mission is over
+
+
+def mission_seed(seed: int, index: int) -> int:
+    """The action-sampling seed of the robot at ``index`` in a mission's robot list."""
+    return (int(seed) * 1_000_003 + 7_919 * (index + 1)) % (2**63)
+
+
+def _fsync_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+class Outbox:
+    """Records waiting for the server's ok: one file each, written (fsync) before any send."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        (root / "rejected").mkdir(parents=True, exist_ok=True)
+
+    def put(self, record: dict[str, Any]) -> Path:
+        path = self.root / f"{record['mission_id']}.json"
+        _fsync_write(path, json.dumps(record, separators=(",", ":")).encode())
+        return path
+
+    def pending(self) -> list[Path]:
+        return sorted(p for p in self.root.glob("*.json") if not p.name.startswith("."))
+
+    def reject(self, path: Path, reason: str) -> None:
+        dest = self.root / "rejected" / path.name
+        os.replace(path, dest)
+        (dest.with_suffix(".reason.txt")).write_text(reason + "\n", encoding="utf-8")
+
+
+class Journal:
+    """The mission in progress, one JSON line per step (the header first)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fh: Any = None
+
+    def begin(self, header: dict[str, Any]) -> None:
+        self.fh = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 - kept open for the mission
+        self._line(header)
+
+    def step(self, t: int, node: int, z: int) -> None:
+        self._line({"t": t, "node": node, "z": z})
+
+    def _line(self, obj: dict[str, Any]) -> None:
+        self.fh.write(json.dumps(obj) + "\n")
+        self.fh.flush()  # in the OS on every step: survives the agent being killed
+
+    def finish(self) -> None:
+        if self.fh:
+            self.fh.close()
+            self.fh = None
+        self.path.unlink(missing_ok=True)
+
+    def recover(self) -> tuple[dict[str, Any], list[dict[str, int]]] | None:
+        """The header and steps of a mission cut short by a crash, if any."""
+        if not self.path.exists():
+            return None
+        header, steps = None, []
+        for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
+            try:
+                obj = json.loads(line)
+            except ValueError:
+                break  # a torn last line
+            if header is None:
+                header = obj
+            elif obj.get("t") == len(steps):
+                steps.append(obj)
+        return (header, steps) if header and steps else None
+
+
+class PolicyStore:
+    """Verified policy snapshots on disk and the one in use."""
+
+    def __init__(self, root: Path, graph: Graph) -> None:
+        self.root = root
+        self.graph = graph
+        root.mkdir(parents=True, exist_ok=True)
+        self.version: int | None = None
+        self.snapshot: Any = None
+
+    def load_current(self) -> bool:
+        from shared.snapshot import SnapshotError, load_snapshot
+
+        cur = self.root / "current.json"
+        if not cur.exists():
+            return False
+        try:
+            v = int(json.loads(cur.read_text(encoding="utf-8"))["version"])
+            self.snapshot = load_snapshot(self.root / f"v{v}", self.graph)
+            self.version = v
+            return True
+        except (SnapshotError, ValueError, KeyError, OSError) as exc:
+            log.warning("cached policy unusable (%s); will download", exc)
+            return False
+
+    def install(self, version: int, tar_path: Path, sha256: str) -> None:
+        """Verify and swap in a downloaded artifact; raise ValueError (keeping the last good one)."""
+        from shared.snapshot import PolicyAgent, SnapshotError, load_snapshot
+
+        h = hashlib.sha256(tar_path.read_bytes()).hexdigest()
+        if h != sha256:
+            raise ValueError(f"artifact sha256 {h[:12]}... does not match the server's {sha256[:12]}...")
+        tmp = Path(tempfile.mkdtemp(prefix=f".v{version}.", dir=self.root))
+        try:
+            with tarfile.open(tar_path) as tar:
+                tar.extractall(tmp, filter="data")  # refuses absolute paths, links out, devices
+            try:
+                snap = load_snapshot(tmp, self.graph)  # graph_id, node order, shapes, weights sha256
+                PolicyAgent(snap, self.graph, 0)  # a policy this agent can run (not c-cepg)
+            except SnapshotError as exc:
+                raise ValueError(str(exc)) from None
+            final = self.root / f"v{version}"
+            shutil.rmtree(final, ignore_errors=True)
+            os.replace(tmp, final)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        _fsync_write(self.root / "current.json", json.dumps({"version": version, "sha256": sha256}).encode())
+        self.snapshot = load_snapshot(self.root / f"v{version}", self.graph)
+        self.version = version
+
+
+class Agent:
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.robot_id = check_id("robot id", args.robot_id)
+        self.fleet = check_id("fleet", args.fleet)
+        self.server = args.server.rstrip("/")
+        self.token = read_token(args.token_file) if args.token_file else None
+        self.state = Path(args.state_dir or f"mures-agent-{self.robot_id}")
+        self.state.mkdir(parents=True, exist_ok=True)
+        self.stop = threading.Event()
+        self.control: queue.Queue[dict[str, Any]] = queue.Queue()
+        self.flush_now = threading.Event()
+        self.outbox = Outbox(self.state / "outbox")
+        self.journal = Journal(self.state / "journal.jsonl")
+        self.session: Any = None
+        self.graph: Graph | None = None
+        self.policies: PolicyStore | None = None
+        self.in_mission = False
+
+    # ------------------------------------------------------------------ HTTP
+    def _http(self, path: str, headers: dict[str, str] | None = None, timeout: float = 10.0) -> Any:
+        req = urllib.request.Request(self.server + path, headers=dict(headers or {}))
+        if self.token:
+            req.add_header("Authorization", f"Bearer {self.token}")
+        return urllib.request.urlopen(req, timeout=timeout)
+
+    def _get_json(self, path: str) -> Any:
+        with self._http(path) as resp:
+            return json.loads(resp.read())
+
+    def fetch_map(self) -> Graph:
+        cache = self.state / "map.json"
+        while not self.stop.is_set():
+            try:
+                data = self._get_json("/api/v1/map")
+                graph = graph_from_dict(data, "server map")
+                if graph.graph_id != data.get("graph_id"):
+                    raise ValueError("the server's map does not hash to its graph_id")
+                _fsync_write(cache, json.dumps(data).encode())
+                return graph
+            except (urllib.error.URLError, OSError, ValueError) as exc:
+                if cache.exists():
+                    log.warning("server unreachable (%s); using the cached map", exc)
+                    return graph_from_dict(json.loads(cache.read_text(encoding="utf-8")), str(cache))
+                log.warning("waiting for the server's map: %s", exc)
+                self.stop.wait(2.0)
+        raise SystemExit(0)
+
+    def sync_policy(self, reason: str) -> None:
+        """Between missions only: take the server's current version if it differs from ours."""
+        assert self.policies is not None
+        try:
+            meta = self._get_json("/api/v1/policies/current")
+            version, sha = int(meta["version"]), str(meta["sha256"])
+            if meta.get("meta", {}).get("graph_id") != self.graph.graph_id:
+                raise ValueError(f"version {version} is for another map")
+            if version == self.policies.version:
+                return
+            tar_path = self.policies.root / f"v{version}.tar"
+            headers = {"If-None-Match": f'"{sha}"'} if tar_path.exists() else {}
+            try:
+                with self._http(f"/api/v1/policies/{version}/artifact", headers, timeout=60) as resp:
+                    etag = resp.headers.get("ETag", "").strip('"')
+                    if etag and etag != sha:
+                        raise ValueError(f"artifact ETag {etag[:12]}... differs from the version's sha256")
+                    _fsync_write(tar_path, resp.read())
+            except urllib.error.HTTPError as exc:
+                if exc.code != 304:
+                    raise
+            old = self.policies.version
+            self.policies.install(version, tar_path, sha)
+            log.info("policy version %s -> %d (%s)", old, version, reason)
+        except (urllib.error.URLError, OSError, ValueError, KeyError, TypeError) as exc:
+            have = self.policies.version
+            log.warning("policy update failed (%s); keeping version %s", exc, have)
+
+    # ------------------------------------------------------------------ Zenoh
+    def _on_control(self, sample: Any) -> None:  # callback: queue only
+        msg = parse_message(sample.payload.to_bytes())
+        if msg is not None:
+            self.control.put(msg)
+
+    def open_session(self) -> None:
+        conf = zenoh_config("client", connect=self.args.zenoh_connect, config_file=self.args.zenoh_config)
+        while not self.stop.is_set():
+            try:
+                self.session = zenoh.open(conf)
+                return
+            except zenoh.ZError as exc:
+                log.warning("cannot reach the Zenoh router %s (%s); retrying", self.args.zenoh_connect, exc)
+                self.stop.wait(2.0)
+        raise SystemExit(0)
+
+    def flush_loop(self) -> None:
+        backoff = 0.5
+        while not self.stop.is_set():
+            sent_all = self.flush_once()
+            backoff = 0.5 if sent_all else min(backoff * 2, 10.0)
+            self.flush_now.wait(backoff if not sent_all else 5.0)
+            self.flush_now.clear()
+
+    def flush_once(self, timeout: float = 10.0) -> bool:
+        """Send every pending record; True when the outbox is empty afterwards."""
+        ok_all = True
+        for path in self.outbox.pending():
+            try:
+                data = path.read_bytes()
+                rec = json.loads(data)
+                key = episode_key(self.fleet, rec["robot_id"], rec["mission_id"])
+            except (OSError, ValueError, KeyError) as exc:
+                self.outbox.reject(path, f"unreadable in the outbox: {exc}")
+                continue
+            answered = False
+            for reply in self.session.get(
+                key, payload=data, timeout=timeout, consolidation=zenoh.ConsolidationMode.NONE
+            ):
+                answered = True
+                if reply.ok is not None:
+                    path.unlink(missing_ok=True)
+                    log.debug("%s: %s", path.name, reply.ok.payload.to_bytes().decode())
+                else:
+                    text = reply.err.payload.to_bytes()
+                    try:
+                        err = json.loads(text)
+                    except ValueError:
+                        err = None
+                    if not isinstance(err, dict) or "reason" not in err or err["reason"] == "server-error":
+                        ok_all = False  # a timeout or a server fault, not a verdict on the record: resend later
+                        log.warning("sending %s: %s; will resend", path.name, text.decode(errors="replace")[:200])
+                    else:  # invalid record: keep it aside with the reason, do not resend forever
+                        log.error("server rejected %s: %s", path.name, err.get("error"))
+                        self.outbox.reject(path, json.dumps(err))
+                break
+            if not answered:
+                ok_all = False
+                break  # the server is unreachable: try again later
+        return ok_all
+
+    # ------------------------------------------------------------------ missions
+    def recover_journal(self) -> None:
+        got = self.journal.recover()
+        if got is None:
+            return
+        header, steps = got
+        rec = self._record(header, steps, None)
+        self.outbox.put(rec)
+        self.journal.finish()
+        log.warning("mission %s was cut short (%d steps recorded); its record is in the outbox",
+                    header["mission_id"], len(steps))  # fmt: skip
+
+    def _record(self, header: dict[str, Any], steps: list[dict[str, int]], end: dict[str, Any] | None) -> dict:
+        graph = self.graph
+        captured, ct, by = False, None, None
+        # a robot whose own steps end before the capture (withdrawn, restarted) did not witness it
+        if end and end.get("type") == "captured" and isinstance(end.get("t"), int) and end["t"] <= steps[-1]["t"]:
+            captured, ct, by = True, int(end["t"]), end.get("captured_by")
+            steps = steps[: ct + 1]
+        sensor = Sensor(**header["sensor"])
+        return make_record(graph, fleet=self.fleet, mission_id=header["mission_id"], robot_id=self.robot_id,
+                           nodes=[graph.index[s["node"]] for s in steps], z=[s["z"] for s in steps], sensor=sensor,
+                           captured=captured, capture_time=ct, captured_by=by,
+                           policy_version=header.get("policy_version"))  # fmt: skip
+
+    def run_mission(self, msg: dict[str, Any], backend: RobotBackend) -> None:
+        from shared.snapshot import PolicyAgent
+
+        assert self.policies is not None and self.graph is not None
+        graph = self.graph
+        mid = msg["mission_id"]
+        robots = msg.get("robots") or [self.robot_id]
+        index = robots.index(self.robot_id)
+        if msg.get("policy_version") is not None and msg["policy_version"] != self.policies.version:
+            self.sync_policy(f"before mission {mid}")  # still between missions
+        snap = self.policies.snapshot
+        agent = PolicyAgent(snap, graph, index, seed=mission_seed(msg.get("seed", 0), index))
+        max_steps = int(msg.get("max_steps") or 3 * graph.n)
+        header = {"mission_id": mid, "policy_version": self.policies.version, "sensor": snap.sensor.to_json(),
+                  "seed": msg.get("seed"), "index": index}  # fmt: skip
+        steps: list[dict[str, int]] = []
+        end: dict[str, Any] | None = None
+        decide_us: list[float] = []
+        pub = self.session.declare_publisher(telemetry_key(self.fleet, self.robot_id)) if self.args.telemetry else None
+        self.in_mission = True
+        log.info("mission %s: robot %d of %d, policy version %s", mid, index + 1, len(robots), self.policies.version)
+        self.journal.begin(header)
+        try:
+            node = int(backend.begin(msg))
+            t = 0
+            while True:
+                z = int(backend.detect())  # z_t at p_t
+                t0 = time.perf_counter()
+                p = graph.index[node]
+                if t == 0:
+                    agent.reset(p, z)  # b_0 ∝ Lambda(p_0, z_0) b0
+                else:
+                    agent.observe(p, z)  # Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}
+                steps.append({"t": t, "node": node, "z": z})
+                self.journal.step(t, node, z)
+                end = self._control_for(mid)
+                if end is not None or t >= max_steps or self.stop.is_set():
+                    break
+                goal = int(graph.labels[agent.act(p)])  # a_t ~ pi_i(. | onehot(p_t), b_t), Algorithm 1
+                decide_us.append((time.perf_counter() - t0) * 1e6)
+                if pub is not None:
+                    pub.put(json.dumps({"mission_id": mid, "t": t, "node": node, "z": z, "goal": goal,
+                                        "decide_us": round(decide_us[-1], 1)}).encode())  # fmt: skip
+                node = int(backend.move(goal))
+                if node not in graph.index:
+                    raise BackendError(f"backend reports node {node}, which is not on the map")
+                t += 1
+        except MissionOver:
+            end = self._control_for(mid, wait=END_WAIT_S)
+        except BackendError as exc:
+            log.error("mission %s aborted: %s", mid, exc)
+        finally:
+            self.in_mission = False
+            if pub is not None:
+                pub.undeclare()
+            try:
+                backend.end()
+            except Exception as exc:
+                log.warning("backend end(): %s", exc)
+        rec = self._record(header, steps, end)
+        self.outbox.put(rec)  # durable before it is sent
+        self.journal.finish()
+        self.flush_now.set()
+        med = float(np.median(decide_us)) if decide_us else float("nan")
+        out = rec["outcome"]
+        log.info("mission %s over after %d steps: %s; decision step median %.1f us",
+                 mid, len(rec["steps"]) - 1,
+                 f"captured at t={out['capture_time']} by {out['captured_by']}" if out["captured"] else
+                 (end or {}).get("type", "not captured"), med)  # fmt: skip
+        _fsync_write(self.state / "last_mission.json", json.dumps({"mission_id": mid, "decide_us_median": med,
+                     "decisions": len(decide_us), "steps": len(rec["steps"])}).encode())  # fmt: skip
+
+    def _control_for(self, mid: str, wait: float = 0.0) -> dict[str, Any] | None:
+        """The end message (captured/stop) of mission ``mid`` if one has arrived; others are dropped."""
+        deadline = time.monotonic() + wait
+        while True:
+            try:
+                msg = self.control.get(timeout=max(0.0, deadline - time.monotonic())) if wait else \
+                    self.control.get_nowait()  # fmt: skip
+            except queue.Empty:
+                return None
+            if msg["mission_id"] == mid and msg["type"] in ("captured", "stop"):
+                return msg
+            if msg["type"] == "start" and msg["mission_id"] != mid:
+                log.warning("mission %s started while %s is running; ignored", msg["mission_id"], mid)
+
+    # ------------------------------------------------------------------ main loop
+    def run(self) -> int:
+        self.open_session()
+        token = self.session.liveliness().declare_token(agent_key(self.fleet, self.robot_id))
+        sub = self.session.declare_subscriber(mission_key(self.fleet, "*"), self._on_control)
+        flusher = None
+        try:
+            self.graph = self.fetch_map()
+            self.policies = PolicyStore(self.state / "policies", self.graph)
+            self.policies.load_current()
+            self.sync_policy("start")
+            while self.policies.version is None and not self.stop.is_set():
+                self.stop.wait(2.0)
+                self.sync_policy("start")
+            self.recover_journal()
+            flusher = threading.Thread(target=self.flush_loop, name="outbox", daemon=True)
+            flusher.start()
+            backend = load_backend(self.args.backend, graph=self.graph, robot_id=self.robot_id,
+                                   session=self.session, fleet=self.fleet)  # fmt: skip
+            log.info("robot %s up in fleet %r with policy version %s", self.robot_id, self.fleet, self.policies.version)
+            while not self.stop.is_set():
+                try:
+                    msg = self.control.get(timeout=0.5)
+                except queue.Empty:
+                    continue
+                if msg["type"] != "start" or self.robot_id not in (msg.get("robots") or [self.robot_id]):
+                    continue
+                self.run_mission(msg, backend)
+                if not self.stop.is_set():
+                    self.sync_policy("between missions")
+        finally:
+            self.stop.set()
+            self.flush_now.set()
+            if flusher is not None:
+                flusher.join(15)
+                if self.session is not None:
+                    self.flush_once(timeout=3.0)
+            sub.undeclare()
+            token.undeclare()
+            self.session.close()
+        log.info("robot %s stopped (%d records waiting in the outbox)", self.robot_id, len(self.outbox.pending()))
+        return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="robot-agent", description="MuRES fleet robot agent")
+    p.add_argument("--robot-id", required=True, help="this robot's id (A-Z a-z 0-9 _ . -)")
+    p.add_argument("--server", required=True, metavar="URL", help="the training server, e.g. http://10.0.0.2:8000")
+    p.add_argument("--zenoh-connect", action="append", required=True, metavar="ENDPOINT",
+                   help="Zenoh router endpoint, e.g. tcp/10.0.0.2:7447 (repeatable)")  # fmt: skip
+    p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file (TLS, credentials)")
+    p.add_argument("--fleet", default=DEFAULT_FLEET)
+    p.add_argument("--token-file", help="the agent bearer token for the REST API")
+    p.add_argument("--state-dir", help="outbox, journal and policies (default ./mures-agent-<robot_id>)")
+    p.add_argument("--backend", default="sim", help="sim (fleet simulator) or MODULE:CLASS (robot_agent/backend.py)")
+    p.add_argument("--telemetry", action="store_true", help="publish per-step state on mures/<fleet>/telemetry/<id>")
+    p.add_argument("--log-level", default="INFO")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
+                        format=f"%(asctime)s %(levelname)s agent[{args.robot_id}]: %(message)s")  # fmt: skip
+    try:
+        agent = Agent(args)
+    except ValueError as exc:
+        print(f"robot-agent: error: {exc}", file=sys.stderr)
+        return 2
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        log.info("signal %d: %s", signum, "ending the mission and stopping" if agent.in_mission else "stopping")
+        agent.stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    try:
+        return agent.run()
+    except ValueError as exc:
+        print(f"robot-agent: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

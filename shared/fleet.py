@@ -1,0 +1,119 @@
+"""What the fleet's programs share on the wire (SPEC sections 5 and 6): Zenoh key expressions,
+session configuration, and the mission-control messages.
+
+Key expressions, segment by segment (``<fleet>`` defaults to ``default``; ids match
+``shared.records.ID_RE`` so that each is exactly one key segment)::
+
+    mures/<fleet>/agents/<robot_id>                   liveliness token: the agent is up
+        e.g. mures/default/agents/r2
+    mures/<fleet>/missions/<mission_id>               pub/sub, JSON mission-control messages
+        e.g. mures/default/missions/m-000017
+    mures/<fleet>/episodes/<robot_id>/<mission_id>    queryable on the server; the query payload
+        is one episode record; reply ok {"status": "stored"|"duplicate"} or err {"reason", "error"}
+    mures/<fleet>/telemetry/<robot_id>                pub/sub, optional per-step state
+    mures/<fleet>/sim/<mission_id>/<robot_id>         queryable of the simulated world (fleet-sim)
+
+Mission-control messages (JSON objects with a ``type``):
+
+    {"type": "start", "mission_id", "robots": [ids], "seed": int, "max_steps": int,
+     "sensor": {...}, "policy_version": int|null}
+    {"type": "captured", "mission_id", "t": int, "captured_by": id}     (the mission is over)
+    {"type": "stop", "mission_id", "reason": str}                        (the mission is over)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from shared.records import ID_RE
+
+DEFAULT_FLEET = "default"
+DEFAULT_ZENOH_ENDPOINT = "tcp/127.0.0.1:7447"
+DEFAULT_HTTP = "127.0.0.1:8000"
+
+
+def agent_key(fleet: str, robot: str = "*") -> str:
+    return f"mures/{fleet}/agents/{robot}"
+
+
+def mission_key(fleet: str, mission: str = "*") -> str:
+    return f"mures/{fleet}/missions/{mission}"
+
+
+def episode_key(fleet: str, robot: str = "*", mission: str = "*") -> str:
+    return f"mures/{fleet}/episodes/{robot}/{mission}"
+
+
+def telemetry_key(fleet: str, robot: str = "*") -> str:
+    return f"mures/{fleet}/telemetry/{robot}"
+
+
+def sim_key(fleet: str, mission: str = "*", robot: str = "*") -> str:
+    return f"mures/{fleet}/sim/{mission}/{robot}"
+
+
+def check_id(kind: str, value: str) -> str:
+    if not isinstance(value, str) or not ID_RE.match(value):
+        raise ValueError(f"{kind} {value!r} must be 1-128 characters of A-Z a-z 0-9 _ . -")
+    return value
+
+
+def zenoh_config(
+    mode: str,
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+    config_file: str | None = None,
+) -> Any:
+    """A zenoh.Config: from ``config_file`` if given (its own settings win), else built here with
+    multicast scouting off and explicit endpoints (../shared/notes/zenoh.md)."""
+    import zenoh
+
+    if config_file:
+        return zenoh.Config.from_file(config_file)
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    return conf
+
+
+def read_token(path: str | Path) -> str:
+    """A bearer token from a file (first line, stripped); a clear error when missing or empty."""
+    p = Path(path)
+    try:
+        tok = p.read_text(encoding="utf-8").strip()
+    except OSError as exc:
+        raise ValueError(f"cannot read token file {p}: {exc.strerror}") from None
+    if not tok:
+        raise ValueError(f"token file {p} is empty")
+    return tok
+
+
+def write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` with mode 0600, atomically."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def parse_message(payload: bytes) -> dict[str, Any] | None:
+    """A mission-control message, or None when it is not one (ignored, never fatal)."""
+    try:
+        msg = json.loads(payload)
+    except (ValueError, UnicodeDecodeError):
+        return None
+    if not isinstance(msg, dict) or msg.get("type") not in ("start", "captured", "stop"):
+        return None
+    if not isinstance(msg.get("mission_id"), str):
+        return None
+    return msg

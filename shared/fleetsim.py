@@ -1,0 +1,335 @@
+"""`mures fleet-sim`: the whole product on one machine, on loopback.
+
+Starts a training server (or attaches to one with --server/--zenoh-connect/--token-file), a
+simulated world that owns the hidden target (shared/world.py), and N `robot-agent` processes
+with the simulated backend; then flies M missions through the REST API, optionally retraining
+every K missions over HTTP, and reports the capture times per policy version.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.error
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shared.fleet import read_token, zenoh_config
+from shared.graph import Graph
+from shared.models import Sensor, TargetModel
+
+
+class ApiError(RuntimeError):
+    def __init__(self, status: int, body: Any) -> None:
+        super().__init__(f"HTTP {status}: {body}")
+        self.status = status
+        self.body = body
+
+
+class ApiClient:
+    """A small client of the server's REST API (urllib; JSON in and out)."""
+
+    def __init__(self, base: str, token: str | None) -> None:
+        self.base = base.rstrip("/")
+        self.token = token
+
+    def call(self, method: str, path: str, body: Any = None, timeout: float = 30.0) -> Any:
+        data = None if body is None else json.dumps(body).encode()
+        req = urllib.request.Request(self.base + path, data=data, method=method)
+        if data is not None:
+            req.add_header("Content-Type", "application/json")
+        if self.token:
+            req.add_header("Authorization", f"Bearer {self.token}")
+        try:
+            with urllib.request.urlopen(req, timeout=timeout) as resp:
+                raw = resp.read()
+                return json.loads(raw) if raw else None
+        except urllib.error.HTTPError as exc:
+            raw = exc.read()
+            try:
+                payload = json.loads(raw)
+            except ValueError:
+                payload = raw.decode(errors="replace")
+            raise ApiError(exc.code, payload) from None
+
+    def get(self, path: str) -> Any:
+        return self.call("GET", path)
+
+    def post(self, path: str, body: Any = None) -> Any:
+        return self.call("POST", path, body if body is not None else {})
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_until(pred: Any, timeout: float, what: str, every: float = 0.05) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            got = pred()
+        except (OSError, ApiError, urllib.error.URLError):
+            got = None
+        if got:
+            return got
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(every)
+
+
+def mean_ci(x: list[float] | np.ndarray) -> tuple[float, float]:
+    """Mean and the half-width of its normal 95% CI."""
+    a = np.asarray(x, dtype=np.float64)
+    if len(a) == 0:
+        return float("nan"), float("nan")
+    half = 1.96 * a.std(ddof=1) / math.sqrt(len(a)) if len(a) > 1 else float("nan")
+    return float(a.mean()), float(half)
+
+
+@dataclass
+class Fleet:
+    """Handles of a running simulated fleet (server, world, agents)."""
+
+    graph: Graph
+    api: ApiClient
+    zenoh_endpoint: str
+    workdir: Path
+    agent_token_file: Path
+    server: subprocess.Popen | None = None
+    agents: dict[str, subprocess.Popen] = field(default_factory=dict)
+    session: Any = None
+    world: Any = None
+    log_dir: Path | None = None
+
+    def start_agent(self, robot: str, extra: list[str] | None = None) -> subprocess.Popen:
+        assert self.log_dir is not None
+        cmd = [sys.executable, "-m", "robot_agent.agent", "--robot-id", robot, "--server", self.api.base,
+               "--zenoh-connect", self.zenoh_endpoint, "--token-file", str(self.agent_token_file),
+               "--state-dir", str(self.workdir / "agents" / robot), "--backend", "sim", *(extra or [])]  # fmt: skip
+        log = open(self.log_dir / f"agent-{robot}.log", "ab")  # noqa: SIM115 - owned by the process
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_child_env())
+        self.agents[robot] = proc
+        return proc
+
+    def stop_agent(self, robot: str, sig: int = signal.SIGTERM, timeout: float = 20.0) -> int | None:
+        proc = self.agents.pop(robot)
+        proc.send_signal(sig)
+        try:
+            return proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            return None
+
+    def online(self) -> list[str]:
+        return [a["robot_id"] for a in self.api.get("/api/v1/fleet")["agents"]]
+
+    def fly(self, robots: list[str], seed: int, timeout: float = 120.0, **extra: Any) -> dict[str, Any]:
+        """Start a mission and wait until every robot's record is stored."""
+        m = self.api.post("/api/v1/missions", {"robots": robots, "seed": seed, **extra})
+        mid = m["id"]
+        return wait_until(
+            lambda: (r := self.api.get(f"/api/v1/missions/{mid}"))["status"] == "completed" and r,
+            timeout, f"mission {mid}", every=0.01,
+        )  # fmt: skip
+
+    def close(self) -> None:
+        for robot in list(self.agents):
+            self.stop_agent(robot)
+        if self.world is not None:
+            self.world.close()
+        if self.session is not None:
+            self.session.close()
+        if self.server is not None:
+            self.server.send_signal(signal.SIGTERM)
+            try:
+                self.server.wait(30)
+            except subprocess.TimeoutExpired:
+                self.server.kill()
+                self.server.wait()
+
+
+def _child_env() -> dict[str, str]:
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parent.parent)
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.setdefault("OMP_NUM_THREADS", "1")  # agents do tiny numpy work; no thread pools
+    return env
+
+
+def start_server(
+    graph_args: list[str], data_dir: Path, robots: int, sensor: Sensor, log_dir: Path,
+    extra: list[str] | None = None,
+) -> tuple[subprocess.Popen, str, str]:  # fmt: skip
+    """A training-server process on free loopback ports: (process, base URL, zenoh endpoint)."""
+    http_port, z_port = free_port(), free_port()
+    endpoint = f"tcp/127.0.0.1:{z_port}"
+    cmd = [sys.executable, "-m", "training_server.server", *graph_args, "--data-dir", str(data_dir),
+           "--http", f"127.0.0.1:{http_port}", "--zenoh-listen", endpoint, "--robots", str(robots),
+           "--eta-fn", str(sensor.eta_fn), "--eta-fp", str(sensor.eta_fp), "--detection", sensor.detection,
+           *(extra or [])]  # fmt: skip
+    log = open(log_dir / "server.log", "ab")  # noqa: SIM115 - owned by the process
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_child_env())
+    base = f"http://127.0.0.1:{http_port}"
+    probe = ApiClient(base, None)
+
+    def up() -> bool:
+        if proc.poll() is not None:
+            tail = (log_dir / "server.log").read_text(errors="replace")[-2000:]
+            raise RuntimeError(f"training-server exited with status {proc.returncode}:\n{tail}")
+        return probe.get("/api/v1/health")["status"] == "ok"
+
+    wait_until(up, 90, "the training server to answer /api/v1/health", every=0.2)
+    return proc, base, endpoint
+
+
+def launch(
+    graph: Graph,
+    graph_args: list[str],
+    target: TargetModel,
+    sensor: Sensor,
+    robots: int,
+    workdir: Path,
+    server: str | None = None,
+    zenoh_connect: str | None = None,
+    token_file: str | None = None,
+    agent_token_file: str | None = None,
+    step_delay: float = 0.0,
+    step_timeout: float = 10.0,
+    server_extra: list[str] | None = None,
+    agent_extra: list[str] | None = None,
+) -> Fleet:
+    """Start (or attach to) a server, the world and ``robots`` agents r1..rN; wait until all are online."""
+    import zenoh
+
+    from shared.world import World
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    log_dir = workdir / "logs"
+    log_dir.mkdir(exist_ok=True)
+    proc = None
+    if server:
+        if not (zenoh_connect and token_file):
+            raise ValueError("--server needs --zenoh-connect and --token-file (the operator token)")
+        base, endpoint = server, zenoh_connect
+        op_token = read_token(token_file)
+        agent_tok = Path(agent_token_file or token_file)
+    else:
+        data_dir = workdir / "server"
+        proc, base, endpoint = start_server(graph_args, data_dir, robots, sensor, log_dir, server_extra)
+        op_token = read_token(data_dir / "operator.token")
+        agent_tok = data_dir / "agent.token"
+    fleet = Fleet(graph=graph, api=ApiClient(base, op_token), zenoh_endpoint=endpoint, workdir=workdir,
+                  agent_token_file=agent_tok, server=proc, log_dir=log_dir)  # fmt: skip
+    try:
+        health = fleet.api.get("/api/v1/health")
+        if health["graph_id"] != graph.graph_id:
+            raise ValueError(f"the server at {base} serves another map ({health['graph_id'][:20]}...)")
+        fleet.session = zenoh.open(zenoh_config("client", connect=[endpoint]))
+        fleet.world = World(fleet.session, health["fleet"], graph, target, sensor, step_timeout=step_timeout,
+                            step_delay=step_delay)  # fmt: skip
+        for i in range(robots):
+            fleet.start_agent(f"r{i + 1}", agent_extra)
+        want = {f"r{i + 1}" for i in range(robots)}
+        wait_until(lambda: want <= set(fleet.online()), 90, f"{robots} agents to come online", every=0.2)
+    except BaseException:
+        fleet.close()
+        raise
+    return fleet
+
+
+def run_fleet_sim(
+    graph: Graph, graph_args: list[str], target: TargetModel, sensor: Sensor, robots: int, missions: int,
+    seed: int, retrain_every: int, retrain_params: dict[str, Any], workdir: Path | None, quiet: bool,
+    **launch_kw: Any,
+) -> dict[str, Any]:  # fmt: skip
+    """Fly ``missions`` missions and return the summary (see ``mures fleet-sim``)."""
+    say = (lambda *_a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
+    tmp = None
+    if workdir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="mures-fleet-")
+        workdir = Path(tmp.name)
+    t0 = time.perf_counter()
+    say(f"fleet-sim: starting server, world and {robots} agents on loopback (work dir {workdir})")
+    fleet = launch(graph, graph_args, target, sensor, robots, workdir, **launch_kw)
+    ids = [f"r{i + 1}" for i in range(robots)]
+    results: list[dict[str, Any]] = []
+    runs: list[dict[str, Any]] = []
+    try:
+        say(f"fleet-sim: {robots} agents online after {time.perf_counter() - t0:.1f} s; flying {missions} missions")
+        for k in range(missions):
+            m = fleet.fly(ids, seed=seed * 100_003 + k)
+            out = m["outcome"] or {}
+            ct = out.get("capture_time")
+            max_steps = m["params"]["max_steps"]
+            results.append({"mission_id": m["id"], "captured": ct is not None,
+                            "capture_time": ct if ct is not None else max_steps,
+                            "policy_version": (out.get("policy_versions") or [m["policy_version"]])[0]})  # fmt: skip
+            if (k + 1) % max(1, missions // 10) == 0 or k + 1 == missions:
+                done = [r["capture_time"] for r in results]
+                mean, half = mean_ci(done)
+                say(f"fleet-sim: {k + 1}/{missions} missions, mean capture time {mean:.2f} ± {half:.2f}")
+            if retrain_every and (k + 1) % retrain_every == 0 and k + 1 < missions:
+                say(f"fleet-sim: retraining over HTTP after {k + 1} missions ({json.dumps(retrain_params)})")
+                run = fleet.api.post("/api/v1/training-runs", {**retrain_params, "seed": seed + k})
+                last = [""]
+
+                def finished(run_id: str = run["id"], last: list[str] = last) -> dict[str, Any] | None:
+                    r = fleet.api.get(f"/api/v1/training-runs/{run_id}")
+                    prog = r.get("progress") or {}
+                    line = f"{prog.get('phase', '')} {prog.get('episodes', '')}/{prog.get('total', '')}"
+                    if line != last[0] and prog.get("phase") in ("em", "gate", "train"):
+                        last[0] = line
+                        if prog.get("phase") != "train" or prog.get("episodes", 0) >= prog.get("total", 1):
+                            say(f"fleet-sim:   {prog.get('phase')}: {prog.get('message') or line}")
+                    return r if r["status"] in ("succeeded", "failed", "cancelled") else None
+
+                r = wait_until(finished, 3600, f"training run {run['id']}", every=0.25)
+                runs.append({k2: r[k2] for k2 in ("id", "status", "version", "error", "metrics")})
+                say(f"fleet-sim: run {r['id']} {r['status']}" + (f": version {r['version']}" if r["version"] else
+                    f" ({r['error']})"))  # fmt: skip
+        stats = fleet.api.get("/api/v1/episodes/stats")
+    finally:
+        fleet.close()
+        if tmp is not None:
+            tmp.cleanup()
+    ct_all = [r["capture_time"] for r in results]
+    mean, half = mean_ci(ct_all)
+    by_version: dict[str, Any] = {}
+    for v in sorted({r["policy_version"] for r in results}):
+        x = [r["capture_time"] for r in results if r["policy_version"] == v]
+        mv, hv = mean_ci(x)
+        by_version[str(v)] = {"missions": len(x), "mean_capture_time": mv, "ci95_halfwidth": hv,
+                              "censored_fraction": float(np.mean([not r["captured"] for r in results
+                                                                  if r["policy_version"] == v]))}  # fmt: skip
+    step_ms = np.asarray(fleet.world.step_seconds) * 1e3 if fleet.world else np.zeros(0)
+    return {
+        "missions": len(results),
+        "robots": robots,
+        "map": graph.name,
+        "seed": seed,
+        "mean_capture_time": mean,
+        "ci95": [mean - half, mean + half],
+        "censored_fraction": float(np.mean([not r["captured"] for r in results])) if results else float("nan"),
+        "episodes_stored": stats["stored"],
+        "episodes_rejected": stats["rejected"],
+        "policy_versions_used": sorted({r["policy_version"] for r in results}),
+        "by_policy_version": by_version,
+        "training_runs": runs,
+        "lockstep_step_ms_median": float(np.median(step_ms)) if len(step_ms) else None,
+        "wall_seconds": round(time.perf_counter() - t0, 2),
+        "results": results,
+    }

@@ -1,0 +1,220 @@
+"""The fleet simulator's world: it owns the hidden target and advances in lockstep with the agents.
+
+Each simulated robot (robot_agent.backend.SimBackend) sends its (t, node) as a query on
+``mures/<fleet>/sim/<mission>/<robot>``. When every robot still in the mission has reported step
+t, the world moves the target (t > 0: e_t ~ Gamma(e_{t-1}, .)), draws each robot's z_t from the
+sensor model (SPEC section 1), replies to every query, and, if some robot has e_t in D(p_t) and
+z_t = 1, publishes {"type": "captured", "t", "captured_by"} on the mission's key. Robots learn the
+outcome only from that message. A robot that does not report within ``step_timeout`` is
+withdrawn from the mission and the others go on (robustness, paper Fig. 12).
+
+Deterministic for a mission seed: the target's path and every z are drawn from one generator
+seeded by the mission seed, in the mission's robot order, whatever order the queries arrive in.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from shared.fleet import mission_key, parse_message, sim_key
+from shared.graph import Graph
+from shared.models import Sensor, TargetModel
+
+log = logging.getLogger("mures.world")
+
+
+@dataclass
+class _Mission:
+    robots: list[str]
+    rng: np.random.Generator
+    max_steps: int
+    target: int  # e_t, a row
+    t: int = 0
+    active: set[str] = field(default_factory=set)
+    reports: dict[str, tuple[int, Any]] = field(default_factory=dict)  # robot -> (row, query)
+    waiting_since: float = 0.0
+    ended: bool = False
+    ended_at: float = 0.0
+    path: list[int] = field(default_factory=list)  # target rows over t
+
+
+class World:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        fleet: str,
+        graph: Graph,
+        target: TargetModel,
+        sensor: Sensor,
+        step_timeout: float = 10.0,
+        step_delay: float = 0.0,
+    ) -> None:
+        self.session, self.fleet, self.graph = session, fleet, graph
+        self.gamma = target.dense()
+        self.cum = np.cumsum(self.gamma, axis=1)
+        self.b0 = np.cumsum(target.b0)
+        self.sensor = sensor
+        ptr, idx = graph.detection_sets(sensor.detection)
+        self.detect = np.zeros((graph.n, graph.n), dtype=bool)  # detect[p, e]: e in D(p)
+        self.detect[np.repeat(np.arange(graph.n), np.diff(ptr)), idx] = True
+        self.step_timeout = step_timeout
+        self.step_delay = step_delay
+        self.events: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self.missions: dict[str, _Mission] = {}
+        self.parked: dict[str, list[Any]] = {}
+        self.finished: dict[str, dict[str, Any]] = {}  # mission -> outcome, for inspection
+        self.step_seconds: list[float] = []  # time from a step's first report to the replies
+        self.running = True
+        self.sub = session.declare_subscriber(mission_key(fleet, "*"), lambda s: self.events.put(("msg", s)))
+        self.queryable = session.declare_queryable(sim_key(fleet, "*", "*"), lambda q: self.events.put(("q", q)))
+        self.thread = threading.Thread(target=self._loop, name="world", daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.running = False
+        self.thread.join(3)
+        self.sub.undeclare()
+        self.queryable.undeclare()
+
+    # ------------------------------------------------------------------ event loop
+    def _loop(self) -> None:
+        while self.running:
+            try:
+                kind, item = self.events.get(timeout=0.1)
+            except queue.Empty:
+                kind, item = "tick", None
+            try:
+                if kind == "msg":
+                    self._on_message(item.payload.to_bytes())
+                elif kind == "q":
+                    self._on_query(item)
+                self._check_timeouts()
+            except Exception:
+                log.exception("world event %s", kind)
+
+    def _on_message(self, payload: bytes) -> None:
+        msg = parse_message(payload)
+        if msg is None:
+            return
+        mid = msg["mission_id"]
+        if msg["type"] == "start":
+            if mid in self.missions:
+                return
+            rng = np.random.default_rng(int(msg.get("seed", 0)) % (2**63))
+            e0 = int(np.searchsorted(self.b0, rng.random() * self.b0[-1], side="right"))
+            robots = list(msg.get("robots") or [])
+            m = _Mission(robots=robots, rng=rng, max_steps=int(msg.get("max_steps") or 3 * self.graph.n),
+                         target=min(e0, self.graph.n - 1), active=set(robots))  # fmt: skip
+            m.path.append(m.target)
+            self.missions[mid] = m
+            for q in self.parked.pop(mid, []):
+                self._on_query(q)
+        elif msg["type"] in ("captured", "stop") and mid in self.missions:
+            self._end(mid, publish=None)
+
+    def _on_query(self, q: Any) -> None:
+        parts = str(q.key_expr).split("/")
+        if len(parts) != 5:
+            return self._err(q, "bad key")
+        mid, robot = parts[3], parts[4]
+        m = self.missions.get(mid)
+        if m is None:
+            self.parked.setdefault(mid, []).append(q)  # the start message may still be on its way
+            return None
+        if m.ended:
+            q.reply(q.key_expr, b'{"ended": true}')
+            return q.drop()
+        if robot not in m.active:
+            return self._err(q, f"robot {robot} is not (or no longer) in mission {mid}")
+        try:
+            body = json.loads(q.payload.to_bytes())
+            t, node = int(body["t"]), int(body["node"])
+            row = self.graph.index[node]
+        except (ValueError, KeyError, TypeError, AttributeError):
+            return self._err(q, 'payload must be {"t": int, "node": label on the map}')
+        if t != m.t or robot in m.reports:
+            return self._err(q, f"step t={t} out of lockstep (world is at t={m.t})")
+        if not m.reports:
+            m.waiting_since = time.monotonic()
+        m.reports[robot] = (row, q)
+        if set(m.reports) >= m.active:
+            self._advance(mid, m)
+        return None
+
+    def _err(self, q: Any, text: str) -> None:
+        try:
+            q.reply_err(text.encode())
+            q.drop()
+        except Exception:
+            log.debug("reply_err failed", exc_info=True)
+
+    def _check_timeouts(self) -> None:
+        now = time.monotonic()
+        for mid, m in list(self.missions.items()):
+            if m.ended:
+                if now - m.ended_at > 60:
+                    del self.missions[mid]
+                continue
+            if m.reports and now - m.waiting_since > self.step_timeout:
+                gone = m.active - set(m.reports)
+                log.warning("mission %s: %s did not report step %d; withdrawn", mid, ", ".join(sorted(gone)), m.t)
+                m.active -= gone
+                self._advance(mid, m)
+        for mid in [k for k, qs in self.parked.items() if not qs]:
+            del self.parked[mid]
+
+    def _advance(self, mid: str, m: _Mission) -> None:
+        """All active robots reported step m.t: move the target (t > 0), observe, reply, check capture."""
+        if self.step_delay:
+            time.sleep(self.step_delay)
+        if m.t > 0:
+            m.target = int(np.searchsorted(self.cum[m.target], m.rng.random() * self.cum[m.target, -1], side="right"))
+            m.target = min(m.target, self.graph.n - 1)
+            m.path.append(m.target)
+        (_in0, in1), (_out0, out1) = self.sensor.likelihoods()
+        captured_by = None
+        replies = []
+        for robot in m.robots:  # fixed order: deterministic draws
+            if robot not in m.reports:
+                continue
+            row, q = m.reports[robot]
+            u = m.rng.random()
+            seen = self.detect[row, m.target]
+            z = int(u < (in1 if seen else out1))
+            if z and seen and captured_by is None:
+                captured_by = robot
+            replies.append((q, z))
+        for q, z in replies:
+            q.reply(q.key_expr, json.dumps({"z": z}).encode())
+            q.drop()  # finalise: the robot's get() returns now
+        self.step_seconds.append(time.monotonic() - m.waiting_since)
+        t = m.t
+        m.reports = {}
+        m.t += 1
+        if captured_by is not None:
+            self._end(mid, {"type": "captured", "mission_id": mid, "t": t, "captured_by": captured_by})
+        elif t >= m.max_steps or not m.active:
+            self._end(mid, {"type": "stop", "mission_id": mid, "reason": "step limit" if m.active else "no robots"})
+
+    def _end(self, mid: str, publish: dict[str, Any] | None) -> None:
+        m = self.missions[mid]
+        if m.ended:
+            return
+        m.ended, m.ended_at = True, time.monotonic()
+        for _row, q in m.reports.values():
+            q.reply(q.key_expr, b'{"ended": true}')
+            q.drop()
+        m.reports = {}
+        if publish is not None:
+            self.finished[mid] = publish
+            self.session.put(mission_key(self.fleet, mid), json.dumps(publish).encode(),
+                             congestion_control=zenoh.CongestionControl.BLOCK)  # fmt: skip

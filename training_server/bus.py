@@ -1,0 +1,181 @@
+"""The server's Zenoh side: episode ingest, agent presence, mission control.
+
+Callbacks only hand work to queues (../shared/notes/zenoh.md); worker threads validate, store
+and reply. Ingest drains its queue in batches so one SQLite transaction (and one fsync) covers
+many records, then replies to each query: ok {"status": "stored"|"duplicate"} or err
+{"reason": <code>, "error": <message>}.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from shared.fleet import agent_key, episode_key, mission_key, parse_message
+from shared.records import MAX_RECORD_BYTES, RecordError, parse_record
+
+log = logging.getLogger("mures.server.bus")
+
+INGEST_BATCH = 512
+
+
+class Bus:
+    def __init__(self, server: Any, conf: Any) -> None:
+        self.server = server
+        self.fleet = server.fleet
+        self.session = zenoh.open(conf)
+        self.ingest_q: queue.Queue[Any] = queue.Queue()
+        self.events_q: queue.Queue[Any] = queue.Queue()
+        self.online: dict[str, float] = {}
+        self.online_lock = threading.Lock()
+        self.running = True
+        self.stats = {"ingest_batches": 0, "ingest_seconds": 0.0}
+        self.publisher = self.session.declare_publisher(
+            mission_key(self.fleet, "**"), congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        self.queryable = self.session.declare_queryable(episode_key(self.fleet, "*", "*"), self.ingest_q.put)
+        self.missions_sub = self.session.declare_subscriber(mission_key(self.fleet, "*"), self._on_mission)
+        self.alive_sub = self.session.liveliness().declare_subscriber(
+            agent_key(self.fleet, "*"), self._on_alive, history=True
+        )
+        self.threads = [
+            threading.Thread(target=self._ingest_loop, name="ingest", daemon=True),
+            threading.Thread(target=self._events_loop, name="mission-events", daemon=True),
+        ]
+        for t in self.threads:
+            t.start()
+
+    # ---------------------------------------------------------------- callbacks: queue only
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        robot = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.online_lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.online.setdefault(robot, time.time())
+            else:
+                self.online.pop(robot, None)
+
+    def _on_mission(self, sample: zenoh.Sample) -> None:
+        self.events_q.put(sample.payload.to_bytes())
+
+    # ---------------------------------------------------------------- workers
+    def agents_online(self) -> dict[str, float]:
+        with self.online_lock:
+            return dict(self.online)
+
+    def publish_mission(self, msg: dict[str, Any]) -> None:
+        self.session.put(
+            mission_key(self.fleet, msg["mission_id"]),
+            json.dumps(msg).encode(),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+
+    def _events_loop(self) -> None:
+        while self.running:
+            try:
+                raw = self.events_q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            msg = parse_message(raw)
+            if msg is None or msg["type"] == "start":
+                continue
+            status = "captured" if msg["type"] == "captured" else "stopped"
+            try:
+                self.server.store.mission_event(msg["mission_id"], msg, status)
+            except Exception:
+                log.exception("recording mission event %s", msg)
+
+    def _ingest_loop(self) -> None:
+        while self.running:
+            try:
+                first = self.ingest_q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            batch = [first]
+            while len(batch) < INGEST_BATCH:
+                try:
+                    batch.append(self.ingest_q.get_nowait())
+                except queue.Empty:
+                    break
+            t0 = time.perf_counter()
+            try:
+                self._ingest(batch)
+            except Exception:  # never let one bad batch stop ingest
+                log.exception("ingest batch failed")
+                for q in batch:
+                    self._reply_err(q, "server-error", "the server could not store the record; resend later")
+                    q.drop()
+            del first, batch
+            self.stats["ingest_batches"] += 1
+            self.stats["ingest_seconds"] += time.perf_counter() - t0
+
+    def _reply_err(self, q: zenoh.Query, reason: str, error: str) -> None:
+        try:
+            q.reply_err(json.dumps({"reason": reason, "error": error}).encode())
+        except Exception:
+            log.debug("could not reply to %s", q.key_expr)
+
+    def _ingest(self, batch: list[zenoh.Query]) -> None:
+        graph, fleet, store = self.server.graph, self.fleet, self.server.store
+        rows, accepted, rejected = [], [], []
+        seen: set[tuple[str, str]] = set()
+        for q in batch:
+            key = str(q.key_expr)
+            parts = key.split("/")
+            try:
+                if len(parts) != 5 or parts[2] != "episodes":
+                    raise RecordError("key", f"key {key!r} is not mures/<fleet>/episodes/<robot_id>/<mission_id>")
+                payload = q.payload.to_bytes() if q.payload is not None else b""
+                if not payload:
+                    raise RecordError("empty", "the query carries no episode record")
+                if len(payload) > MAX_RECORD_BYTES:
+                    raise RecordError("size", f"record of {len(payload)} bytes exceeds {MAX_RECORD_BYTES}")
+                try:
+                    rec = json.loads(payload)
+                except (ValueError, UnicodeDecodeError) as exc:
+                    raise RecordError("json", f"payload is not valid JSON ({exc})") from None
+                ep = parse_record(rec, graph, fleet=fleet)
+                if (ep.robot_id, ep.mission_id) != (parts[3], parts[4]):
+                    raise RecordError(
+                        "key", f"record is robot {ep.robot_id!r} mission {ep.mission_id!r} but was sent on {key!r}"
+                    )
+            except RecordError as exc:
+                rejected.append((q, exc.reason, str(exc)))
+                continue
+            if (ep.robot_id, ep.mission_id) in seen:  # the same record twice in one batch
+                accepted.append((q, None))
+                continue
+            seen.add((ep.robot_id, ep.mission_id))
+            rows.append((fleet, ep.robot_id, ep.mission_id, ep.policy_version, len(ep.nodes), ep.captured,
+                         ep.capture_time, json.dumps(rec, separators=(",", ":"))))  # fmt: skip
+            accepted.append((q, len(rows) - 1))
+        stored = store.add_episodes(rows) if rows else []
+        if rejected:
+            store.reject(r for _q, r, _e in rejected)
+        for q, i in accepted:
+            status = "stored" if i is not None and stored[i] else "duplicate"
+            try:
+                q.reply(q.key_expr, json.dumps({"status": status}).encode())
+            except Exception:
+                log.debug("could not reply to %s", q.key_expr)
+        for q, reason, error in rejected:
+            log.info("rejected %s: %s", q.key_expr, error)
+            self._reply_err(q, reason, error)
+        for q in batch:  # finalise now: the querier's get() ends here, not when Python collects q
+            q.drop()
+
+    def close(self) -> None:
+        self.running = False
+        for t in self.threads:
+            t.join(2)
+        for ent in (self.alive_sub, self.missions_sub, self.queryable, self.publisher):
+            try:
+                ent.undeclare()
+            except Exception:
+                log.debug("undeclare failed", exc_info=True)
+        self.session.close()

@@ -1,0 +1,282 @@
+"""`training-server`: the fleet's central server (SPEC section 7; README "The fleet").
+
+    training-server (--env office|museum | --graph FILE) [--data-dir DIR] [--http HOST:PORT]
+                    [--zenoh-listen ENDPOINT] [--zenoh-config FILE] [--fleet NAME]
+                    [--operator-token-file F] [--agent-token-file F] [--robots N] [--init-policy DIR]
+
+Embedded defaults, no other service needed: SQLite (WAL) under the data directory for episodes,
+missions, runs and versions; policy snapshots on disk; its own Zenoh session in router mode on
+tcp/127.0.0.1:7447; HTTP (the REST API under /api/v1, OpenAPI at /docs) on 127.0.0.1:8000.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import os
+import secrets
+import shutil
+import sys
+import tarfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from shared.fleet import DEFAULT_FLEET, DEFAULT_HTTP, DEFAULT_ZENOH_ENDPOINT, check_id, read_token, write_private
+from shared.graph import BUILTIN_MAPS, Graph, GraphError, builtin_graph, load_graph_file
+from training_server.store import Store
+
+log = logging.getLogger("mures.server")
+
+ARTIFACT = "policy.tar"
+
+
+class JsonFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        out = {"ts": round(record.created, 3), "level": record.levelname.lower(), "logger": record.name,
+               "msg": record.getMessage()}  # fmt: skip
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out)
+
+
+def setup_logging(json_logs: bool, level: str = "INFO") -> None:
+    h = logging.StreamHandler(sys.stderr)
+    h.setFormatter(
+        JsonFormatter() if json_logs else logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
+    )
+    root = logging.getLogger()
+    root.handlers[:] = [h]
+    root.setLevel(level)
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+class Server:
+    """State shared by the REST API, the Zenoh bus and the training supervisor."""
+
+    def __init__(self, data_dir: Path, graph: Graph, fleet: str, operator_token: str, agent_token: str) -> None:
+        self.data_dir = data_dir
+        self.graph = graph
+        self.fleet = fleet
+        self.operator_token = operator_token
+        self.agent_token = agent_token
+        (data_dir / "policies").mkdir(parents=True, exist_ok=True)
+        (data_dir / "staging").mkdir(parents=True, exist_ok=True)
+        self.store = Store(data_dir / "mures.db")
+        self.version_lock = threading.Lock()
+        self.bus: Any = None
+        self.supervisor: Any = None
+        self.started = time.time()
+        map_id = self.store.get_setting("graph_id")
+        if map_id is None:
+            self.store.set_setting("graph_id", graph.graph_id)
+        elif map_id != graph.graph_id:
+            raise GraphError(
+                f"data directory {data_dir} belongs to another map ({map_id[:20]}...); "
+                f"this one is {graph.name!r} ({graph.graph_id[:20]}...). Use another --data-dir."
+            )
+
+    # ------------------------------------------------------------------ policy versions
+    def policy_dir(self, version: int) -> Path:
+        return self.data_dir / "policies" / f"v{version}"
+
+    def snapshot_dir(self, version: int) -> Path:
+        return self.policy_dir(version) / "snapshot"
+
+    def artifact(self, version: int) -> Path:
+        return self.policy_dir(version) / ARTIFACT
+
+    def current_version(self) -> int:
+        v = self.store.get_setting("current_version")
+        if v is None:
+            raise RuntimeError("no policy version yet")
+        return int(v)
+
+    def set_current(self, version: int) -> None:
+        if self.store.policy(version) is None:
+            raise KeyError(version)
+        self.store.set_setting("current_version", str(version))
+
+    def publish_version(
+        self, snapshot_dir: Path, parent: int | None, run_id: str | None, metrics: dict[str, Any], promote: bool
+    ) -> int:
+        """Turn a snapshot directory into the next immutable version (and make it current)."""
+        from shared.snapshot import load_snapshot
+
+        snap = load_snapshot(snapshot_dir, self.graph)  # checks graph, shapes, hash
+        with self.version_lock:
+            version = self.store.next_version()
+            final = self.policy_dir(version)
+            tmp = final.with_name(f".{final.name}.tmp")
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.copytree(snapshot_dir, tmp / "snapshot")
+            with tarfile.open(tmp / f".{ARTIFACT}", "w") as tar:  # what agents download
+                for f in sorted((tmp / "snapshot").iterdir()):
+                    tar.add(f, arcname=f.name)
+            os.replace(tmp / f".{ARTIFACT}", tmp / ARTIFACT)
+            shutil.rmtree(final, ignore_errors=True)
+            os.replace(tmp, final)
+            digest = sha256_file(final / ARTIFACT)
+            meta = {
+                "graph_id": self.graph.graph_id,
+                "robots": snap.robots,
+                "variant": snap.variant,
+                "beta": snap.meta.get("beta"),
+                "sensor": snap.meta.get("sensor"),
+                "weights_sha256": snap.meta["weights"]["sha256"],
+                "training": {k: snap.meta.get("training", {}).get(k) for k in ("episodes", "seed", "belief")},
+                "metrics": metrics,
+            }
+            self.store.add_policy(version, digest, (final / ARTIFACT).stat().st_size, parent, run_id, meta)
+            if promote or self.store.get_setting("current_version") is None:
+                self.store.set_setting("current_version", str(version))
+        log.info("policy version %d published (sha256 %s...)%s", version, digest[:12], " and made current" * promote)
+        return version
+
+    def ensure_initial_policy(self, robots: int, init_policy: str | None, sensor: Any, seed: int) -> None:
+        if self.store.get_setting("current_version") is not None:
+            return
+        from shared.snapshot import load_snapshot, save_snapshot
+
+        staging = self.data_dir / "staging" / "initial"
+        if init_policy:
+            load_snapshot(init_policy, self.graph)  # clear error before anything is written
+            shutil.rmtree(staging, ignore_errors=True)
+            shutil.copytree(init_policy, staging)
+            note = f"from {init_policy}"
+        else:
+            import torch
+
+            from shared.policy import TeamPolicy
+            from shared.train import identity_model
+
+            torch.manual_seed(seed)
+            policy = TeamPolicy(self.graph.n, robots, torch.as_tensor(self.graph.adjacency()))
+            save_snapshot(staging, policy, self.graph, identity_model(self.graph), sensor, "cepg", [0.5] * robots,
+                          {"episodes": 0, "seed": seed, "belief": "identity", "map": self.graph.name},
+                          {"episodes": 0, "note": "untrained initial policy"})  # fmt: skip
+            note = "untrained"
+        self.publish_version(staging, None, None, {"note": f"initial policy ({note})"}, promote=True)
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _load_or_create_token(path: Path, given: str | None, kind: str) -> str:
+    if given:
+        return read_token(given)
+    if path.exists():
+        return read_token(path)
+    write_private(path, secrets.token_urlsafe(32) + "\n")
+    print(f"training-server: created {kind} token in {path} (mode 0600)", file=sys.stderr)
+    return read_token(path)
+
+
+def parse_hostport(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+    return host.strip("[]"), int(port)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="training-server", description="MuRES fleet central server (REST + Zenoh)")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--env", choices=BUILTIN_MAPS, help="a built-in map")
+    g.add_argument("--graph", metavar="FILE", help="a JSON graph file (SPEC section 7)")
+    p.add_argument(
+        "--data-dir", default="mures-data", help="where the database and policies live (default ./mures-data)"
+    )
+    p.add_argument(
+        "--http", type=parse_hostport, default=DEFAULT_HTTP, help=f"REST API address (default {DEFAULT_HTTP})"
+    )
+    p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT",
+                   help=f"Zenoh endpoint to listen on as the router (default {DEFAULT_ZENOH_ENDPOINT})")  # fmt: skip
+    p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT",
+                   help="connect to these routers (e.g. zenohd) instead of being the router")  # fmt: skip
+    p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file (overrides the two above)")
+    p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet name (default 'default')")
+    p.add_argument("--operator-token-file", help="operator bearer token (default: created in the data dir)")
+    p.add_argument("--agent-token-file", help="agent bearer token (default: created in the data dir)")
+    p.add_argument("--robots", type=int, default=4, help="networks in the initial policy (default 4)")
+    p.add_argument("--init-policy", metavar="DIR", help="start from this snapshot (mures train) instead of untrained")
+    p.add_argument("--eta-fn", type=float, default=0.0, help="sensor false-negative rate of the initial policy")
+    p.add_argument("--eta-fp", type=float, default=0.0, help="sensor false-positive rate of the initial policy")
+    p.add_argument("--detection", choices=("node", "neighbourhood", "custom"), default="node")
+    p.add_argument("--seed", type=int, default=0, help="seed of the initial policy's weights")
+    p.add_argument("--log-json", action="store_true", help="structured (JSON Lines) logs")
+    p.add_argument("--log-level", default="INFO")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_json, args.log_level.upper())
+    try:
+        return _run(args)
+    except (GraphError, ValueError, KeyError, OSError) as exc:
+        print(f"training-server: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from shared.fleet import zenoh_config
+    from shared.models import Sensor
+    from training_server.api import create_app
+    from training_server.bus import Bus
+    from training_server.jobs import Supervisor
+
+    check_id("fleet", args.fleet)
+    if args.robots < 1:
+        raise ValueError("--robots must be at least 1")
+    graph = builtin_graph(args.env) if args.env else load_graph_file(args.graph)
+    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection)
+    data_dir = Path(args.data_dir)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    op = _load_or_create_token(data_dir / "operator.token", args.operator_token_file, "operator")
+    ag = _load_or_create_token(data_dir / "agent.token", args.agent_token_file, "agent")
+    srv = Server(data_dir, graph, args.fleet, op, ag)
+    srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)
+    for run_id in srv.store.interrupted_runs():
+        srv.store.update_run(run_id, status="failed", finished=time.time(), error="server restarted during the run")
+    if args.zenoh_config:
+        conf = zenoh_config("router", config_file=args.zenoh_config)
+    elif args.zenoh_connect:
+        conf = zenoh_config("client", connect=args.zenoh_connect)
+    else:
+        conf = zenoh_config("router", listen=args.zenoh_listen or [DEFAULT_ZENOH_ENDPOINT])
+    srv.bus = Bus(srv, conf)
+    srv.supervisor = Supervisor(srv)
+    srv.supervisor.start()
+    host, port = args.http
+    app = create_app(srv)
+    config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)
+    http = uvicorn.Server(config)
+    log.info(
+        "serving fleet %r on map %s (n=%d): http://%s:%d/api/v1, zenoh %s, data in %s, policy version %d",
+        args.fleet, graph.name, graph.n, host, port,
+        args.zenoh_config or args.zenoh_connect or args.zenoh_listen or DEFAULT_ZENOH_ENDPOINT,
+        data_dir, srv.current_version(),
+    )  # fmt: skip
+    try:
+        http.run()  # returns on SIGINT/SIGTERM
+    finally:
+        log.info("shutting down")
+        srv.supervisor.stop()
+        srv.bus.close()
+        srv.store.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
