@@ -18,6 +18,7 @@ import logging
 import os
 import secrets
 import shutil
+import signal
 import sys
 import tarfile
 import threading
@@ -268,6 +269,10 @@ def _run(args: argparse.Namespace) -> int:
         args.zenoh_config or args.zenoh_connect or args.zenoh_listen or DEFAULT_ZENOH_ENDPOINT,
         data_dir, srv.current_version(),
     )  # fmt: skip
+    # uvicorn handles SIGINT/SIGTERM while serving and re-raises the signal afterwards; these
+    # handlers take that re-raise, so the clean shutdown below runs and the exit status is 0
+    signal.signal(signal.SIGTERM, lambda *_a: None)
+    signal.signal(signal.SIGINT, lambda *_a: None)
     try:
         http.run()  # returns on SIGINT/SIGTERM
     finally:

@@ -1,0 +1,1 @@
+"""Example robot backends (see robot_agent/backend.py)."""

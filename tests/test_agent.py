@@ -1,0 +1,122 @@
+"""The robot agent's parts without a fleet: journal, outbox, policy install checks, backends."""
+
+from __future__ import annotations
+
+import io
+import json
+import tarfile
+
+import pytest
+import torch
+
+from robot_agent.agent import Journal, Outbox, PolicyStore
+from robot_agent.backend import BackendError, load_backend
+from robot_agent.examples.nav_goal import NavGoalBackend
+from shared.graph import builtin_graph
+from shared.models import Sensor
+from shared.policy import TeamPolicy
+from shared.snapshot import save_snapshot
+from shared.train import identity_model
+
+
+def test_journal_recovers_the_steps_of_a_killed_mission(tmp_path):
+    j = Journal(tmp_path / "journal.jsonl")
+    j.begin({"mission_id": "m1", "policy_version": 3, "sensor": Sensor().to_json()})
+    for t in range(4):
+        j.step(t, 43, 0)
+    j.fh.write('{"t": 4, "no')  # torn last line, as after a kill
+    j.fh.flush()
+    header, steps = Journal(tmp_path / "journal.jsonl").recover()
+    assert header["mission_id"] == "m1" and [s["t"] for s in steps] == [0, 1, 2, 3]
+    j.finish()
+    assert Journal(tmp_path / "journal.jsonl").recover() is None
+
+
+def test_outbox_is_durable_and_keeps_rejected_records(tmp_path):
+    ob = Outbox(tmp_path / "outbox")
+    p = ob.put({"mission_id": "m1", "robot_id": "r1"})
+    assert ob.pending() == [p] and json.loads(p.read_text())["mission_id"] == "m1"
+    ob.reject(p, "bad move")
+    assert ob.pending() == []
+    assert (tmp_path / "outbox" / "rejected" / "m1.json").exists()
+
+
+def _artifact(tmp_path, graph, name="snap"):
+    torch.manual_seed(0)
+    pol = TeamPolicy(graph.n, 2, torch.as_tensor(graph.adjacency()))
+    snap = save_snapshot(tmp_path / name, pol, graph, identity_model(graph), Sensor(), "cepg", [0.5, 0.5], {}, {})
+    tar_path = tmp_path / f"{name}.tar"
+    with tarfile.open(tar_path, "w") as tar:
+        for f in snap.iterdir():
+            tar.add(f, arcname=f.name)
+    import hashlib
+
+    return tar_path, hashlib.sha256(tar_path.read_bytes()).hexdigest()
+
+
+def test_policy_install_verifies_hash_map_and_contents(tmp_path):
+    office, museum = builtin_graph("office"), builtin_graph("museum")
+    store = PolicyStore(tmp_path / "policies", office)
+    tar_path, sha = _artifact(tmp_path, office)
+    with pytest.raises(ValueError, match="sha256"):
+        store.install(2, tar_path, "0" * 64)
+    assert store.version is None
+    store.install(2, tar_path, sha)
+    assert store.version == 2 and PolicyStore(tmp_path / "policies", office).load_current()
+    other, other_sha = _artifact(tmp_path, museum, "m")
+    with pytest.raises(ValueError, match="MUSEUM|map"):
+        store.install(3, other, other_sha)
+    evil = tmp_path / "evil.tar"
+    with tarfile.open(evil, "w") as tar:
+        info = tarfile.TarInfo("../../escape.txt")
+        info.size = 3
+        tar.addfile(info, io.BytesIO(b"bad"))
+    import hashlib
+
+    with pytest.raises((ValueError, tarfile.TarError)):
+        store.install(4, evil, hashlib.sha256(evil.read_bytes()).hexdigest())
+    assert not (tmp_path / "escape.txt").exists()
+    assert store.version == 2  # the last good policy stays
+
+
+class FakeNav:
+    def __init__(self, node, fail_to=None):
+        self.node, self.fail_to, self.goals = node, fail_to, []
+
+    def current_node(self):
+        return self.node
+
+    def go_to(self, node, position, timeout_s):
+        self.goals.append((node, position))
+        if node == self.fail_to:
+            return False
+        self.node = node
+        return True
+
+
+class FakeDetector:
+    def detect(self):
+        return True
+
+
+def test_nav_goal_backend_moves_and_reports_failures():
+    g = builtin_graph("office")
+    start = int(g.labels[g.start])
+    nbr = int(g.labels[g.closed(g.start)[1]])
+    nav = FakeNav(start, fail_to=nbr)
+    b = NavGoalBackend(g, nav, FakeDetector())
+    assert b.begin({}) == start and b.detect() == 1
+    assert b.move(nbr) == start  # failed move: the robot stays, which is a legal step
+    nav.fail_to = None
+    assert b.move(nbr) == nbr and nav.goals[-1][0] == nbr
+    with pytest.raises(BackendError):
+        NavGoalBackend(g, FakeNav(99999), FakeDetector()).begin({})
+
+
+def test_load_backend_errors_are_clear():
+    with pytest.raises(ValueError, match="MODULE:CLASS"):
+        load_backend("nonsense")
+    with pytest.raises(ValueError, match="cannot load"):
+        load_backend("no.such.module:Thing")
+    with pytest.raises(ValueError, match="no begin"):
+        load_backend("json:JSONDecoder")

@@ -1,0 +1,293 @@
+"""The fleet end to end on loopback: a training server process, the simulated world and three
+robot-agent processes (shared/fleetsim.py), driven through the REST API as an operator would."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from robot_agent.agent import mission_seed
+from shared.evaluate import evaluate
+from shared.fleet import episode_key, read_token, zenoh_config
+from shared.fleetsim import ApiClient, ApiError, launch, mean_ci, start_server, wait_until
+from shared.graph import builtin_graph
+from shared.models import Sensor, uniform_walk
+from shared.records import make_record
+from shared.snapshot import PolicyAgent, PolicySearcher, load_snapshot
+
+ROBOTS = ["r1", "r2", "r3"]
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    graph = builtin_graph("office")
+    f = launch(graph, ["--env", "office"], uniform_walk(graph), Sensor(), 3, tmp_path_factory.mktemp("fleet"),
+               step_timeout=3.0)  # fmt: skip
+    yield f
+    f.close()
+
+
+def _snapshot(fleet, version):
+    return load_snapshot(fleet.workdir / "server" / "policies" / f"v{version}" / "snapshot", fleet.graph)
+
+
+def _fly_many(fleet, seeds):
+    out = []
+    for s in seeds:
+        m = fleet.fly(ROBOTS, seed=s)
+        ct = m["outcome"]["capture_time"]
+        out.append(ct if ct is not None else m["params"]["max_steps"])
+    return np.array(out, dtype=float)
+
+
+def _replay(fleet, robot, mission):
+    """Re-decide a robot's mission from its own record only: its nodes and z's, the mission seed
+    and its index; the policy of the record's version must choose exactly the recorded moves."""
+    rec = fleet.api.get(f"/api/v1/episodes/{robot}/{mission['id']}")
+    snap = _snapshot(fleet, rec["policy_version"])
+    g = fleet.graph
+    index = mission["robots"].index(robot)
+    agent = PolicyAgent(snap, g, index, seed=mission_seed(mission["params"]["seed"], index))
+    steps = rec["steps"]
+    for k, st in enumerate(steps):
+        p = g.index[st["node"]]
+        agent.reset(p, st["z"]) if k == 0 else agent.observe(p, st["z"])
+        if k + 1 < len(steps):
+            assert g.labels[agent.act(p)] == steps[k + 1]["node"], f"{robot} step {k} of {mission['id']}"
+    return rec
+
+
+def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
+    """300 missions of the initial policy through the whole chain vs `mures evaluate` of the same
+    policy: the capture times agree within their 95% CIs; every record is stored once; each robot's
+    moves follow from its own record alone (no information from the other robots)."""
+    ct = _fly_many(fleet, range(300))
+    stats = fleet.api.get("/api/v1/episodes/stats")
+    assert stats["stored"] == 900 and stats["missions"] == 300 and stats["by_policy_version"] == {"1": 900}
+    m_fleet, h_fleet = mean_ci(ct)
+    g = fleet.graph
+    snap = _snapshot(fleet, 1)
+    res = evaluate(g, uniform_walk(g), Sensor(), 3, lambda s: PolicySearcher(snap, g, Sensor(), 3, seed=s),
+                   episodes=1500, seed=5).summary()  # fmt: skip
+    m_eval, h_eval = res["mean_capture_time"], res["ci95_halfwidth"]
+    assert abs(m_fleet - m_eval) <= h_fleet + h_eval, (m_fleet, h_fleet, m_eval, h_eval)
+    items = fleet.api.get("/api/v1/episodes?limit=3")["items"]
+    mission = fleet.api.get(f"/api/v1/missions/{items[0]['mission_id']}")
+    for robot in ROBOTS:
+        _replay(fleet, robot, mission)
+
+
+def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
+    before = _fly_many(fleet, range(1000, 1060))
+    run = fleet.api.post("/api/v1/training-runs", {"episodes": 30000, "seed": 1})
+    assert run["status"] == "queued"
+    seen_running = wait_until(lambda: fleet.api.get(f"/api/v1/training-runs/{run['id']}")["status"] != "queued",
+                              60, "the run to start")  # fmt: skip
+    assert seen_running
+    # the API stays responsive while training runs
+    t0 = time.perf_counter()
+    fleet.api.get("/api/v1/episodes/stats")
+    assert time.perf_counter() - t0 < 2.0
+    done = wait_until(lambda: (r := fleet.api.get(f"/api/v1/training-runs/{run['id']}"))["status"]
+                      not in ("queued", "running") and r, 600, "the training run", every=0.5)  # fmt: skip
+    assert done["status"] == "succeeded", done
+    assert done["version"] == 2 and fleet.api.get("/api/v1/policies/current")["version"] == 2
+    assert done["metrics"]["em"]["missions"] >= 360
+    after = _fly_many(fleet, range(1000, 1060))  # the same seeds: the same target paths
+    diff = before - after
+    m, h = mean_ci(diff)
+    assert m - h > 0, f"no significant improvement: before {before.mean():.2f}, after {after.mean():.2f}"
+
+    # a version change during a mission takes effect only at the next mission
+    fleet.world.step_delay = 0.02
+    m1 = fleet.api.post("/api/v1/missions", {"robots": ROBOTS, "seed": 7, "max_steps": 60})
+    wait_until(lambda: m1["id"] in fleet.world.missions and fleet.world.missions[m1["id"]].t >= 5, 30,
+               "the mission to run a few steps")  # fmt: skip
+    fleet.api.post("/api/v1/policies/current", {"version": 1})  # roll back mid-mission
+    wait_until(lambda: fleet.api.get(f"/api/v1/missions/{m1['id']}")["status"] == "completed", 60, "mission")
+    fleet.world.step_delay = 0.0
+    m2 = fleet.fly(ROBOTS, seed=8)
+    for robot in ROBOTS:
+        assert _replay(fleet, robot, fleet.api.get(f"/api/v1/missions/{m1['id']}"))["policy_version"] == 2
+        assert _replay(fleet, robot, m2)["policy_version"] == 1
+    fleet.api.post("/api/v1/policies/current", {"version": 2})
+
+
+def test_agent_killed_mid_mission_resends_its_journal_and_outbox(fleet):
+    fleet.world.step_delay = 0.05
+    journal = fleet.workdir / "agents" / "r1" / "journal.jsonl"
+    for seed in range(11, 31):  # a mission that is still running after 4 steps
+        m = fleet.api.post("/api/v1/missions", {"robots": ROBOTS, "seed": seed, "max_steps": 200})
+        wait_until(lambda: m["id"] in fleet.world.missions and (fleet.world.missions[m["id"]].t >= 4
+                   or fleet.world.missions[m["id"]].ended), 30, "the mission to fly 4 steps")  # fmt: skip
+        if not fleet.world.missions[m["id"]].ended:
+            break
+        wait_until(lambda: fleet.api.get(f"/api/v1/missions/{m['id']}")["status"] == "completed", 30, "mission")
+    fleet.stop_agent("r1", signal.SIGKILL)
+    flown = len(journal.read_text().splitlines()) - 1  # the header, then one line per step
+    assert flown >= 4
+    # the world withdraws r1 after its step timeout; r2 and r3 finish the mission
+    wait_until(lambda: set(fleet.api.get(f"/api/v1/missions/{m['id']}")["episodes_received"]) == {"r2", "r3"},
+               60, "r2 and r3 to report")  # fmt: skip
+    fleet.world.step_delay = 0.0
+    # an unsent record in the outbox (as if the link had been down) is sent after the restart too
+    outbox = fleet.workdir / "agents" / "r1" / "outbox"
+    g = fleet.graph
+    rec = make_record(g, fleet="default", mission_id="offline-1", robot_id="r1", nodes=[g.start, g.start], z=[0, 0],
+                      sensor=Sensor(), captured=False, capture_time=None, captured_by=None, policy_version=2)  # fmt: skip
+    (outbox / "offline-1.json").write_text(json.dumps(rec))
+    fleet.start_agent("r1")
+    wait_until(lambda: "r1" in fleet.online(), 60, "r1 back online")
+    got = wait_until(lambda: (r := fleet.api.get(f"/api/v1/missions/{m['id']}"))["status"] == "completed" and r,
+                     30, "r1's cut-short record")  # fmt: skip
+    assert set(got["episodes_received"]) == set(ROBOTS)
+    r1 = fleet.api.get(f"/api/v1/episodes/r1/{m['id']}")
+    assert len(r1["steps"]) == flown and r1["outcome"]["captured"] is False
+    wait_until(lambda: fleet.api.get("/api/v1/episodes?robot_id=r1&mission_id=offline-1")["items"], 30, "outbox")
+    assert not list(outbox.glob("*.json"))
+
+
+def _send(session, fleet_name, robot, mission, payload: bytes):
+    for reply in session.get(episode_key(fleet_name, robot, mission), payload=payload, timeout=10,
+                             consolidation=zenoh.ConsolidationMode.NONE):  # fmt: skip
+        if reply.ok is not None:
+            return True, json.loads(reply.ok.payload.to_bytes())
+        return False, json.loads(reply.err.payload.to_bytes())
+    return None, None
+
+
+def test_bad_records_and_requests_get_clear_errors_and_change_nothing(fleet):
+    g = fleet.graph
+    good = make_record(g, fleet="default", mission_id="bad-test", robot_id="r9", nodes=[g.start, g.start], z=[0, 1],
+                       sensor=Sensor(), captured=True, capture_time=1, captured_by="r9")  # fmt: skip
+    far = next(int(x) for x in g.labels if g.index[int(x)] not in g.closed(g.start))
+    cases = {
+        "json": b"{not json",
+        "empty": b"",
+        "schema": json.dumps({**good, "schema": "other/1"}).encode(),
+        "graph_id": json.dumps({**good, "graph_id": "sha256:00"}).encode(),
+        "move": json.dumps(
+            {**good, "steps": [{"t": 0, "node": int(g.labels[g.start]), "z": 0}, {"t": 1, "node": far, "z": 1}]}
+        ).encode(),  # fmt: skip
+        "t-sequence": json.dumps({**good, "steps": [{**s, "t": 5} for s in good["steps"]]}).encode(),
+        "z": json.dumps({**good, "steps": [{**s, "z": 2} for s in good["steps"]]}).encode(),
+        "fleet": json.dumps({**good, "fleet": "other"}).encode(),
+        "key": json.dumps({**good, "robot_id": "r8"}).encode(),
+    }
+    before = fleet.api.get("/api/v1/episodes/stats")
+    with zenoh.open(zenoh_config("client", connect=[fleet.zenoh_endpoint])) as s:
+        for reason, payload in cases.items():
+            ok, body = _send(s, "default", "r9", "bad-test", payload)
+            assert ok is False and body["reason"] == reason and body["error"], (reason, body)
+        ok, body = _send(s, "default", "r9", "bad-test", json.dumps(good).encode())
+        assert ok and body == {"status": "stored"}
+        ok, body = _send(s, "default", "r9", "bad-test", json.dumps(good).encode())
+        assert ok and body == {"status": "duplicate"}
+    after = fleet.api.get("/api/v1/episodes/stats")
+    assert after["stored"] == before["stored"] + 1
+    for reason in cases:
+        assert after["rejected"].get(reason, 0) == before["rejected"].get(reason, 0) + 1, reason
+
+    agent = ApiClient(fleet.api.base, read_token(fleet.agent_token_file))
+    nobody = ApiClient(fleet.api.base, None)
+    wrong = ApiClient(fleet.api.base, "not-a-token")
+    for client, method, path, body, status in [
+        (nobody, "GET", "/api/v1/policies", None, 401),
+        (wrong, "GET", "/api/v1/policies", None, 401),
+        (agent, "POST", "/api/v1/training-runs", {}, 403),
+        (agent, "POST", "/api/v1/missions", {}, 403),
+        (fleet.api, "POST", "/api/v1/training-runs", {"episodes": "many"}, 422),
+        (fleet.api, "POST", "/api/v1/training-runs", {"nonsense": 1}, 422),
+        (fleet.api, "POST", "/api/v1/missions", {"robots": ["r1", "r1"]}, 422),
+        (fleet.api, "POST", "/api/v1/missions", {"robots": ["ghost"]}, 409),
+        (fleet.api, "POST", "/api/v1/missions", {"robots": ["no/slash"]}, 422),
+        (fleet.api, "POST", "/api/v1/policies/current", {"version": 99}, 404),
+        (fleet.api, "GET", "/api/v1/policies/99/artifact", None, 404),
+        (fleet.api, "GET", "/api/v1/training-runs/nope", None, 404),
+    ]:
+        with pytest.raises(ApiError) as exc:
+            client.call(method, path, body)
+        assert exc.value.status == status, (method, path, exc.value.body)
+    assert agent.get("/api/v1/policies/current")["version"] >= 1  # the agent token reads
+    assert fleet.api.get("/api/v1/health")["status"] == "ok"
+    assert fleet.api.get("/api/v1/episodes/stats")["stored"] == after["stored"]
+    meta = agent.get("/api/v1/policies/current")
+    req = urllib.request.Request(fleet.api.base + meta["artifact"], headers={
+        "Authorization": f"Bearer {agent.token}", "If-None-Match": f'"{meta["sha256"]}"'})  # fmt: skip
+    with pytest.raises(urllib.error.HTTPError) as exc:
+        urllib.request.urlopen(req, timeout=10)
+    assert exc.value.code == 304
+    text = urllib.request.urlopen(fleet.api.base + "/metrics", timeout=10).read().decode()
+    assert 'mures_episodes_rejected_total{reason="move"}' in text and "mures_agents_online 3" in text
+
+
+def test_server_killed_loses_no_acknowledged_episode(tmp_path):
+    graph = builtin_graph("office")
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    data = tmp_path / "data"
+    proc, base, endpoint = start_server(["--env", "office"], data, 2, Sensor(), logs)
+    acked = []
+    try:
+        with zenoh.open(zenoh_config("client", connect=[endpoint])) as s:
+            rng = np.random.default_rng(0)
+            for k in range(200):
+                nodes = [graph.start]
+                for _ in range(30):
+                    nodes.append(int(rng.choice(graph.closed(nodes[-1]))))
+                rec = make_record(graph, fleet="default", mission_id=f"m{k}", robot_id="r1", nodes=nodes,
+                                  z=[0] * len(nodes), sensor=Sensor(), captured=False, capture_time=None,
+                                  captured_by=None)  # fmt: skip
+                ok, body = _send(s, "default", "r1", f"m{k}", json.dumps(rec).encode())
+                if ok:
+                    acked.append(f"m{k}")
+        proc.send_signal(signal.SIGKILL)  # a crash right after the last acknowledgement
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert len(acked) == 200
+    proc, base, _ = start_server(["--env", "office"], data, 2, Sensor(), logs)
+    try:
+        api = ApiClient(base, read_token(data / "operator.token"))
+        assert api.get("/api/v1/episodes/stats")["stored"] == 200
+        ids, after = set(), 0
+        while True:
+            page = api.get(f"/api/v1/episodes?limit=64&after={after}")
+            ids |= {e["mission_id"] for e in page["items"]}
+            if page["next_after"] is None:
+                break
+            after = page["next_after"]
+        assert ids == set(acked)
+        assert api.get("/api/v1/policies/current")["version"] == 1  # the same data, not a fresh start
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+
+
+def test_agent_rejects_bad_arguments(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "robot_agent.agent", "--robot-id", "bad/id", "--server", "http://127.0.0.1:9",
+                        "--zenoh-connect", "tcp/127.0.0.1:9", "--state-dir", str(tmp_path)],
+                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 2 and "robot id" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "training_server.server", "--env", "office", "--http", "nowhere", "--data-dir", str(tmp_path)],
+                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 2 and "HOST:PORT" in r.stderr
+    other = tmp_path / "srv"
+    proc, _base, _ = start_server(["--env", "office"], other, 2, Sensor(), tmp_path)
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(30)
+    r = subprocess.run([sys.executable, "-m", "training_server.server", "--env", "museum", "--data-dir", str(other), "--http", "127.0.0.1:0"],
+                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 2 and "another map" in r.stderr
+    assert Path(other / "mures.db").exists()
