@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test lint format bench clean
+.PHONY: install demo demo-train test lint format bench clean
 
 install: $(STAMP)
 
@@ -14,10 +14,17 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet -c constraints.txt -e '.[dev]'
 	touch $(STAMP)
 
-# The main job on embedded defaults: train a 4-robot CE-PG team on MUSEUM (about a minute on
-# 2 cores), then evaluate it and the reference searchers on the same 1500 episodes.
-DEMO_DIR ?= out/demo-museum
+# The main job on embedded defaults: the whole product on loopback (about 2.5 min on 2 cores).
+# A training server, a simulated world and 4 robot-agent processes on MUSEUM fly 100 missions on
+# the untrained initial policy, retrain over HTTP (EM on the fleet's own records, CE-PG, the
+# evaluation gate), fly 100 missions on the new version, and print the capture times of both.
 demo: $(STAMP)
+	$(VENV)/bin/mures fleet-sim --env museum --robots 4 --missions 200 --retrain-every 100 --retrain-episodes 30000 --seed 0
+
+# The offline trainer alone: train a 4-robot CE-PG team on MUSEUM (about a minute), then evaluate
+# it and the reference searchers on the same 1500 episodes.
+DEMO_DIR ?= out/demo-museum
+demo-train: $(STAMP)
 	$(VENV)/bin/mures train --env museum --robots 4 --episodes 30000 --em-first 4096 --em-missions 128 --seed 0 --out $(DEMO_DIR)
 	@for s in policy:$(DEMO_DIR) random greedy; do \
 	  $(VENV)/bin/mures evaluate --env museum --robots 4 --searcher $$s --episodes 1500 --seed 1 || exit 1; \
@@ -40,6 +47,8 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_estimate.py
 	$(PY) benchmarks/bench_decision.py
 	$(PY) benchmarks/bench_train.py
+	$(PY) benchmarks/bench_ingest.py
+	$(PY) benchmarks/bench_fleet.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache build *.egg-info

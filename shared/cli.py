@@ -385,7 +385,7 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------- fleet-sim
 def cmd_fleet_sim(args: argparse.Namespace) -> int:
-    from shared.fleetsim import run_fleet_sim
+    from shared.fleetsim import ApiError, run_fleet_sim
 
     graph, target, sensor = _world(args, "node")
     graph_args = ["--env", args.env] if args.env else ["--graph", str(Path(args.graph).resolve())]
@@ -395,12 +395,19 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
     server_extra = ["--init-policy", str(Path(args.init_policy).resolve())] if args.init_policy else None
     if args.init_policy:
         load_snapshot(args.init_policy, graph)  # a clear error before anything starts
-    res = run_fleet_sim(
-        graph, graph_args, target, sensor, args.robots, args.missions, args.seed, args.retrain_every, retrain,
-        Path(args.workdir) if args.workdir else None, quiet=args.json,
-        server=args.server, zenoh_connect=args.zenoh_connect, token_file=args.token_file,
-        agent_token_file=args.agent_token_file, step_delay=args.step_delay, server_extra=server_extra,
-    )  # fmt: skip
+    try:
+        res = run_fleet_sim(
+            graph, graph_args, target, sensor, args.robots, args.missions, args.seed, args.retrain_every, retrain,
+            Path(args.workdir) if args.workdir else None, quiet=args.json,
+            server=args.server, zenoh_connect=args.zenoh_connect, token_file=args.token_file,
+            agent_token_file=args.agent_token_file, step_delay=args.step_delay, server_extra=server_extra,
+        )  # fmt: skip
+    except (ValueError, TimeoutError, RuntimeError, ApiError) as exc:
+        raise CliError(f"fleet-sim: {exc}") from None
+    return _print_fleet_sim(args, res)
+
+
+def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
     if args.json:
         print(json.dumps({k: v for k, v in res.items() if k != "results"}, indent=1))
         return 0

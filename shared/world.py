@@ -42,6 +42,7 @@ class _Mission:
     active: set[str] = field(default_factory=set)
     reports: dict[str, tuple[int, Any]] = field(default_factory=dict)  # robot -> (row, query)
     waiting_since: float = 0.0
+    last_step: float = 0.0
     ended: bool = False
     ended_at: float = 0.0
     path: list[int] = field(default_factory=list)  # target rows over t
@@ -73,6 +74,7 @@ class World:
         self.parked: dict[str, list[Any]] = {}
         self.finished: dict[str, dict[str, Any]] = {}  # mission -> outcome, for inspection
         self.step_seconds: list[float] = []  # time from a step's first report to the replies
+        self.step_intervals: list[float] = []  # time between consecutive steps of a mission (lockstep period)
         self.running = True
         self.sub = session.declare_subscriber(mission_key(fleet, "*"), lambda s: self.events.put(("msg", s)))
         self.queryable = session.declare_queryable(sim_key(fleet, "*", "*"), lambda q: self.events.put(("q", q)))
@@ -196,7 +198,11 @@ class World:
         for q, z in replies:
             q.reply(q.key_expr, json.dumps({"z": z}).encode())
             q.drop()  # finalise: the robot's get() returns now
-        self.step_seconds.append(time.monotonic() - m.waiting_since)
+        now = time.monotonic()
+        self.step_seconds.append(now - m.waiting_since)
+        if m.t > 0:
+            self.step_intervals.append(now - m.last_step)
+        m.last_step = now
         t = m.t
         m.reports = {}
         m.t += 1

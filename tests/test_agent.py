@@ -64,7 +64,7 @@ def test_policy_install_verifies_hash_map_and_contents(tmp_path):
     store.install(2, tar_path, sha)
     assert store.version == 2 and PolicyStore(tmp_path / "policies", office).load_current()
     other, other_sha = _artifact(tmp_path, museum, "m")
-    with pytest.raises(ValueError, match="MUSEUM|map"):
+    with pytest.raises(ValueError, match=r"MUSEUM|map"):
         store.install(3, other, other_sha)
     evil = tmp_path / "evil.tar"
     with tarfile.open(evil, "w") as tar:

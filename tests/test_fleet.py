@@ -126,13 +126,14 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
 def test_agent_killed_mid_mission_resends_its_journal_and_outbox(fleet):
     fleet.world.step_delay = 0.05
     journal = fleet.workdir / "agents" / "r1" / "journal.jsonl"
+    world = fleet.world.missions
     for seed in range(11, 31):  # a mission that is still running after 4 steps
-        m = fleet.api.post("/api/v1/missions", {"robots": ROBOTS, "seed": seed, "max_steps": 200})
-        wait_until(lambda: m["id"] in fleet.world.missions and (fleet.world.missions[m["id"]].t >= 4
-                   or fleet.world.missions[m["id"]].ended), 30, "the mission to fly 4 steps")  # fmt: skip
-        if not fleet.world.missions[m["id"]].ended:
+        mid = fleet.api.post("/api/v1/missions", {"robots": ROBOTS, "seed": seed, "max_steps": 200})["id"]
+        wait_until(lambda mid=mid: mid in world and (world[mid].t >= 4 or world[mid].ended), 30, "4 steps")
+        if not world[mid].ended:
             break
-        wait_until(lambda: fleet.api.get(f"/api/v1/missions/{m['id']}")["status"] == "completed", 30, "mission")
+        wait_until(lambda mid=mid: fleet.api.get(f"/api/v1/missions/{mid}")["status"] == "completed", 30, "mission")
+    m = {"id": mid}
     fleet.stop_agent("r1", signal.SIGKILL)
     flown = len(journal.read_text().splitlines()) - 1  # the header, then one line per step
     assert flown >= 4
@@ -143,8 +144,9 @@ def test_agent_killed_mid_mission_resends_its_journal_and_outbox(fleet):
     # an unsent record in the outbox (as if the link had been down) is sent after the restart too
     outbox = fleet.workdir / "agents" / "r1" / "outbox"
     g = fleet.graph
-    rec = make_record(g, fleet="default", mission_id="offline-1", robot_id="r1", nodes=[g.start, g.start], z=[0, 0],
-                      sensor=Sensor(), captured=False, capture_time=None, captured_by=None, policy_version=2)  # fmt: skip
+    rec = make_record(g, fleet="default", mission_id="offline-1", robot_id="r1", nodes=[g.start, g.start],
+                      z=[0, 0], sensor=Sensor(), captured=False, capture_time=None, captured_by=None,
+                      policy_version=2)  # fmt: skip
     (outbox / "offline-1.json").write_text(json.dumps(rec))
     fleet.start_agent("r1")
     wait_until(lambda: "r1" in fleet.online(), 60, "r1 back online")
@@ -178,7 +180,7 @@ def test_bad_records_and_requests_get_clear_errors_and_change_nothing(fleet):
         "graph_id": json.dumps({**good, "graph_id": "sha256:00"}).encode(),
         "move": json.dumps(
             {**good, "steps": [{"t": 0, "node": int(g.labels[g.start]), "z": 0}, {"t": 1, "node": far, "z": 1}]}
-        ).encode(),  # fmt: skip
+        ).encode(),
         "t-sequence": json.dumps({**good, "steps": [{**s, "t": 5} for s in good["steps"]]}).encode(),
         "z": json.dumps({**good, "steps": [{**s, "z": 2} for s in good["steps"]]}).encode(),
         "fleet": json.dumps({**good, "fleet": "other"}).encode(),
@@ -248,7 +250,7 @@ def test_server_killed_loses_no_acknowledged_episode(tmp_path):
                 rec = make_record(graph, fleet="default", mission_id=f"m{k}", robot_id="r1", nodes=nodes,
                                   z=[0] * len(nodes), sensor=Sensor(), captured=False, capture_time=None,
                                   captured_by=None)  # fmt: skip
-                ok, body = _send(s, "default", "r1", f"m{k}", json.dumps(rec).encode())
+                ok, _body = _send(s, "default", "r1", f"m{k}", json.dumps(rec).encode())
                 if ok:
                     acked.append(f"m{k}")
         proc.send_signal(signal.SIGKILL)  # a crash right after the last acknowledgement
@@ -280,14 +282,32 @@ def test_agent_rejects_bad_arguments(tmp_path):
                         "--zenoh-connect", "tcp/127.0.0.1:9", "--state-dir", str(tmp_path)],
                        capture_output=True, text=True, timeout=60)  # fmt: skip
     assert r.returncode == 2 and "robot id" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "training_server.server", "--env", "office", "--http", "nowhere", "--data-dir", str(tmp_path)],
+    server = [sys.executable, "-m", "training_server.server"]
+    r = subprocess.run([*server, "--env", "office", "--http", "nowhere", "--data-dir", str(tmp_path)],
                        capture_output=True, text=True, timeout=60)  # fmt: skip
     assert r.returncode == 2 and "HOST:PORT" in r.stderr
     other = tmp_path / "srv"
     proc, _base, _ = start_server(["--env", "office"], other, 2, Sensor(), tmp_path)
     proc.send_signal(signal.SIGTERM)
     proc.wait(30)
-    r = subprocess.run([sys.executable, "-m", "training_server.server", "--env", "museum", "--data-dir", str(other), "--http", "127.0.0.1:0"],
+    r = subprocess.run([*server, "--env", "museum", "--data-dir", str(other), "--http", "127.0.0.1:0"],
                        capture_output=True, text=True, timeout=60)  # fmt: skip
     assert r.returncode == 2 and "another map" in r.stderr
     assert Path(other / "mures.db").exists()
+
+
+def test_cancelled_run_leaves_the_current_policy(fleet):
+    _fly_many(fleet, range(2))
+    before = fleet.api.get("/api/v1/policies/current")["version"]
+    versions = len(fleet.api.get("/api/v1/policies")["items"])
+    run = fleet.api.post("/api/v1/training-runs", {"episodes": 2_000_000})
+    wait_until(lambda: fleet.api.get(f"/api/v1/training-runs/{run['id']}")["status"] == "running", 60, "running")
+    fleet.api.post(f"/api/v1/training-runs/{run['id']}/cancel")
+    r = wait_until(lambda: (x := fleet.api.get(f"/api/v1/training-runs/{run['id']}"))["status"] == "cancelled" and x,
+                   120, "the run to stop")  # fmt: skip
+    assert r["version"] is None
+    assert fleet.api.get("/api/v1/policies/current")["version"] == before
+    assert len(fleet.api.get("/api/v1/policies")["items"]) == versions
+    with pytest.raises(ApiError) as exc:
+        fleet.api.post(f"/api/v1/training-runs/{run['id']}/cancel")
+    assert exc.value.status == 409

@@ -230,6 +230,8 @@ def create_app(srv: Any) -> FastAPI:
             full = check_params(params or {})
         except ValueError as exc:
             raise HTTPException(422, str(exc)) from None
+        if srv.store.episode_stats(srv.fleet)["stored"] == 0:
+            raise HTTPException(409, "no episodes stored yet: fly some missions before training")
         run_id = f"run-{time.strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
         srv.store.add_run(run_id, full)
         srv.supervisor.submit(run_id)
