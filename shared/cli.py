@@ -404,6 +404,10 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         )  # fmt: skip
     except (ValueError, TimeoutError, RuntimeError, ApiError) as exc:
         raise CliError(f"fleet-sim: {exc}") from None
+    except OSError as exc:  # urllib's URLError included
+        raise CliError(
+            f"fleet-sim: cannot reach the server {args.server or ''}: {getattr(exc, 'reason', exc)}"
+        ) from None
     return _print_fleet_sim(args, res)
 
 

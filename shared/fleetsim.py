@@ -263,7 +263,8 @@ def run_fleet_sim(
         tmp = tempfile.TemporaryDirectory(prefix="mures-fleet-")
         workdir = Path(tmp.name)
     t0 = time.perf_counter()
-    say(f"fleet-sim: starting server, world and {robots} agents on loopback (work dir {workdir})")
+    what = f"attaching to {launch_kw['server']}" if launch_kw.get("server") else "starting a server"
+    say(f"fleet-sim: {what}, the world and {robots} agents on loopback (work dir {workdir})")
     fleet = launch(graph, graph_args, target, sensor, robots, workdir, **launch_kw)
     ids = [f"r{i + 1}" for i in range(robots)]
     results: list[dict[str, Any]] = []
