@@ -121,10 +121,17 @@ def _searcher_factory(
         if note:
             print(f"mures: note: {note}", file=sys.stderr)
         return lambda seed: PolicySearcher(snap, graph, sensor, args.robots, seed=seed, device=device)
-    if args.searcher not in REFERENCE_SEARCHERS:
-        names = ", ".join((*REFERENCE_SEARCHERS, "policy:DIR"))
+    from shared.baselines import BASELINES
+
+    if args.searcher not in REFERENCE_SEARCHERS + BASELINES:
+        names = ", ".join((*REFERENCE_SEARCHERS, *BASELINES, "policy:DIR"))
         raise CliError(f"unknown searcher {args.searcher!r} (expected one of {names})")
-    return lambda seed: make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device)
+    if args.searcher == "oracle" and args.robots > 2:
+        raise CliError("the oracle is computed for 1 or 2 robots only (its state space is n^(N+1))")
+    if args.searcher == "fhpe" and args.detection not in (None, "node"):
+        raise CliError("fhpe enumerates joint paths for node detection only; use fhpe-sa")
+    return lambda seed: make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device,
+                                      n_robots=args.robots)  # fmt: skip
 
 
 def _snapshot_detection(args: argparse.Namespace) -> str:
@@ -435,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="evaluate a searcher in simulation and print capture-time statistics")
     _add_world_args(p)
-    p.add_argument("--searcher", required=True, help=f"one of {', '.join(REFERENCE_SEARCHERS)}, or policy:DIR")
+    p.add_argument("--searcher", required=True,
+                   help="random, greedy, fhpe, fhpe-sa, milp, d-milp, oracle, or policy:DIR")  # fmt: skip
     p.add_argument("--episodes", type=_positive_int, default=1500, help="episodes (default 1500)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_evaluate)

@@ -120,10 +120,15 @@ def make_searcher(
     sensor: Sensor,
     seed: int = 0,
     device: torch.device | str = "cpu",
+    n_robots: int = 1,
 ) -> Searcher:
-    """Build a searcher by name; later issues register the learned ones and the baselines."""
+    """Build a searcher by name: the reference searchers and the baselines (shared/baselines.py)."""
+    from shared.baselines import BASELINES, make_baseline
+
+    if name in BASELINES:
+        return make_baseline(name, graph, model, sensor, n_robots, seed=seed)  # type: ignore[return-value]
     if name == "random":
         return RandomSearcher(graph, seed=seed, device=device)
     if name == "greedy":
         return GreedySearcher(graph, model, sensor, seed=seed, device=device)
-    raise ValueError(f"unknown searcher {name!r} (expected one of {', '.join(REFERENCE_SEARCHERS)})")
+    raise ValueError(f"unknown searcher {name!r} (expected one of {', '.join(REFERENCE_SEARCHERS + BASELINES)})")

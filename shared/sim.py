@@ -44,6 +44,7 @@ class Obs:
     new: torch.Tensor  # (B,) bool
     active: torch.Tensor  # (B, N) bool, False once a robot is withdrawn
     alive: torch.Tensor  # (B,) bool, False for frozen slots (evaluation mode)
+    target: torch.Tensor | None = None  # (B,) the hidden target's rows: only the `oracle` baseline reads it
 
 
 @dataclass
@@ -164,7 +165,7 @@ class SearchSim:
         self._new = mask
 
     def _obs(self) -> Obs:
-        return Obs(self.pos, self.z, self.t, self._new, self.active, self.alive)
+        return Obs(self.pos, self.z, self.t, self._new, self.active, self.alive, self.target)
 
     # ------------------------------------------------------------------ API
     def reset(self) -> Obs:

@@ -74,6 +74,7 @@ def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
     ct = _fly_many(fleet, range(300))
     stats = fleet.api.get("/api/v1/episodes/stats")
     assert stats["stored"] == 900 and stats["missions"] == 300 and stats["by_policy_version"] == {"1": 900}
+    assert stats["rejected"] == {}
     m_fleet, h_fleet = mean_ci(ct)
     g = fleet.graph
     snap = _snapshot(fleet, 1)
@@ -81,6 +82,13 @@ def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
                    episodes=1500, seed=5).summary()  # fmt: skip
     m_eval, h_eval = res["mean_capture_time"], res["ci95_halfwidth"]
     assert abs(m_fleet - m_eval) <= h_fleet + h_eval, (m_fleet, h_fleet, m_eval, h_eval)
+    # the world and the agents are deterministic for a mission seed and a policy version
+    again = fleet.fly(ROBOTS, seed=0)
+    first = fleet.api.get("/api/v1/episodes?limit=3")["items"][0]["mission_id"]
+    for robot in ROBOTS:
+        a = fleet.api.get(f"/api/v1/episodes/{robot}/{first}")
+        b = fleet.api.get(f"/api/v1/episodes/{robot}/{again['id']}")
+        assert a["steps"] == b["steps"] and a["outcome"] == b["outcome"]
     items = fleet.api.get("/api/v1/episodes?limit=3")["items"]
     mission = fleet.api.get(f"/api/v1/missions/{items[0]['mission_id']}")
     for robot in ROBOTS:
@@ -157,6 +165,9 @@ def test_agent_killed_mid_mission_resends_its_journal_and_outbox(fleet):
     assert len(r1["steps"]) == flown and r1["outcome"]["captured"] is False
     wait_until(lambda: fleet.api.get("/api/v1/episodes?robot_id=r1&mission_id=offline-1")["items"], 30, "outbox")
     assert not list(outbox.glob("*.json"))
+    assert fleet.stop_agent("r1") == 0  # SIGTERM: a clean exit
+    fleet.start_agent("r1")
+    wait_until(lambda: "r1" in fleet.online(), 60, "r1 back online")
 
 
 def _send(session, fleet_name, robot, mission, payload: bytes):

@@ -36,6 +36,22 @@ class MissionRequest(BaseModel):
     mission_id: str | None = Field(default=None, pattern=ID_RE.pattern, description="default: generated")
 
 
+class TrainingRunRequest(BaseModel):
+    """A retrain's settings; every field is optional (defaults in training_server/jobs.py)."""
+
+    model_config = ConfigDict(extra="forbid")
+    episodes: int | None = Field(default=None, ge=256, le=10_000_000, description="CE-PG episodes (default 20000)")
+    beta: float | None = Field(default=None, ge=0.0, le=1.0, description="Eq. 9 beta (default 0.5; 1 = PG)")
+    lr: float | None = Field(default=None, gt=0.0, lt=1.0, description="Adam learning rate (default 0.01)")
+    seed: int | None = Field(default=None, description="training and gate seed (default 0)")
+    max_records: int | None = Field(default=None, ge=1, description="newest records used by EM (default 20000)")
+    em_max_iter: int | None = Field(default=None, ge=1, description="EM iterations at most (default 300)")
+    gate_episodes: int | None = Field(default=None, ge=1, description="episodes of the evaluation gate (1000)")
+    gate: bool | None = Field(default=None, description="publish only if not worse than the current (true)")
+    promote: bool | None = Field(default=None, description="make the new version current (true)")
+    threads: int | None = Field(default=None, ge=0, description="torch threads in the run (0: torch's default)")
+
+
 class PromoteRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     version: int = Field(ge=1)
@@ -222,12 +238,10 @@ def create_app(srv: Any) -> FastAPI:
 
     # ------------------------------------------------------------------ training runs
     @app.post("/api/v1/training-runs", status_code=202, dependencies=[writer])
-    def start_run(response: Response, params: dict[str, Any] | None = None) -> dict[str, Any]:
-        """Queue a retrain: EM on the stored records, CE-PG from the current policy, the gate, a new version.
-        Body (all optional): episodes, beta, lr, seed, max_records, em_max_iter, gate_episodes, gate, promote,
-        threads."""
+    def start_run(response: Response, req: TrainingRunRequest | None = None) -> dict[str, Any]:
+        """Queue a retrain: EM on the stored records, CE-PG from the current policy, the gate, a new version."""
         try:
-            full = check_params(params or {})
+            full = check_params(req.model_dump(exclude_none=True) if req else {})
         except ValueError as exc:
             raise HTTPException(422, str(exc)) from None
         if srv.store.episode_stats(srv.fleet)["stored"] == 0:

@@ -1,0 +1,91 @@
+"""The paper's comparison methods (shared/baselines.py) against brute force and each other."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from shared.baselines import GAMMA, Fhpe, FhpeSA, Milp, OracleSearcher, oracle_expected_time, walks
+from shared.evaluate import evaluate
+from shared.graph import builtin_graph
+from shared.models import Sensor, uniform_walk
+from shared.searchers import make_searcher
+
+
+def _team_value(planner, b, paths):
+    """Discounted capture probability of fixed team paths, by explicit propagation (the definition)."""
+    U = b @ planner.gamma_dense
+    v = 0.0
+    for k in range(len(paths[0])):
+        if k:
+            U = U @ planner.gamma_dense
+        miss = np.ones(planner.n)
+        for p in paths:
+            miss *= 1.0 - planner.hit * planner.det[p[k]]
+        v += GAMMA ** (k + 1) * (U * (1.0 - miss)).sum()
+        U = U * miss
+    return v
+
+
+@pytest.fixture
+def office():
+    g = builtin_graph("office")
+    rng = np.random.default_rng(3)
+    b = rng.random(g.n)
+    return g, uniform_walk(g), b / b.sum(), rng
+
+
+def test_milp_finds_the_best_single_robot_path(office):
+    g, model, b, rng = office
+    sensor = Sensor(eta_fn=0.1)
+    pl = Milp(g, model, sensor, time_limit=30)
+    start = int(rng.integers(g.n))
+    best = max(_team_value(pl, b, [p]) for p in walks(g, start, 5))
+    got = pl._solve(b, [start], {})[0]
+    assert _team_value(pl, b, [got]) == pytest.approx(best, rel=1e-6)
+
+
+def test_fhpe_maximises_over_joint_two_step_paths(office):
+    g, model, b, _ = office
+    pl = Fhpe(g, model, Sensor(eta_fn=0.2))
+    starts = np.array([g.index[x] for x in (23, 24)]) if 23 in g.index and 24 in g.index else np.array([5, 6])
+    W = [walks(g, int(p), 2) for p in starts]
+    vals = {tuple(p[0] for p in combo): _team_value(pl, b, list(combo)) for combo in itertools.product(*W)}
+    best = max(vals.values())
+    move = tuple(int(x) for x in pl.plan(b, starts, np.ones(2, bool)))
+    assert vals[move] == pytest.approx(best, rel=1e-9)
+
+
+def test_fhpe_sa_is_exact_for_one_robot(office):
+    g, model, b, _ = office
+    pl = FhpeSA(g, model, Sensor())
+    start = g.start
+    P = walks(g, start, 5)
+    best = max(_team_value(pl, b, [p]) for p in P)
+    first = pl.plan(b, np.array([start]), np.ones(1, bool))[0]
+    assert max(_team_value(pl, b, [p]) for p in P if p[0] == first) == pytest.approx(best, rel=1e-9)
+
+
+def test_oracle_dp_matches_its_simulation_and_bounds_the_planners():
+    g = builtin_graph("office")
+    model, sensor = uniform_walk(g), Sensor()
+    exact = oracle_expected_time(g, model, sensor, 1)
+    sim = evaluate(g, model, sensor, 1, lambda s: OracleSearcher(g, model, sensor, 1, s), episodes=600, seed=2)
+    r = sim.summary()
+    assert abs(r["mean_capture_time"] - exact) <= 1.5 * r["ci95_halfwidth"] + 1e-9, (r, exact)
+    sa = evaluate(g, model, sensor, 1, lambda s: make_searcher("fhpe-sa", g, model, sensor, s), episodes=60, seed=2)
+    assert exact < sa.summary()["mean_capture_time"]
+    assert oracle_expected_time(g, model, sensor, 2) < exact  # two all-seeing robots are faster
+
+
+def test_planners_beat_random(office):
+    g, model, _b, _ = office
+    sensor = Sensor()
+    res = {}
+    for name in ("random", "fhpe-sa", "fhpe"):
+        r = evaluate(g, model, sensor, 2, lambda s, name=name: make_searcher(name, g, model, sensor, s, n_robots=2),
+                     episodes=80, seed=4).summary()  # fmt: skip
+        res[name] = r["mean_capture_time"]
+    assert res["fhpe-sa"] < res["random"] and res["fhpe"] < res["random"], res
