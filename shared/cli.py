@@ -436,6 +436,27 @@ def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------- experiments, report
+def cmd_experiment(args: argparse.Namespace) -> int:
+    from shared.experiments import run
+
+    t0 = time.perf_counter()
+    try:
+        out = run(args.name, Path(args.results), args.quick)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    print(f"{args.name}: wrote {out} in {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from shared.experiments import report
+
+    out = report(Path(args.results), Path(args.out))
+    print(f"wrote {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mures", description="MuRES fleet: multirobot search for a moving target")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -502,6 +523,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--agent-token-file", metavar="FILE", help="with --server: the agent token (default --token-file)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_fleet_sim)
+
+    p = sub.add_parser("experiment", help="regenerate one of the paper's figures as data and a plot")
+    p.add_argument("name", help="fig4, fig7 or fig8 (fig8 comes with fig7)")
+    p.add_argument("--quick", action="store_true", help="small runs (minutes, not hours)")
+    p.add_argument("--results", default="results", help="results directory (default results/)")
+    p.set_defaults(func=cmd_experiment)
+
+    p = sub.add_parser("report", help="write docs/results.md from the recorded results")
+    p.add_argument("--results", default="results", help="results directory (default results/)")
+    p.add_argument("--out", default="docs/results.md")
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("map", help="print a map's size and graph_id")
     _add_map_args(p)
