@@ -120,7 +120,7 @@ class Fleet:
                "--zenoh-connect", self.zenoh_endpoint, "--token-file", str(self.agent_token_file),
                "--state-dir", str(self.workdir / "agents" / robot), "--backend", "sim", *(extra or [])]  # fmt: skip
         log = open(self.log_dir / f"agent-{robot}.log", "ab")  # noqa: SIM115 - owned by the process
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_child_env())
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_child_env(agent=True))
         self.agents[robot] = proc
         return proc
 
@@ -162,11 +162,12 @@ class Fleet:
                 self.server.wait()
 
 
-def _child_env() -> dict[str, str]:
+def _child_env(agent: bool = False) -> dict[str, str]:
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parent.parent)
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env.setdefault("OMP_NUM_THREADS", "1")  # agents do tiny numpy work; no thread pools
+    if agent:
+        env.setdefault("OMP_NUM_THREADS", "1")  # agents do tiny numpy work; no thread pools
     return env
 
 
