@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet -c constraints.txt -e '.[dev]'
 	touch $(STAMP)
 
-# The main job on embedded defaults: the whole product on loopback (about 2.5 min on 2 cores).
+# The main job on embedded defaults: the whole product on loopback (about 2 min on 2 cores).
 # A training server, a simulated world and 4 robot-agent processes on MUSEUM fly 100 missions on
 # the untrained initial policy, retrain over HTTP (EM on the fleet's own records, CE-PG, the
 # evaluation gate), fly 100 missions on the new version, and print the capture times of both.
