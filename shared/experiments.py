@@ -5,8 +5,9 @@ seed; the setup; the machine and date), ``<name>.csv`` and ``<name>.png``. Train
 cached under ``results/snapshots/`` and reused. ``mures report`` turns whatever results exist into
 docs/results.md; nothing in it is typed by hand.
 
-Implemented: fig4 (toy learning curves), fig7 (all methods, N = 1..5, OFFICE and MUSEUM) and fig8
-(decision time per team step, measured in fig7). Not yet: fig5, fig6, fig9-fig13.
+Implemented: fig4 (toy learning curves), fig7 (all methods, N = 1..5, OFFICE and MUSEUM), fig8
+(decision time per team step, measured in fig7), fig12 and fig13 (robustness). Not yet: fig5, fig6,
+fig9, fig10, fig11.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-EXPERIMENTS = ("fig4", "fig7", "fig8")
+EXPERIMENTS = ("fig4", "fig7", "fig8", "fig12", "fig13")
 PLANNERS = ("fhpe", "fhpe-sa", "milp", "d-milp")
 
 
@@ -232,9 +233,106 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
     plt.close(fig)
 
 
+# ---------------------------------------------------------------------- fig12 / fig13
+def _robust_cell(env: str, N: int, method: str, make: Callable[[int], Any], episodes: int, seed: int,
+                 withdraw_at: list[int | None] | None) -> dict[str, Any]:  # fmt: skip
+    from shared.evaluate import evaluate
+    from shared.graph import builtin_graph
+    from shared.models import Sensor, uniform_walk
+
+    g = builtin_graph(env)
+    s = evaluate(g, uniform_walk(g), Sensor(), N, make, episodes=episodes, seed=seed, withdraw_at=withdraw_at).summary()
+    return {"map": env, "robots": N, "method": method, "episodes": episodes, "seed": seed,
+            "withdrawn": "none" if not withdraw_at or all(w is None for w in withdraw_at) else
+            ",".join(f"r{i + 1}@t{w}" for i, w in enumerate(withdraw_at) if w is not None),
+            "mean_capture_time": round(s["mean_capture_time"], 3), "ci95_halfwidth": round(s["ci95_halfwidth"], 3),
+            "censored_fraction": round(s["censored_fraction"], 4)}  # fmt: skip
+
+
+def fig12(root: Path, quick: bool) -> Path:
+    """Robustness: a 4-robot team loses robot 4 at t = 5 (paper Fig. 12), against the intact team."""
+    from shared.graph import builtin_graph
+    from shared.models import Sensor, uniform_walk
+    from shared.snapshot import load_snapshot
+
+    episodes, train_eps, seed, N = (300 if quick else 1500), (10_000 if quick else 400_000), 1, 4
+    rows = []
+    for env in ("office", "museum"):
+        g = builtin_graph(env)
+        model, sensor = uniform_walk(g), Sensor()
+        for withdraw in (None, [None, None, None, 5]):
+            for name in ("random", "greedy"):
+                rows.append(_robust_cell(env, N, name, _maker("ref", name, g, model, sensor, N), episodes, seed,
+                                         withdraw))  # fmt: skip
+            for label, beta in (("pg", 1.0), ("cepg", 0.5)):
+                snap = load_snapshot(_snapshot(root, env, N, beta, train_eps, 0), g)
+                rows.append(_robust_cell(env, N, label, _maker("policy", snap, g, model, sensor, N), episodes, seed,
+                                         withdraw))  # fmt: skip
+    out = root / "fig12"
+    _write(out, "fig12", {"experiment": "fig12", "quick": quick, "episodes": episodes, "training_episodes": train_eps,
+                          "seed": seed, "machine": machine()}, rows)  # fmt: skip
+    _bars(out / "fig12.png", rows, "withdrawn", "capture time (steps), N = 4")
+    return out
+
+
+def fig13(root: Path, quick: bool) -> Path:
+    """Robustness: a team trained for 5 robots flown by k = 1..5 of them (paper Fig. 13), against teams
+    trained for k."""
+    from shared.graph import builtin_graph
+    from shared.models import Sensor, uniform_walk
+    from shared.snapshot import load_snapshot
+
+    episodes, train_eps, seed = (300 if quick else 1500), (10_000 if quick else 400_000), 1
+    rows = []
+    for env in ("office", "museum"):
+        g = builtin_graph(env)
+        model, sensor = uniform_walk(g), Sensor()
+        five = load_snapshot(_snapshot(root, env, 5, 0.5, train_eps, 0), g)
+        for k in range(1, 6):
+            rows.append({**_robust_cell(env, k, "cepg trained for 5", _maker("policy", five, g, model, sensor, k),
+                                        episodes, seed, None), "trained_for": 5})  # fmt: skip
+            own = load_snapshot(_snapshot(root, env, k, 0.5, train_eps, 0), g)
+            rows.append({**_robust_cell(env, k, "cepg trained for k", _maker("policy", own, g, model, sensor, k),
+                                        episodes, seed, None), "trained_for": k})  # fmt: skip
+    out = root / "fig13"
+    _write(out, "fig13", {"experiment": "fig13", "quick": quick, "episodes": episodes, "training_episodes": train_eps,
+                          "seed": seed, "machine": machine()}, rows)  # fmt: skip
+    _bars(out / "fig13.png", rows, "robots", "capture time (steps)")
+    return out
+
+
+def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, env in zip(axes, ("office", "museum"), strict=True):
+        sel = [r for r in rows if r["map"] == env]
+        groups = list(dict.fromkeys(r[key] for r in sel))
+        methods = list(dict.fromkeys(r["method"] for r in sel))
+        w = 0.8 / len(methods)
+        for j, m in enumerate(methods):
+            pts = [next(r for r in sel if r[key] == gk and r["method"] == m) for gk in groups]
+            ax.bar(np.arange(len(groups)) + j * w, [p["mean_capture_time"] for p in pts], w,
+                   yerr=[p["ci95_halfwidth"] for p in pts], capsize=2, label=m)  # fmt: skip
+        ax.set_xticks(np.arange(len(groups)) + 0.4 - w / 2, [str(gk) for gk in groups])
+        ax.set_title(env.upper())
+        ax.set_ylabel(ylabel)
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def run(name: str, root: Path, quick: bool) -> Path:
     if name == "fig4":
         return fig4(root, quick)
+    if name == "fig12":
+        return fig12(root, quick)
+    if name == "fig13":
+        return fig13(root, quick)
     if name in ("fig7", "fig8"):
         return fig7(root, quick) if name == "fig7" else fig7(root, quick).parent / "fig8"
     raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)})")
@@ -314,7 +412,38 @@ def report(root: Path, out: Path) -> Path:
                       for m in ("fhpe-sa", "milp", "d-milp") if m in r4]  # fmt: skip
             lines += ["", f"Decision-time ratios at N = 4 on MUSEUM: {', '.join(ratios)}."]
         lines += ["", f"![fig8]({rel}/fig8/fig8.png)", ""]
-    missing = [e for e in ("fig5", "fig6", "fig9", "fig10", "fig11", "fig12", "fig13")]
+    robust = (
+        ("fig12", "Fig. 12: one robot withdrawn during execution (N = 4)", "withdrawn"),
+        ("fig13", "Fig. 13: a team trained for 5 robots, flown by k of them", "robots"),
+    )
+    for fig, title, key in robust:
+        f = root / fig / f"{fig}.json"
+        if not f.exists():
+            continue
+        d = json.loads(f.read_text())
+        rows = d["rows"]
+        lines += [
+            f"## {title}",
+            "",
+            f"Setup: {d['episodes']} episodes per cell, seed {d['seed']}; learned teams "
+            f"trained for {d['training_episodes']:,} episodes; quick={d['quick']}; {d['machine']['date']}.",
+            "",
+        ]
+        for env in ("office", "museum"):
+            sel = [r for r in rows if r["map"] == env]
+            groups = list(dict.fromkeys(r[key] for r in sel))
+            methods = list(dict.fromkeys(r["method"] for r in sel))
+            lines += [f"{env.upper()}:", "", "| method | " + " | ".join(f"{key} {gk}" for gk in groups) + " |",
+                      "| --- |" + " --- |" * len(groups)]  # fmt: skip
+            for m in methods:
+                cells = []
+                for gk in groups:
+                    r = next(x for x in sel if x[key] == gk and x["method"] == m)
+                    cells.append(f"{r['mean_capture_time']:.1f} ± {r['ci95_halfwidth']:.1f}")
+                lines.append(f"| {m} | " + " | ".join(cells) + " |")
+            lines.append("")
+        lines += [f"![{fig}]({rel}/{fig}/{fig}.png)", ""]
+    missing = [e for e in ("fig5", "fig6", "fig9", "fig10", "fig11") if not (root / e).exists()]
     lines += ["## Not yet reproduced", "", ", ".join(missing) + ": no experiment code yet.", ""]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines), encoding="utf-8")
