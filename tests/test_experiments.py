@@ -47,7 +47,8 @@ def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
 def test_report_tables_robustness_results(tmp_path):
     rows = [{"map": env, "robots": 4, "method": m, "episodes": 10, "seed": 1, "withdrawn": w,
              "mean_capture_time": mean, "ci95_halfwidth": 1.0, "censored_fraction": 0.0}
-            for env in ("office", "museum") for m, w, mean in (("cepg", "none", 20.0), ("cepg", "r4@t5", 27.5))]  # fmt: skip
+            for env in ("office", "museum")
+            for m, w, mean in (("cepg", "none", 20.0), ("cepg", "r4@t5", 27.5))]  # fmt: skip
     (tmp_path / "fig12").mkdir()
     setup = {"episodes": 10, "seed": 1, "training_episodes": 10, "quick": True, "machine": {"date": "today"}}
     (tmp_path / "fig12" / "fig12.json").write_text(json.dumps({**setup, "rows": rows}))
