@@ -525,7 +525,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_fleet_sim)
 
     p = sub.add_parser("experiment", help="regenerate one of the paper's figures as data and a plot")
-    p.add_argument("name", help="fig4, fig7, fig8 (comes with fig7), fig12 or fig13")
+    p.add_argument("name", help="fig4, fig5, fig7, fig8 (comes with fig7), fig12 or fig13")
     p.add_argument("--quick", action="store_true", help="small runs (minutes, not hours)")
     p.add_argument("--results", default="results", help="results directory (default results/)")
     p.set_defaults(func=cmd_experiment)

@@ -6,8 +6,8 @@ cached under ``results/snapshots/`` and reused. ``mures report`` turns whatever 
 docs/results.md; nothing in it is typed by hand.
 
 Implemented: fig4 (toy learning curves), fig7 (all methods, N = 1..5, OFFICE and MUSEUM), fig8
-(decision time per team step, measured in fig7), fig12 and fig13 (robustness). Not yet: fig5, fig6,
-fig9, fig10, fig11.
+(decision time per team step, measured in fig7), fig5 (beta), fig12 and fig13 (robustness). Not yet:
+fig6, fig9, fig10, fig11.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-EXPERIMENTS = ("fig4", "fig7", "fig8", "fig12", "fig13")
+EXPERIMENTS = ("fig4", "fig5", "fig7", "fig8", "fig12", "fig13")
 PLANNERS = ("fhpe", "fhpe-sa", "milp", "d-milp")
 
 
@@ -233,6 +233,30 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
     plt.close(fig)
 
 
+# ---------------------------------------------------------------------- fig5
+def fig5(root: Path, quick: bool) -> Path:
+    """beta in {0.1, 0.3, 0.5, 0.7, 0.9} and 1 (PG) for a 4-robot team on OFFICE and MUSEUM (paper Fig. 5)."""
+    from shared.graph import builtin_graph
+    from shared.models import Sensor, uniform_walk
+    from shared.snapshot import load_snapshot
+
+    episodes, train_eps, seed, N = (300 if quick else 1500), (10_000 if quick else 400_000), 1, 4
+    rows = []
+    for env in ("office", "museum"):
+        g = builtin_graph(env)
+        model, sensor = uniform_walk(g), Sensor()
+        for beta in (0.1, 0.3, 0.5, 0.7, 0.9, 1.0):
+            snap = load_snapshot(_snapshot(root, env, N, beta, train_eps, 0), g)
+            rows.append({**_robust_cell(env, N, "pg" if beta == 1.0 else "cepg",
+                                        _maker("policy", snap, g, model, sensor, N), episodes, seed, None),
+                         "beta": beta})  # fmt: skip
+    out = root / "fig5"
+    _write(out, "fig5", {"experiment": "fig5", "quick": quick, "episodes": episodes, "training_episodes": train_eps,
+                         "seed": seed, "robots": N, "machine": machine()}, rows)  # fmt: skip
+    _bars(out / "fig5.png", rows, "beta", "capture time (steps), N = 4")
+    return out
+
+
 # ---------------------------------------------------------------------- fig12 / fig13
 def _robust_cell(env: str, N: int, method: str, make: Callable[[int], Any], episodes: int, seed: int,
                  withdraw_at: list[int | None] | None) -> dict[str, Any]:  # fmt: skip
@@ -314,9 +338,9 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
         methods = list(dict.fromkeys(r["method"] for r in sel))
         w = 0.8 / len(methods)
         for j, m in enumerate(methods):
-            pts = [next(r for r in sel if r[key] == gk and r["method"] == m) for gk in groups]
-            ax.bar(np.arange(len(groups)) + j * w, [p["mean_capture_time"] for p in pts], w,
-                   yerr=[p["ci95_halfwidth"] for p in pts], capsize=2, label=m)  # fmt: skip
+            pts = [(i, r) for i, gk in enumerate(groups) for r in sel if r[key] == gk and r["method"] == m]
+            ax.bar([i + j * w for i, _ in pts], [r["mean_capture_time"] for _, r in pts], w,
+                   yerr=[r["ci95_halfwidth"] for _, r in pts], capsize=2, label=m)  # fmt: skip
         ax.set_xticks(np.arange(len(groups)) + 0.4 - w / 2, [str(gk) for gk in groups])
         ax.set_title(env.upper())
         ax.set_ylabel(ylabel)
@@ -329,6 +353,8 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
 def run(name: str, root: Path, quick: bool) -> Path:
     if name == "fig4":
         return fig4(root, quick)
+    if name == "fig5":
+        return fig5(root, quick)
     if name == "fig12":
         return fig12(root, quick)
     if name == "fig13":
@@ -413,6 +439,7 @@ def report(root: Path, out: Path) -> Path:
             lines += ["", f"Decision-time ratios at N = 4 on MUSEUM: {', '.join(ratios)}."]
         lines += ["", f"![fig8]({rel}/fig8/fig8.png)", ""]
     robust = (
+        ("fig5", "Fig. 5: beta of Eq. 9 (N = 4; beta = 1 is PG)", "beta"),
         ("fig12", "Fig. 12: one robot withdrawn during execution (N = 4)", "withdrawn"),
         ("fig13", "Fig. 13: a team trained for 5 robots, flown by k of them", "robots"),
     )
@@ -438,12 +465,12 @@ def report(root: Path, out: Path) -> Path:
             for m in methods:
                 cells = []
                 for gk in groups:
-                    r = next(x for x in sel if x[key] == gk and x["method"] == m)
-                    cells.append(f"{r['mean_capture_time']:.1f} ± {r['ci95_halfwidth']:.1f}")
+                    r = next((x for x in sel if x[key] == gk and x["method"] == m), None)
+                    cells.append("—" if r is None else f"{r['mean_capture_time']:.1f} ± {r['ci95_halfwidth']:.1f}")
                 lines.append(f"| {m} | " + " | ".join(cells) + " |")
             lines.append("")
         lines += [f"![{fig}]({rel}/{fig}/{fig}.png)", ""]
-    missing = [e for e in ("fig5", "fig6", "fig9", "fig10", "fig11") if not (root / e).exists()]
+    missing = [e for e in ("fig6", "fig9", "fig10", "fig11") if not (root / e).exists()]
     lines += ["## Not yet reproduced", "", ", ".join(missing) + ": no experiment code yet.", ""]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines), encoding="utf-8")
