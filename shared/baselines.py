@@ -55,9 +55,7 @@ class _Planner:
         self.G = sp.csr_matrix(self.gamma_dense)  # Gamma, row-stochastic
         self.belief = BatchedBelief(graph, model, sensor, "cpu", dtype=torch.float64)
         self.tracker = BeliefTracker(self.belief)
-        ptr, idx = graph.detection_sets(sensor.detection)
-        self.det = np.zeros((self.n, self.n), dtype=np.float64)  # det[p, v] = 1 if v in D(p)
-        self.det[np.repeat(np.arange(self.n), np.diff(ptr)), idx] = 1.0
+        self.det = graph.detection_matrix(sensor.detection).astype(np.float64)  # det[p, v] = 1 if v in D(p)
         self.hit = 1.0 - sensor.eta_fn  # P(z = 1 | target in D(p))
         self.rng = np.random.default_rng(seed)
         self.decisions = 0
@@ -298,9 +296,7 @@ def oracle_values(graph: Graph, model: TargetModel, sensor: Sensor, robots: int)
         raise ValueError("the oracle is computed exactly for 1 and 2 robots only")
     n, T = graph.n, 3 * graph.n
     G = model.dense()
-    ptr, idx = graph.detection_sets(sensor.detection)
-    det = np.zeros((n, n))
-    det[np.repeat(np.arange(n), np.diff(ptr)), idx] = 1.0
+    det = graph.detection_matrix(sensor.detection).astype(np.float64)
     hit = 1.0 - sensor.eta_fn
     nbr, valid = graph.nbr, np.arange(graph.nbr.shape[1])[None, :] < graph.deg_closed[:, None]
     big = np.inf
@@ -326,9 +322,7 @@ def oracle_expected_time(graph: Graph, model: TargetModel, sensor: Sensor, robot
     """E[t_cap] of the oracle team from the start node (exact, with the T_max cut)."""
     V, _T = oracle_values(graph, model, sensor, robots)
     s = graph.start
-    ptr, idx = graph.detection_sets(sensor.detection)
-    d0 = np.zeros(graph.n)
-    d0[idx[ptr[s] : ptr[s + 1]]] = 1.0
+    d0 = graph.detection_matrix(sensor.detection)[s]
     miss0 = (1.0 - (1.0 - sensor.eta_fn) * d0) ** robots  # no capture at t = 0
     v0 = V[s] if robots == 1 else V[s, s]
     return float((model.b0 * miss0 * v0).sum())
@@ -349,10 +343,7 @@ class OracleSearcher:
             self._cache[key] = oracle_values(graph, model, sensor, n_robots)[0]
         self.V = self._cache[key]
         self.G = model.dense()
-        ptr, idx = graph.detection_sets(sensor.detection)
-        det = np.zeros((graph.n, graph.n))
-        det[np.repeat(np.arange(graph.n), np.diff(ptr)), idx] = 1.0
-        self.surv = 1.0 - (1.0 - sensor.eta_fn) * det
+        self.surv = 1.0 - (1.0 - sensor.eta_fn) * graph.detection_matrix(sensor.detection)
         self.N = n_robots
 
     def act(self, obs: Obs) -> torch.Tensor:

@@ -106,11 +106,7 @@ class BatchedBelief:
         self.dtype = dtype
         self.gamma = torch.as_tensor(model.dense(), dtype=dtype, device=self.device)  # (n, n)
         self.b0 = torch.as_tensor(model.b0, dtype=dtype, device=self.device)  # (n,)
-        ptr, idx = graph.detection_sets(sensor.detection)
-        rows = np.repeat(np.arange(graph.n), np.diff(ptr))
-        d = torch.zeros(graph.n, graph.n, dtype=torch.bool)
-        d[torch.as_tensor(rows), torch.as_tensor(idx)] = True
-        self.detect = d.to(self.device)  # (n, n): detect[p, j] = j in D(p)
+        self.detect = torch.as_tensor(graph.detection_matrix(sensor.detection), device=self.device)  # [p, j]: j in D(p)
         (in0, in1), (out0, out1) = sensor.likelihoods()
         self.lik_in = torch.tensor([in0, in1], dtype=dtype, device=self.device)  # indexed by z
         self.lik_out = torch.tensor([out0, out1], dtype=dtype, device=self.device)

@@ -83,10 +83,7 @@ def collect_missions(
         for ep in robots.values():
             det = detect_cache.get(ep.sensor.detection)
             if det is None:
-                ptr, idx = graph.detection_sets(ep.sensor.detection)
-                det = np.zeros((n, n), dtype=bool)
-                det[np.repeat(np.arange(n), np.diff(ptr)), idx] = True
-                detect_cache[ep.sensor.detection] = det
+                det = detect_cache[ep.sensor.detection] = graph.detection_matrix(ep.sensor.detection)
             (in0, in1), (out0, out1) = ep.sensor.likelihoods()
             Tr = len(ep.nodes)
             l_in = np.where(ep.z == 1, in1, in0)

@@ -33,6 +33,15 @@ class Trajectories:
     length: np.ndarray  # steps recorded per episode: capture_time + 1
 
 
+def mean_ci95(x: Any) -> tuple[float, float]:
+    """Mean and the half-width of its normal-approximation 95% CI (nan for fewer than 2 values)."""
+    a = np.asarray(x, dtype=np.float64)
+    if len(a) == 0:
+        return float("nan"), float("nan")
+    half = Z95 * float(a.std(ddof=1)) / math.sqrt(len(a)) if len(a) > 1 else float("nan")
+    return float(a.mean()), half
+
+
 @dataclass
 class EvalResult:
     capture_time: np.ndarray  # (B,) int
@@ -47,9 +56,7 @@ class EvalResult:
         """The fields SPEC section 7 names for `mures evaluate`."""
         ct = self.capture_time.astype(np.float64)
         B = len(ct)
-        mean = float(ct.mean())
-        sd = float(ct.std(ddof=1)) if B > 1 else float("nan")
-        half = Z95 * sd / math.sqrt(B) if B > 1 else float("nan")
+        mean, half = mean_ci95(ct)
         return {
             "episodes": B,
             "mean_capture_time": mean,

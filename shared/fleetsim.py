@@ -9,7 +9,6 @@ every K missions over HTTP, and reports the capture times per policy version.
 from __future__ import annotations
 
 import json
-import math
 import os
 import signal
 import socket
@@ -25,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from shared.evaluate import mean_ci95
 from shared.fleet import read_token, zenoh_config
 from shared.graph import Graph
 from shared.models import Sensor, TargetModel
@@ -88,15 +88,6 @@ def wait_until(pred: Any, timeout: float, what: str, every: float = 0.05) -> Any
         if time.monotonic() > deadline:
             raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
         time.sleep(every)
-
-
-def mean_ci(x: list[float] | np.ndarray) -> tuple[float, float]:
-    """Mean and the half-width of its normal 95% CI."""
-    a = np.asarray(x, dtype=np.float64)
-    if len(a) == 0:
-        return float("nan"), float("nan")
-    half = 1.96 * a.std(ddof=1) / math.sqrt(len(a)) if len(a) > 1 else float("nan")
-    return float(a.mean()), float(half)
 
 
 @dataclass
@@ -282,7 +273,7 @@ def run_fleet_sim(
                             "policy_version": (out.get("policy_versions") or [m["policy_version"]])[0]})  # fmt: skip
             if (k + 1) % max(1, missions // 10) == 0 or k + 1 == missions:
                 done = [r["capture_time"] for r in results]
-                mean, half = mean_ci(done)
+                mean, half = mean_ci95(done)
                 say(f"fleet-sim: {k + 1}/{missions} missions, mean capture time {mean:.2f} ± {half:.2f}")
             if retrain_every and (k + 1) % retrain_every == 0 and k + 1 < missions:
                 say(f"fleet-sim: retraining over HTTP after {k + 1} missions ({json.dumps(retrain_params)})")
@@ -309,11 +300,11 @@ def run_fleet_sim(
         if tmp is not None:
             tmp.cleanup()
     ct_all = [r["capture_time"] for r in results]
-    mean, half = mean_ci(ct_all)
+    mean, half = mean_ci95(ct_all)
     by_version: dict[str, Any] = {}
     for v in sorted({r["policy_version"] for r in results}):
         x = [r["capture_time"] for r in results if r["policy_version"] == v]
-        mv, hv = mean_ci(x)
+        mv, hv = mean_ci95(x)
         by_version[str(v)] = {"missions": len(x), "mean_capture_time": mv, "ci95_halfwidth": hv,
                               "censored_fraction": float(np.mean([not r["captured"] for r in results
                                                                   if r["policy_version"] == v]))}  # fmt: skip

@@ -146,6 +146,13 @@ class Graph:
             return ptr, np.array([j for s in sets for j in s], dtype=np.int64)
         raise GraphError(f"unknown detection {detection!r} (expected node, neighbourhood or custom)")
 
+    def detection_matrix(self, detection: str) -> np.ndarray:
+        """(n, n) bool: [p, v] is True iff v is in D(p) (the CSR of ``detection_sets`` as a matrix)."""
+        ptr, idx = self.detection_sets(detection)
+        det = np.zeros((self.n, self.n), dtype=bool)
+        det[np.repeat(np.arange(self.n), np.diff(ptr)), idx] = True
+        return det
+
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "name": self.name,

@@ -94,10 +94,7 @@ class SearchSim:
         self.nbr = torch.as_tensor(graph.nbr, device=dev)  # (n, d) N[p], padded with p
         self.deg = torch.as_tensor(graph.deg_closed, device=dev)  # (n,)
         self.adj = torch.as_tensor(graph.closed_adjacency, device=dev)  # (n, n)
-        ptr, idx = graph.detection_sets(sensor.detection)
-        det = torch.zeros(graph.n, graph.n, dtype=torch.bool)
-        det[torch.as_tensor(np.repeat(np.arange(graph.n), np.diff(ptr))), torch.as_tensor(idx)] = True
-        self.detect = det.to(dev)  # (n, n): detect[p, e] = e in D(p)
+        self.detect = torch.as_tensor(graph.detection_matrix(sensor.detection), device=dev)  # [p, e]: e in D(p)
         # target sampling: per source row, destinations and cumulative probabilities
         counts = np.bincount(target.src, minlength=graph.n)
         k = int(counts.max())

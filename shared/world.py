@@ -64,9 +64,7 @@ class World:
         self.cum = np.cumsum(self.gamma, axis=1)
         self.b0 = np.cumsum(target.b0)
         self.sensor = sensor
-        ptr, idx = graph.detection_sets(sensor.detection)
-        self.detect = np.zeros((graph.n, graph.n), dtype=bool)  # detect[p, e]: e in D(p)
-        self.detect[np.repeat(np.arange(graph.n), np.diff(ptr)), idx] = True
+        self.detect = graph.detection_matrix(sensor.detection)  # detect[p, e]: e in D(p)
         self.step_timeout = step_timeout
         self.step_delay = step_delay
         self.events: queue.Queue[tuple[str, Any]] = queue.Queue()

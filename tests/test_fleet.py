@@ -17,9 +17,9 @@ import pytest
 import zenoh
 
 from robot_agent.agent import mission_seed
-from shared.evaluate import evaluate
+from shared.evaluate import evaluate, mean_ci95
 from shared.fleet import episode_key, read_token, zenoh_config
-from shared.fleetsim import ApiClient, ApiError, launch, mean_ci, start_server, wait_until
+from shared.fleetsim import ApiClient, ApiError, launch, start_server, wait_until
 from shared.graph import builtin_graph
 from shared.models import Sensor, uniform_walk
 from shared.records import make_record
@@ -75,7 +75,7 @@ def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
     stats = fleet.api.get("/api/v1/episodes/stats")
     assert stats["stored"] == 900 and stats["missions"] == 300 and stats["by_policy_version"] == {"1": 900}
     assert stats["rejected"] == {}
-    m_fleet, h_fleet = mean_ci(ct)
+    m_fleet, h_fleet = mean_ci95(ct)
     g = fleet.graph
     snap = _snapshot(fleet, 1)
     res = evaluate(g, uniform_walk(g), Sensor(), 3, lambda s: PolicySearcher(snap, g, Sensor(), 3, seed=s),
@@ -113,7 +113,7 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
     assert done["metrics"]["em"]["missions"] >= 360
     after = _fly_many(fleet, range(1000, 1060))  # the same seeds: the same target paths
     diff = before - after
-    m, h = mean_ci(diff)
+    m, h = mean_ci95(diff)
     assert m - h > 0, f"no significant improvement: before {before.mean():.2f}, after {after.mean():.2f}"
 
     # a version change during a mission takes effect only at the next mission
