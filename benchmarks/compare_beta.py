@@ -2,6 +2,9 @@
 
 Run: python benchmarks/compare_beta.py [--env office] [--robots 2,3,4] [--seeds 0,1,2]
                                        [--episodes 30000] [--belief em|true] [--eval 1500]
+                                       [--ce-states shared,all]
+
+CE-PG is trained once per --ce-states value (the states the cross entropy counts at, shared/cepg.py).
 
 For every (N, seed) both betas train from the same initial weights and simulator seed; each final
 team is evaluated on 1500 episodes (seed 1000 + seed). Printed per run: the final capture time
@@ -41,33 +44,38 @@ def main() -> None:
     ap.add_argument("--belief", default="em", choices=("em", "true"))
     ap.add_argument("--eval", type=int, default=1500)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--ce-states", default="shared", help="comma-separated: shared, all")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     g = builtin_graph(a.env)
     m, s = uniform_walk(g), Sensor()
     print(f"{g.name}, {a.episodes:,} training episodes per run, beliefs: {a.belief}, eval {a.eval} episodes")
+    arms = [(f"CE-PG ({c})", 0.5, c) for c in a.ce_states.split(",")] + [("PG", 1.0, "shared")]
     for N in (int(x) for x in a.robots.split(",")):
-        final: dict[float, list[float]] = {0.5: [], 1.0: []}
-        auc: dict[float, list[float]] = {0.5: [], 1.0: []}
+        final: dict[str, list[float]] = {name: [] for name, _, _ in arms}
+        auc: dict[str, list[float]] = {name: [] for name, _, _ in arms}
         for seed in (int(x) for x in a.seeds.split(",")):
-            for beta in (0.5, 1.0):
-                cfg = TrainConfig(robots=N, episodes=a.episodes, beta=[beta], belief=a.belief, seed=seed)
+            for name, beta, states in arms:
+                cfg = TrainConfig(robots=N, episodes=a.episodes, beta=[beta], belief=a.belief, seed=seed,
+                                  ce_states=states)  # fmt: skip
                 res = train(g, m, s, cfg)
                 snap = Snapshot(meta={"variant": "cepg", "robots": N}, policy=res.policy, model=res.model, sensor=s)
                 ev = evaluate(g, m, s, N, lambda sd, snap=snap, N=N: PolicySearcher(snap, g, s, N, seed=sd),
                               episodes=a.eval, seed=1000 + seed).summary()  # fmt: skip
                 curve = res.summary["learning_curve"]
                 area = sum(p["mean_capture_time"] for p in curve) / len(curve)
-                final[beta].append(ev["mean_capture_time"])
-                auc[beta].append(area)
-                print(f"  N={N} seed={seed} beta={beta:g}: final {ev['mean_capture_time']:6.2f} "
+                final[name].append(ev["mean_capture_time"])
+                auc[name].append(area)
+                print(f"  N={N} seed={seed} {name}: final {ev['mean_capture_time']:6.2f} "
                       f"+- {ev['ci95_halfwidth']:.2f}   training mean {area:6.2f}   "
                       f"({res.summary['wall_seconds']:.0f} s)", flush=True)  # fmt: skip
         for label, d in (("final capture time", final), ("training mean (AUC)", auc)):
-            diff = [p - c for p, c in zip(d[1.0], d[0.5], strict=True)]
-            (mc, hc), (mp, hp), (md, hd) = ci(d[0.5]), ci(d[1.0]), ci(diff)
-            print(f"N={N} {label}: CE-PG {mc:.2f} +- {hc:.2f}, PG {mp:.2f} +- {hp:.2f}, "
-                  f"PG - CE-PG {md:+.2f} +- {hd:.2f} over {len(diff)} seeds")  # fmt: skip
+            mp, hp = ci(d["PG"])
+            for name, _, _ in arms[:-1]:
+                diff = [p - c for p, c in zip(d["PG"], d[name], strict=True)]
+                (mc, hc), (md, hd) = ci(d[name]), ci(diff)
+                print(f"N={N} {label}: {name} {mc:.2f} +- {hc:.2f}, PG {mp:.2f} +- {hp:.2f}, "
+                      f"PG - {name} {md:+.2f} +- {hd:.2f} over {len(diff)} seeds")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ episode (a Python loop over the batch); decision times are reported by the exper
   time-expanded graph, belief mass propagated through Gamma, capture linearised: captured mass
   c_t(v) <= (1 - eta_fn) m_t(v) and c_t(v) <= y_t(v), where y_t(v) = 1 iff some robot detects v),
   objective the discounted captured mass, horizon h = 5, solved by HiGHS (scipy.optimize.milp)
-  with a per-solve time limit; the incumbent is used when the limit is hit.
+  with a per-solve time limit; the incumbent is used when the limit is hit, and a one-step
+  sequential greedy move when there is none yet (counted in ``fallbacks``).
 - ``d-milp``: the distributed variant: robots solve one after another, each with the plans of
   the robots before it fixed.
 - ``oracle``: robots that always know where the target is, acting on the dynamic-programming
@@ -203,6 +204,23 @@ class Milp(_Planner):
             out[i] = paths[r][0]
         return out
 
+    def _one_step_paths(self, b: np.ndarray, starts: list[int], fixed: dict[int, list[int]]) -> list[list[int]]:
+        """The fallback when HiGHS has no incumbent within the time limit: robot by robot (the fixed
+        plans first), the move or stay whose detection set holds the most predicted mass b Gamma not
+        yet covered by the robots before it; then it stays for the rest of the horizon."""
+        mass = b @ self.gamma_dense
+        free = np.ones(self.n, dtype=bool)
+        paths: list[list[int]] = []
+        for r, s in enumerate(starts):
+            if r in fixed:
+                v = fixed[r][0]
+            else:
+                nbrs = self.graph.closed(s)
+                v = int(nbrs[int(np.argmax([(mass * free * self.det[u]).sum() for u in nbrs]))])
+            free &= self.det[v] == 0
+            paths.append(fixed.get(r, [v] * self.h))
+        return paths
+
     def _solve(self, b: np.ndarray, starts: list[int], fixed: dict[int, list[int]]) -> list[list[int]]:
         """Team paths (h nodes each) maximising sum_t gamma^t sum_v c_t(v)."""
         from scipy.optimize import Bounds, LinearConstraint, milp
@@ -272,9 +290,9 @@ class Milp(_Planner):
                    options={"time_limit": self.time_limit, "disp": False})  # fmt: skip
         if res.status == 1:
             self.timeouts += 1
-        if res.x is None:  # no incumbent within the limit: stay (a legal move)
+        if res.x is None:  # no incumbent within the limit
             self.fallbacks += 1
-            return [[s] * h for s in starts]
+            return self._one_step_paths(b, starts, fixed)
         x = res.x[:nx].reshape(R, h, n)
         return [[int(np.argmax(x[r, t])) for t in range(h)] for r in range(R)]
 

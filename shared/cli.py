@@ -52,9 +52,9 @@ def _eta(text: str) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 0.5), got {text!r}") from None
-    if not (0.0 <= v < 0.5):
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 0.5), got {v}")
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 0.5], got {text!r}") from None
+    if not (0.0 <= v <= 0.5):
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 0.5], got {v}")
     return v
 
 
@@ -67,8 +67,8 @@ def _add_map_args(p: argparse.ArgumentParser) -> None:
 def _add_world_args(p: argparse.ArgumentParser) -> None:
     _add_map_args(p)
     p.add_argument("--robots", type=_positive_int, required=True, help="number of robots N")
-    p.add_argument("--eta-fn", type=_eta, default=0.0, help="false-negative rate, in [0, 0.5) (default 0)")
-    p.add_argument("--eta-fp", type=_eta, default=0.0, help="false-positive rate, in [0, 0.5) (default 0)")
+    p.add_argument("--eta-fn", type=_eta, default=0.0, help="false-negative rate, in [0, 0.5] (default 0)")
+    p.add_argument("--eta-fp", type=_eta, default=0.0, help="false-positive rate, in [0, 0.5] (default 0)")
     p.add_argument(
         "--detection",
         choices=("node", "neighbourhood", "custom"),
@@ -324,7 +324,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     init_policy = load_snapshot(args.init, graph) if args.init else None
     cfg = TrainConfig(
         robots=args.robots, episodes=args.episodes, beta=args.beta, lr=args.lr, variant=args.variant,
-        batch=args.batch, eps=args.eps, belief="true" if args.true_model else "em", em_first=args.em_first,
+        batch=args.batch, eps=args.eps, ce_states=args.ce_states, belief="true" if args.true_model else "em",
+        em_first=args.em_first,
         em_every=args.em_every, em_missions=args.em_missions, seed=args.seed, device=str(device),
     )  # fmt: skip
     try:
@@ -442,7 +443,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     try:
-        out = run(args.name, Path(args.results), args.quick)
+        out = run(args.name, Path(args.results), args.quick, args.train_episodes)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     print(f"{args.name}: wrote {out} in {time.perf_counter() - t0:.0f} s")
@@ -499,6 +500,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--variant", choices=VARIANTS, default="cepg", help="cepg (default), cepg+ or c-cepg")
     p.add_argument("--batch", type=_positive_int, default=256, help="episodes per update (default 256)")
     p.add_argument("--eps", type=float, default=0.1, help="cross-entropy smoothing epsilon (default 0.1)")
+    p.add_argument(
+        "--ce-states",
+        choices=("shared", "all"),
+        default="shared",
+        help="states the cross entropy counts at: where two robots share node and belief (default), or all",
+    )
     p.add_argument("--true-model", action="store_true", help="robots' beliefs use the true target model (no EM)")
     p.add_argument("--model", metavar="model.json", help="Gamma_hat_0 and b0 for the beliefs (default I, uniform)")
     p.add_argument("--em-first", type=_positive_int, default=8192, help="episodes before the first EM update")
@@ -525,8 +532,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_fleet_sim)
 
     p = sub.add_parser("experiment", help="regenerate one of the paper's figures as data and a plot")
-    p.add_argument("name", help="fig4, fig5, fig7, fig8 (comes with fig7), fig12 or fig13")
-    p.add_argument("--quick", action="store_true", help="small runs (minutes, not hours)")
+    p.add_argument("name", help="fig4 .. fig13 (fig8 comes with fig7), or all")
+    p.add_argument(
+        "--quick", action="store_true", help="small runs: all experiments together in minutes (barely trained teams)"
+    )
+    p.add_argument(
+        "--train-episodes",
+        type=_positive_int,
+        metavar="N",
+        help="training episodes per learned team (default: 400000, or 2000 with --quick)",
+    )
     p.add_argument("--results", default="results", help="results directory (default results/)")
     p.set_defaults(func=cmd_experiment)
 

@@ -5,9 +5,10 @@ seed; the setup; the machine and date), ``<name>.csv`` and ``<name>.png``. Train
 cached under ``results/snapshots/`` and reused. ``mures report`` turns whatever results exist into
 docs/results.md; nothing in it is typed by hand.
 
-Implemented: fig4 (toy learning curves), fig7 (all methods, N = 1..5, OFFICE and MUSEUM), fig8
-(decision time per team step, measured in fig7), fig5 (beta), fig12 and fig13 (robustness). Not yet:
-fig6, fig9, fig10, fig11.
+Experiments: fig4 (toy learning curves), fig5 (beta), fig6 (the variants), fig7 (all methods,
+N = 1..5, OFFICE and MUSEUM), fig8 (decision time per team step, measured in fig7), fig9 and fig10
+(sensor noise: capture time, false alarms), fig11 (all methods under eta_fn), fig12 and fig13
+(robustness). ``all`` runs them in turn. Budgets: ``FULL`` is the paper's protocol, ``QUICK`` fits CI.
 """
 
 from __future__ import annotations
@@ -21,12 +22,13 @@ import platform
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-EXPERIMENTS = ("fig4", "fig5", "fig7", "fig8", "fig12", "fig13")
+EXPERIMENTS = ("fig4", "fig5", "fig6", "fig7", "fig8", "fig9", "fig10", "fig11", "fig12", "fig13")
 PLANNERS = ("fhpe", "fhpe-sa", "milp", "d-milp")
 
 
@@ -83,105 +85,178 @@ def fig4(root: Path, quick: bool) -> Path:
     return out
 
 
-# ---------------------------------------------------------------------- fig7 / fig8
-def _snapshot(root: Path, env: str, robots: int, beta: float, episodes: int, seed: int) -> Path:
-    """A cached CE-PG (beta < 1) or PG (beta = 1) team trained with the EM-estimated model."""
+# ---------------------------------------------------------------------- budgets, teams, cells
+@dataclass(frozen=True)
+class Budget:
+    """How large each run is: the paper's protocol, or ``--quick`` (every experiment together
+    inside CI, minutes on 2 cores: the learned teams are then barely trained, so quick numbers
+    show that the pipeline works, not how good the method is)."""
+
+    quick: bool
+    episodes: int  # evaluation episodes per cell (the paper: 1500)
+    train: int  # training episodes per learned team (the paper: 4 x 10^5)
+    planner: int  # episodes for fhpe, milp and d-milp (one MILP solve per robot step); fhpe-sa runs 4x
+    milp_limit: float  # HiGHS time limit per solve, seconds
+    teams: tuple[int, ...]  # team sizes N of the sweeps (fig6, fig9, fig10)
+
+    def with_train(self, episodes: int | None) -> Budget:
+        return self if episodes is None else replace(self, train=episodes)
+
+
+FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5))
+QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4))
+SEED = 1  # evaluation seed of every cell (training seeds: 0)
+ETAS = (0.0, 0.1, 0.3, 0.5)  # the paper's sensor-noise grid (Fig. 9-11)
+LEARNED = {"pg": ("cepg", 1.0), "cepg": ("cepg", 0.5), "cepg+": ("cepg+", 0.5), "c-cepg": ("c-cepg", 0.5)}
+
+
+def sensor_for(variant: str, eta_fn: float = 0.0, eta_fp: float = 0.0) -> Any:
+    """The world's sensor for a method: CE-PG+ robots see N[p] (the paper's broader field of view)."""
+    from shared.models import Sensor
+
+    return Sensor(eta_fn=eta_fn, eta_fp=eta_fp, detection="neighbourhood" if variant == "cepg+" else "node")
+
+
+def _snapshot(root: Path, env: str, robots: int, beta: float, episodes: int, seed: int, variant: str = "cepg",
+              eta_fn: float = 0.0, eta_fp: float = 0.0) -> Path:  # fmt: skip
+    """A cached team (beta = 1: PG) trained with EM-estimated beliefs in the world of ``sensor_for``."""
     from shared.graph import builtin_graph
-    from shared.models import Sensor, uniform_walk
+    from shared.models import uniform_walk
     from shared.snapshot import save_snapshot
     from shared.train import TrainConfig, config_dict, train
 
-    path = root / "snapshots" / f"{env}-N{robots}-beta{beta}-{episodes}-s{seed}"
+    tag = "".join(f"-{k}{v}" for k, v in (("", variant if variant != "cepg" else ""), ("fn", eta_fn),
+                                          ("fp", eta_fp)) if v)  # fmt: skip
+    path = root / "snapshots" / f"{env}-N{robots}-beta{beta}-{episodes}-s{seed}{tag}"
     if (path / "policy.json").exists():
         return path
     g = builtin_graph(env)
-    cfg = TrainConfig(robots=robots, episodes=episodes, beta=[beta], seed=seed,
-                      em_first=min(8192, episodes // 2), em_missions=128 if episodes < 100_000 else 512)  # fmt: skip
-    _say(f"  training {'PG' if beta == 1 else 'CE-PG'} {env} N={robots}, {episodes:,} episodes")
-    res = train(g, uniform_walk(g), Sensor(), cfg)
-    save_snapshot(path, res.policy, g, res.model, Sensor(), "cepg", [beta] * robots,
+    sensor = sensor_for(variant, eta_fn, eta_fp)
+    cfg = TrainConfig(
+        robots=robots,
+        episodes=episodes,
+        beta=[beta],
+        seed=seed,
+        variant=variant,
+        em_first=min(8192, episodes // 2),
+        em_missions=min(512, max(32, episodes // 64)),
+        em_max_iter=300 if episodes >= 100_000 else 100,
+    )  # fmt: skip (EM is most of a small run)
+    noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
+    _say(f"  training {'PG' if beta == 1 else variant.upper()} {env} N={robots}{noise}, {episodes:,} episodes")
+    res = train(g, uniform_walk(g), sensor, cfg)
+    save_snapshot(path, res.policy, g, res.model, sensor, variant, [beta] * robots,
                   {**config_dict(cfg), "map": g.name}, res.summary)  # fmt: skip
     return path
 
 
-def _cell(env: str, robots: int, method: str, make: Callable[[int], Any], episodes: int, seed: int) -> dict[str, Any]:
-    from shared.evaluate import evaluate
+def _learned(root: Path, env: str, robots: int, method: str, b: Budget, eta_fn: float = 0.0,
+             eta_fp: float = 0.0) -> Callable[[int], Any]:  # fmt: skip
+    """seed -> searcher for a learned method (pg, cepg, cepg+, c-cepg), training it if not cached."""
+    from shared.graph import builtin_graph
+    from shared.snapshot import load_snapshot
+
+    variant, beta = LEARNED[method]
+    g = builtin_graph(env)
+    snap = load_snapshot(_snapshot(root, env, robots, beta, b.train, 0, variant, eta_fn, eta_fp), g)
+    return _flown(snap, g, sensor_for(variant, eta_fn, eta_fp), robots)
+
+
+def _flown(snap: Any, g: Any, sensor: Any, robots: int) -> Callable[[int], Any]:
+    """seed -> the snapshot's team flown by ``robots`` robots."""
+    from shared.snapshot import PolicySearcher
+
+    return lambda s: PolicySearcher(snap, g, sensor, robots, seed=s)
+
+
+def _reference(env: str, robots: int, method: str, sensor: Any, **kw: Any) -> Callable[[int], Any]:
+    """seed -> searcher for random, greedy and the planners (true model, all robots' observations)."""
+    from shared.baselines import make_baseline
+    from shared.graph import builtin_graph
+    from shared.models import uniform_walk
+    from shared.searchers import make_searcher
+
+    g = builtin_graph(env)
+    model = uniform_walk(g)
+    if method in ("random", "greedy"):
+        return lambda s: make_searcher(method, g, model, sensor, s)
+    return lambda s: make_baseline(method, g, model, sensor, robots, s, **kw)
+
+
+def _cell(env: str, robots: int, method: str, make: Callable[[int], Any], episodes: int, seed: int = SEED,
+          sensor: Any = None, withdraw_at: list[int | None] | None = None,
+          latency: bool = False) -> dict[str, Any]:  # fmt: skip
+    """One evaluated cell: capture time and false alarms (mean, 95% CI) over ``episodes`` seeded
+    episodes; with ``latency``, the decision time per team step, one episode at a time (batch 1,
+    so batching does not hide the per-step latency; the simulator's step included)."""
+    from shared.evaluate import evaluate, mean_ci95
     from shared.graph import builtin_graph
     from shared.models import Sensor, uniform_walk
 
     g = builtin_graph(env)
+    sensor = sensor or Sensor()
     t0 = time.perf_counter()
-    batched = method in ("random", "greedy", "pg", "cepg")
-    res = evaluate(g, uniform_walk(g), Sensor(), robots, make, episodes=episodes, seed=seed,
-                   chunk=4096 if batched or method == "oracle" else 1)  # fmt: skip
+    batched = method in ("random", "greedy", "oracle", *LEARNED)
+    res = evaluate(g, uniform_walk(g), sensor, robots, make, episodes=episodes, seed=seed,
+                   chunk=4096 if batched else 1, withdraw_at=withdraw_at)  # fmt: skip
     wall = time.perf_counter() - t0
     s = res.summary()
-    steps = float(res.capture_time.sum())
-    lat_ms = wall / max(1.0, steps) * 1e3  # planners run one episode at a time
-    if batched:  # decision time one episode at a time, so batching does not hide the per-step latency
-        t1 = time.perf_counter()
-        one = evaluate(g, uniform_walk(g), Sensor(), robots, make, episodes=3, seed=seed + 99, chunk=1)
-        lat_ms = (time.perf_counter() - t1) / max(1.0, float(one.capture_time.sum())) * 1e3
-    return {"map": env, "robots": robots, "method": method, "episodes": episodes, "seed": seed,
-            "mean_capture_time": round(s["mean_capture_time"], 3), "ci95_halfwidth": round(s["ci95_halfwidth"], 3),
-            "censored_fraction": round(s["censored_fraction"], 4), "team_steps": int(steps),
-            "wall_seconds": round(time.perf_counter() - t0, 2), "decision_ms": round(lat_ms, 4)}  # fmt: skip
+    fa, fa_half = mean_ci95(res.false_alarms)
+    row = {"map": env, "robots": robots, "method": method, "eta_fn": sensor.eta_fn, "eta_fp": sensor.eta_fp,
+           "detection": sensor.detection, "episodes": episodes, "seed": seed,
+           "mean_capture_time": round(s["mean_capture_time"], 3), "ci95_halfwidth": round(s["ci95_halfwidth"], 3),
+           "censored_fraction": round(s["censored_fraction"], 4), "false_alarms_per_episode": round(fa, 4),
+           "false_alarms_ci95_halfwidth": round(fa_half, 4), "team_steps": int(res.capture_time.sum()),
+           "wall_seconds": round(wall, 2)}  # fmt: skip
+    if latency:
+        if batched:
+            t1 = time.perf_counter()
+            one = evaluate(g, uniform_walk(g), sensor, robots, make, episodes=3, seed=seed + 99, chunk=1)
+            row["decision_ms"] = round((time.perf_counter() - t1) / max(1.0, float(one.capture_time.sum())) * 1e3, 4)
+        else:  # planners already ran one episode at a time
+            row["decision_ms"] = round(wall / max(1.0, float(res.capture_time.sum())) * 1e3, 4)
+    return row
 
 
-def _maker(kind: str, what: Any, g: Any, model: Any, sensor: Any, N: int, **kw: Any) -> Callable[[int], Any]:
-    """seed -> searcher for the evaluator."""
-    from shared.baselines import make_baseline
-    from shared.searchers import make_searcher
-    from shared.snapshot import PolicySearcher
+def _all_methods(root: Path, env: str, N: int, b: Budget, eta_fn: float = 0.0) -> list[dict[str, Any]]:
+    """Every method of the paper's comparison on one (map, N, eta_fn), with decision times."""
+    sensor = sensor_for("cepg", eta_fn)
+    rows = [_cell(env, N, m, _reference(env, N, m, sensor), b.episodes, sensor=sensor, latency=True)
+            for m in ("random", "greedy")]  # fmt: skip
+    for m in LEARNED:
+        rows.append(_cell(env, N, m, _learned(root, env, N, m, b, eta_fn), b.episodes,
+                          sensor=sensor_for(LEARNED[m][0], eta_fn), latency=True))  # fmt: skip
+    for m in PLANNERS:
+        if m == "fhpe" and N > 3:
+            continue  # 36^4 joint paths and more per decision: see the report
+        kw = {"time_limit": b.milp_limit} if "milp" in m else {}
+        eps = b.planner * (4 if m == "fhpe-sa" else 1)
+        rows.append(_cell(env, N, m, _reference(env, N, m, sensor, **kw), eps, sensor=sensor, latency=True))
+    if N <= 2:
+        rows.append(_cell(env, N, "oracle", _reference(env, N, "oracle", sensor), b.episodes, sensor=sensor,
+                          latency=True))  # fmt: skip
+    _say(f"  {env} N={N} eta_fn={eta_fn}: " + ", ".join(f"{r['method']} {r['mean_capture_time']:.1f}" for r in rows))
+    return rows
 
-    if kind == "ref":
-        return lambda s: make_searcher(what, g, model, sensor, s)
-    if kind == "policy":
-        return lambda s: PolicySearcher(what, g, sensor, N, seed=s)
-    return lambda s: make_baseline(what, g, model, sensor, N, s, **kw)
+
+def _setup(name: str, b: Budget, **extra: Any) -> dict[str, Any]:
+    return {"experiment": name, "quick": b.quick, "episodes": b.episodes, "training_episodes": b.train, "seed": SEED,
+            **extra, "machine": machine()}  # fmt: skip
 
 
-def fig7(root: Path, quick: bool) -> Path:
+# ---------------------------------------------------------------------- fig7 / fig8
+def fig7(root: Path, b: Budget) -> Path:
     """All methods, N = 1..5, OFFICE and MUSEUM (paper Fig. 7), and their decision times (Fig. 8)."""
-    from shared.graph import builtin_graph
-    from shared.models import Sensor, uniform_walk
-    from shared.snapshot import load_snapshot
-
-    maps = ("office", "museum")
-    team = range(1, 6)
-    episodes = 300 if quick else 1500
-    planner_episodes = 1 if quick else 100  # milp, d-milp, fhpe; fhpe-sa runs 4x as many
-    train_eps = 10_000 if quick else 400_000
-    seed = 1
-    milp_limit = 0.1 if quick else 1.0
     rows: list[dict[str, Any]] = []
     t_start = time.perf_counter()
-    for env in maps:
-        g = builtin_graph(env)
-        model, sensor = uniform_walk(g), Sensor()
-        for N in team:
+    for env in ("office", "museum"):
+        for N in range(1, 6):
             _say(f"fig7: {env} N={N}")
-            for name in ("random", "greedy"):
-                rows.append(_cell(env, N, name, _maker("ref", name, g, model, sensor, N), episodes, seed))
-            for label, beta in (("pg", 1.0), ("cepg", 0.5)):
-                snap = load_snapshot(_snapshot(root, env, N, beta, train_eps, 0), g)
-                rows.append(_cell(env, N, label, _maker("policy", snap, g, model, sensor, N), episodes, seed))
-            for name in PLANNERS:
-                if name == "fhpe" and N > 3:
-                    continue  # 36^4 joint paths and more per decision: see the report
-                kw = {"time_limit": milp_limit} if "milp" in name else {}
-                eps = planner_episodes if name != "fhpe-sa" else planner_episodes * 4
-                rows.append(_cell(env, N, name, _maker("baseline", name, g, model, sensor, N, **kw), eps, seed))
-            if N <= 2:
-                rows.append(_cell(env, N, "oracle", _maker("baseline", "oracle", g, model, sensor, N), episodes, seed))
-            _say("  " + ", ".join(f"{r['method']} {r['mean_capture_time']:.1f}" for r in rows if r["map"] == env
-                                  and r["robots"] == N))  # fmt: skip
+            rows += _all_methods(root, env, N, b)
     out = root / "fig7"
-    setup = {"experiment": "fig7", "quick": quick, "episodes": episodes, "planner_episodes": planner_episodes,
-             "fhpe_sa_episodes": planner_episodes * 4, "training_episodes": train_eps, "seed": seed,
-             "horizons": {"fhpe": 2, "fhpe-sa": 5, "milp": 5, "d-milp": 5}, "discount": 0.97,
-             "milp_time_limit_s": milp_limit, "machine": machine(),
-             "wall_seconds": round(time.perf_counter() - t_start, 1)}  # fmt: skip
+    setup = _setup("fig7", b, planner_episodes=b.planner, fhpe_sa_episodes=b.planner * 4,
+                   horizons={"fhpe": 2, "fhpe-sa": 5, "milp": 5, "d-milp": 5}, discount=0.97,
+                   milp_time_limit_s=b.milp_limit, wall_seconds=round(time.perf_counter() - t_start, 1))  # fmt: skip
     _write(out, "fig7", setup, rows)
     _plot_fig7(out, rows)
     _plot_fig8(root / "fig8", rows, setup)
@@ -233,94 +308,124 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
     plt.close(fig)
 
 
-# ---------------------------------------------------------------------- fig5
-def fig5(root: Path, quick: bool) -> Path:
+# ---------------------------------------------------------------------- fig5, fig6
+def fig5(root: Path, b: Budget) -> Path:
     """beta in {0.1, 0.3, 0.5, 0.7, 0.9} and 1 (PG) for a 4-robot team on OFFICE and MUSEUM (paper Fig. 5)."""
     from shared.graph import builtin_graph
-    from shared.models import Sensor, uniform_walk
     from shared.snapshot import load_snapshot
 
-    episodes, train_eps, seed, N = (300 if quick else 1500), (10_000 if quick else 400_000), 1, 4
-    rows = []
+    N, rows = 4, []
+    sensor = sensor_for("cepg")
     for env in ("office", "museum"):
         g = builtin_graph(env)
-        model, sensor = uniform_walk(g), Sensor()
         for beta in (0.1, 0.3, 0.5, 0.7, 0.9, 1.0):
-            snap = load_snapshot(_snapshot(root, env, N, beta, train_eps, 0), g)
-            rows.append({**_robust_cell(env, N, "pg" if beta == 1.0 else "cepg",
-                                        _maker("policy", snap, g, model, sensor, N), episodes, seed, None),
+            snap = load_snapshot(_snapshot(root, env, N, beta, b.train, 0), g)
+            rows.append({**_cell(env, N, "pg" if beta == 1.0 else "cepg", _flown(snap, g, sensor, N), b.episodes),
                          "beta": beta})  # fmt: skip
     out = root / "fig5"
-    _write(out, "fig5", {"experiment": "fig5", "quick": quick, "episodes": episodes, "training_episodes": train_eps,
-                         "seed": seed, "robots": N, "machine": machine()}, rows)  # fmt: skip
+    _write(out, "fig5", _setup("fig5", b, robots=N), rows)
     _bars(out / "fig5.png", rows, "beta", "capture time (steps), N = 4")
     return out
 
 
-# ---------------------------------------------------------------------- fig12 / fig13
-def _robust_cell(env: str, N: int, method: str, make: Callable[[int], Any], episodes: int, seed: int,
-                 withdraw_at: list[int | None] | None) -> dict[str, Any]:  # fmt: skip
-    from shared.evaluate import evaluate
-    from shared.graph import builtin_graph
-    from shared.models import Sensor, uniform_walk
-
-    g = builtin_graph(env)
-    s = evaluate(g, uniform_walk(g), Sensor(), N, make, episodes=episodes, seed=seed, withdraw_at=withdraw_at).summary()
-    return {"map": env, "robots": N, "method": method, "episodes": episodes, "seed": seed,
-            "withdrawn": "none" if not withdraw_at or all(w is None for w in withdraw_at) else
-            ",".join(f"r{i + 1}@t{w}" for i, w in enumerate(withdraw_at) if w is not None),
-            "mean_capture_time": round(s["mean_capture_time"], 3), "ci95_halfwidth": round(s["ci95_halfwidth"], 3),
-            "censored_fraction": round(s["censored_fraction"], 4)}  # fmt: skip
-
-
-def fig12(root: Path, quick: bool) -> Path:
-    """Robustness: a 4-robot team loses robot 4 at t = 5 (paper Fig. 12), against the intact team."""
-    from shared.graph import builtin_graph
-    from shared.models import Sensor, uniform_walk
-    from shared.snapshot import load_snapshot
-
-    episodes, train_eps, seed, N = (300 if quick else 1500), (10_000 if quick else 400_000), 1, 4
+def fig6(root: Path, b: Budget) -> Path:
+    """CE-PG vs CE-PG+ (sensing N[p]) vs C-CE-PG (collective belief) for N in the sweep (paper Fig. 6)."""
     rows = []
     for env in ("office", "museum"):
-        g = builtin_graph(env)
-        model, sensor = uniform_walk(g), Sensor()
+        for N in b.teams:
+            for m in ("cepg", "cepg+", "c-cepg"):
+                rows.append(_cell(env, N, m, _learned(root, env, N, m, b), b.episodes, sensor=sensor_for(m)))
+            _say(f"fig6: {env} N={N}: " + ", ".join(f"{r['method']} {r['mean_capture_time']:.1f}" for r in rows[-3:]))
+    out = root / "fig6"
+    _write(out, "fig6", _setup("fig6", b), rows)
+    _bars(out / "fig6.png", rows, "robots", "capture time (steps)")
+    return out
+
+
+# ---------------------------------------------------------------------- fig9, fig10, fig11
+def fig9(root: Path, b: Budget) -> Path:
+    """CE-PG's capture time for eta_fn in {0, 0.1, 0.3, 0.5} (eta_fp = 0), teams trained with that
+    sensor (paper Fig. 9)."""
+    rows = []
+    for env in ("office", "museum"):
+        for N in b.teams:
+            for eta in ETAS:
+                rows.append(_cell(env, N, "cepg", _learned(root, env, N, "cepg", b, eta_fn=eta), b.episodes,
+                                  sensor=sensor_for("cepg", eta_fn=eta)))  # fmt: skip
+            _say(f"fig9: {env} N={N}: " + ", ".join(f"{r['mean_capture_time']:.1f}" for r in rows[-len(ETAS) :]))
+    out = root / "fig9"
+    _write(out, "fig9", _setup("fig9", b), rows)
+    _lines(out / "fig9.png", rows, "eta_fn", "mean_capture_time", "capture time (steps)")
+    return out
+
+
+def fig10(root: Path, b: Budget) -> Path:
+    """CE-PG's false alarms per episode (the team's total) for eta_fp in {0, 0.1, 0.3, 0.5}
+    (eta_fn = 0), teams trained with that sensor (paper Fig. 10)."""
+    rows = []
+    for env in ("office", "museum"):
+        for N in b.teams:
+            for eta in ETAS:
+                rows.append(_cell(env, N, "cepg", _learned(root, env, N, "cepg", b, eta_fp=eta), b.episodes,
+                                  sensor=sensor_for("cepg", eta_fp=eta)))  # fmt: skip
+            _say(f"fig10: {env} N={N}: " + ", ".join(f"{r['false_alarms_per_episode']:.2f}"
+                                                     for r in rows[-len(ETAS):]))  # fmt: skip
+    out = root / "fig10"
+    _write(out, "fig10", _setup("fig10", b), rows)
+    _lines(out / "fig10.png", rows, "eta_fp", "false_alarms_per_episode", "false alarms per episode")
+    return out
+
+
+def fig11(root: Path, b: Budget) -> Path:
+    """All methods at N = 4 for eta_fn in {0, 0.1, 0.3, 0.5} (paper Fig. 11)."""
+    rows = []
+    t_start = time.perf_counter()
+    for env in ("office", "museum"):
+        for eta in ETAS:
+            rows += _all_methods(root, env, 4, b, eta_fn=eta)
+    out = root / "fig11"
+    _write(out, "fig11", _setup("fig11", b, robots=4, planner_episodes=b.planner, fhpe_sa_episodes=b.planner * 4,
+                                milp_time_limit_s=b.milp_limit, wall_seconds=round(time.perf_counter() - t_start, 1)),
+           rows)  # fmt: skip
+    _bars(out / "fig11.png", rows, "eta_fn", "capture time (steps), N = 4")
+    return out
+
+
+# ---------------------------------------------------------------------- fig12, fig13
+def fig12(root: Path, b: Budget) -> Path:
+    """Robustness: a 4-robot team loses robot 4 at t = 5 (paper Fig. 12), against the intact team."""
+    N, rows = 4, []
+    sensor = sensor_for("cepg")
+    for env in ("office", "museum"):
         for withdraw in (None, [None, None, None, 5]):
-            for name in ("random", "greedy"):
-                rows.append(_robust_cell(env, N, name, _maker("ref", name, g, model, sensor, N), episodes, seed,
-                                         withdraw))  # fmt: skip
-            for label, beta in (("pg", 1.0), ("cepg", 0.5)):
-                snap = load_snapshot(_snapshot(root, env, N, beta, train_eps, 0), g)
-                rows.append(_robust_cell(env, N, label, _maker("policy", snap, g, model, sensor, N), episodes, seed,
-                                         withdraw))  # fmt: skip
+            label = "none" if withdraw is None else "r4@t5"
+            for m in ("random", "greedy", "pg", "cepg"):
+                make = _reference(env, N, m, sensor) if m in ("random", "greedy") else _learned(root, env, N, m, b)
+                rows.append({**_cell(env, N, m, make, b.episodes, withdraw_at=withdraw), "withdrawn": label})
     out = root / "fig12"
-    _write(out, "fig12", {"experiment": "fig12", "quick": quick, "episodes": episodes, "training_episodes": train_eps,
-                          "seed": seed, "machine": machine()}, rows)  # fmt: skip
+    _write(out, "fig12", _setup("fig12", b), rows)
     _bars(out / "fig12.png", rows, "withdrawn", "capture time (steps), N = 4")
     return out
 
 
-def fig13(root: Path, quick: bool) -> Path:
-    """Robustness: a team trained for 5 robots flown by k = 1..5 of them (paper Fig. 13), against teams
-    trained for k."""
+def fig13(root: Path, b: Budget) -> Path:
+    """Robustness: a team trained for 5 robots flown by k = 1..5 of them (paper Fig. 13), against
+    teams trained for k."""
     from shared.graph import builtin_graph
-    from shared.models import Sensor, uniform_walk
     from shared.snapshot import load_snapshot
 
-    episodes, train_eps, seed = (300 if quick else 1500), (10_000 if quick else 400_000), 1
     rows = []
+    sensor = sensor_for("cepg")
     for env in ("office", "museum"):
         g = builtin_graph(env)
-        model, sensor = uniform_walk(g), Sensor()
-        five = load_snapshot(_snapshot(root, env, 5, 0.5, train_eps, 0), g)
+        five = load_snapshot(_snapshot(root, env, 5, 0.5, b.train, 0), g)
         for k in range(1, 6):
-            rows.append({**_robust_cell(env, k, "cepg trained for 5", _maker("policy", five, g, model, sensor, k),
-                                        episodes, seed, None), "trained_for": 5})  # fmt: skip
-            own = load_snapshot(_snapshot(root, env, k, 0.5, train_eps, 0), g)
-            rows.append({**_robust_cell(env, k, "cepg trained for k", _maker("policy", own, g, model, sensor, k),
-                                        episodes, seed, None), "trained_for": k})  # fmt: skip
+            rows.append({**_cell(env, k, "cepg trained for 5", _flown(five, g, sensor, k), b.episodes),
+                         "trained_for": 5})  # fmt: skip
+            rows.append({**_cell(env, k, "cepg trained for k", _learned(root, env, k, "cepg", b), b.episodes),
+                         "trained_for": k})  # fmt: skip
     out = root / "fig13"
-    _write(out, "fig13", {"experiment": "fig13", "quick": quick, "episodes": episodes, "training_episodes": train_eps,
-                          "seed": seed, "machine": machine()}, rows)  # fmt: skip
+    _write(out, "fig13", _setup("fig13", b), rows)
     _bars(out / "fig13.png", rows, "robots", "capture time (steps)")
     return out
 
@@ -342,6 +447,7 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
             ax.bar([i + j * w for i, _ in pts], [r["mean_capture_time"] for _, r in pts], w,
                    yerr=[r["ci95_halfwidth"] for _, r in pts], capsize=2, label=m)  # fmt: skip
         ax.set_xticks(np.arange(len(groups)) + 0.4 - w / 2, [str(gk) for gk in groups])
+        ax.set_xlabel(key)
         ax.set_title(env.upper())
         ax.set_ylabel(ylabel)
     axes[1].legend(fontsize=8)
@@ -350,18 +456,53 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
     plt.close(fig)
 
 
-def run(name: str, root: Path, quick: bool) -> Path:
+def _lines(path: Path, rows: list[dict[str, Any]], key: str, value: str, ylabel: str) -> None:
+    """One line per team size N: ``value`` (with its CI) against ``key``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    half = "ci95_halfwidth" if value == "mean_capture_time" else "false_alarms_ci95_halfwidth"
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, env in zip(axes, ("office", "museum"), strict=True):
+        for N in sorted({r["robots"] for r in rows if r["map"] == env}):
+            pts = [r for r in rows if r["map"] == env and r["robots"] == N]
+            ax.errorbar([r[key] for r in pts], [r[value] for r in pts], yerr=[r[half] for r in pts], marker="o",
+                        capsize=3, label=f"N = {N}")  # fmt: skip
+        ax.set_title(env.upper())
+        ax.set_xlabel(key)
+        ax.set_ylabel(ylabel)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+RUNNERS: dict[str, Callable[[Path, Budget], Path]] = {
+    "fig5": fig5, "fig6": fig6, "fig7": fig7, "fig9": fig9, "fig10": fig10, "fig11": fig11, "fig12": fig12,
+    "fig13": fig13,
+}  # fmt: skip
+
+
+def run(name: str, root: Path, quick: bool, train_episodes: int | None = None) -> Path:
+    """Run one experiment (``all``: every one in turn); returns its results directory.
+    ``train_episodes`` overrides the learned teams' training budget."""
+    b = (QUICK if quick else FULL).with_train(train_episodes)
+    if name == "all":
+        for e in EXPERIMENTS:
+            if e != "fig8":
+                t0 = time.perf_counter()
+                run(e, root, quick, train_episodes)
+                _say(f"{e}: done in {time.perf_counter() - t0:.0f} s")
+        return root
     if name == "fig4":
         return fig4(root, quick)
-    if name == "fig5":
-        return fig5(root, quick)
-    if name == "fig12":
-        return fig12(root, quick)
-    if name == "fig13":
-        return fig13(root, quick)
-    if name in ("fig7", "fig8"):
-        return fig7(root, quick) if name == "fig7" else fig7(root, quick).parent / "fig8"
-    raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)})")
+    if name == "fig8":
+        return fig7(root, b).parent / "fig8"
+    if name in RUNNERS:
+        return RUNNERS[name](root, b)
+    raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)}, all)")
 
 
 # ---------------------------------------------------------------------- report
@@ -387,7 +528,7 @@ def report(root: Path, out: Path) -> Path:
         rows = d["rows"]
         methods = list(dict.fromkeys(r["method"] for r in rows))
         lines += ["## Fig. 7: capture time of all methods, N = 1..5", "",
-                  f"Setup: {d['episodes']} episodes per cell for random, greedy, pg, cepg and oracle; "
+                  f"Setup: {d['episodes']} episodes per cell for random, greedy, the learned teams and oracle; "
                   f"{d['planner_episodes']} for fhpe, milp and d-milp, {d['fhpe_sa_episodes']} for fhpe-sa "
                   f"(planners are slow; see Fig. 8); seed {d['seed']}; learned teams trained for "
                   f"{d['training_episodes']:,} episodes with EM-estimated beliefs (Gamma_hat_0 = I); horizons "
@@ -395,9 +536,11 @@ def report(root: Path, out: Path) -> Path:
                   f"(HiGHS); quick={d['quick']}; {d['machine']['cpus']} CPUs, {d['machine']['date']}; the whole "
                   f"grid took {d['wall_seconds']:.0f} s.", "",
                   "The planners (fhpe, fhpe-sa, milp, d-milp) and the oracle get the true target model and see all "
-                  "robots' observations (centralised); pg and cepg robots use only their own observations and an "
-                  "estimated model; oracle robots see the target (a lower bound, exact DP, N <= 2 only). fhpe is "
-                  "not run for N > 3: the joint paths per decision exceed 10^6.", ""]  # fmt: skip
+                  "robots' observations (centralised); pg, cepg and cepg+ robots use only their own observations "
+                  "and an estimated model (cepg+ robots sense N[p], a broader field of view than the others' "
+                  "node); c-cepg robots share all observations (collective belief); oracle robots see the target "
+                  "(a lower bound, exact DP, N <= 2 only). fhpe is not run for N > 3: the joint paths per decision "
+                  "exceed 10^6.", ""]  # fmt: skip
         for env in ("office", "museum"):
             Ns = sorted({r["robots"] for r in rows if r["map"] == env})
             lines += [f"### {env.upper()} (mean capture time ± 95% CI half-width, episodes)", "",
@@ -438,12 +581,23 @@ def report(root: Path, out: Path) -> Path:
                       for m in ("fhpe-sa", "milp", "d-milp") if m in r4]  # fmt: skip
             lines += ["", f"Decision-time ratios at N = 4 on MUSEUM: {', '.join(ratios)}."]
         lines += ["", f"![fig8]({rel}/fig8/fig8.png)", ""]
-    robust = (
-        ("fig5", "Fig. 5: beta of Eq. 9 (N = 4; beta = 1 is PG)", "beta"),
-        ("fig12", "Fig. 12: one robot withdrawn during execution (N = 4)", "withdrawn"),
-        ("fig13", "Fig. 13: a team trained for 5 robots, flown by k of them", "robots"),
-    )
-    for fig, title, key in robust:
+    ct, fa = ("mean_capture_time", "ci95_halfwidth"), ("false_alarms_per_episode", "false_alarms_ci95_halfwidth")
+    tables = (  # figure, title, table rows by, columns by, value, a note on the setup
+        ("fig5", "Fig. 5: beta of Eq. 9 (N = 4; beta = 1 is PG)", "method", "beta", ct, ""),
+        ("fig6", "Fig. 6: CE-PG vs CE-PG+ vs C-CE-PG", "method", "robots", ct,
+         "CE-PG+ robots sense N[p] (their own, broader field of view); C-CE-PG robots share every observation "
+         "(collective belief); CE-PG robots sense their node and use their own observations."),
+        ("fig9", "Fig. 9: eta_fn and CE-PG's capture time (eta_fp = 0)", "robots", "eta_fn", ct,
+         "Each team is trained and flown with that sensor."),
+        ("fig10", "Fig. 10: eta_fp and CE-PG's false alarms per episode (eta_fn = 0)", "robots", "eta_fp", fa,
+         "False alarms: the team's total number of z = 1 readings with the target outside D(p), per episode."),
+        ("fig11", "Fig. 11: all methods under eta_fn (N = 4)", "method", "eta_fn", ct,
+         "Planners know eta_fn (their capture probability is (1 - eta_fn) per detection) and see all robots' "
+         "observations; fhpe is not run at N = 4; cepg+ senses N[p]."),
+        ("fig12", "Fig. 12: one robot withdrawn during execution (N = 4)", "method", "withdrawn", ct, ""),
+        ("fig13", "Fig. 13: a team trained for 5 robots, flown by k of them", "method", "robots", ct, ""),
+    )  # fmt: skip
+    for fig, title, row_key, key, (value, half), note in tables:
         f = root / fig / f"{fig}.json"
         if not f.exists():
             continue
@@ -453,28 +607,41 @@ def report(root: Path, out: Path) -> Path:
             f"## {title}",
             "",
             f"Setup: {d['episodes']} episodes per cell, seed {d['seed']}; learned teams "
-            f"trained for {d['training_episodes']:,} episodes; quick={d['quick']}; {d['machine']['date']}.",
+            f"trained for {d['training_episodes']:,} episodes; quick={d['quick']}; {d['machine']['date']}. "
+            + (f"Planners: {d['planner_episodes']} episodes (fhpe-sa {d['fhpe_sa_episodes']}), MILP time limit "
+               f"{d['milp_time_limit_s']} s per solve. " if "planner_episodes" in d else "")
+            + note,
             "",
-        ]
+        ]  # fmt: skip
         for env in ("office", "museum"):
             sel = [r for r in rows if r["map"] == env]
             groups = list(dict.fromkeys(r[key] for r in sel))
-            methods = list(dict.fromkeys(r["method"] for r in sel))
-            lines += [f"{env.upper()}:", "", "| method | " + " | ".join(f"{key} {gk}" for gk in groups) + " |",
+            labels = list(dict.fromkeys(r[row_key] for r in sel))
+            head = "N" if row_key == "robots" else row_key
+            lines += [f"{env.upper()} ({value.replace('_', ' ')} ± 95% CI half-width):", "",
+                      f"| {head} | " + " | ".join(f"{key} {gk}" for gk in groups) + " |",
                       "| --- |" + " --- |" * len(groups)]  # fmt: skip
-            for m in methods:
+            for lab in labels:
                 cells = []
                 for gk in groups:
-                    r = next((x for x in sel if x[key] == gk and x["method"] == m), None)
-                    cells.append("—" if r is None else f"{r['mean_capture_time']:.1f} ± {r['ci95_halfwidth']:.1f}")
-                lines.append(f"| {m} | " + " | ".join(cells) + " |")
+                    r = next((x for x in sel if x[key] == gk and x[row_key] == lab), None)
+                    cells.append("—" if r is None else _fmt(r[value], r[half], r["episodes"]))
+                lines.append(f"| {lab} | " + " | ".join(cells) + " |")
             lines.append("")
         lines += [f"![{fig}]({rel}/{fig}/{fig}.png)", ""]
-    missing = [e for e in ("fig6", "fig9", "fig10", "fig11") if not (root / e).exists()]
-    lines += ["## Not yet reproduced", "", ", ".join(missing) + ": no experiment code yet.", ""]
+    missing = [e for e in EXPERIMENTS if e != "fig8" and not (root / e).exists()]
+    if missing:
+        lines += ["## Not recorded", "", ", ".join(missing) + ": run `mures experiment NAME` to record them.", ""]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines), encoding="utf-8")
     return out
+
+
+def _fmt(mean: float, half: float, episodes: int) -> str:
+    """mean ± CI half-width; a cell of fewer than 2 episodes has no CI and says how many it had."""
+    if episodes < 2 or not math.isfinite(half):
+        return f"{mean:.2f} ({episodes} ep.)"
+    return f"{mean:.2f} ± {half:.2f}"
 
 
 def _reading(rows: list[dict[str, Any]]) -> list[str]:

@@ -200,7 +200,11 @@ def parse_target(graph: Graph, spec: str) -> TargetModel:
 
 @dataclass(frozen=True)
 class Sensor:
-    """P(z=1 | e in D(p)) = 1 - eta_fn; P(z=1 | e not in D(p)) = eta_fp; eta in [0, 0.5)."""
+    """P(z=1 | e in D(p)) = 1 - eta_fn; P(z=1 | e not in D(p)) = eta_fp.
+
+    Each eta is in [0, 0.5] (the paper's range, Section V-E); both at 0.5 is refused: then
+    P(z=1) = 0.5 wherever the target is and the sensor tells nothing.
+    """
 
     eta_fn: float = 0.0
     eta_fp: float = 0.0
@@ -209,8 +213,10 @@ class Sensor:
     def __post_init__(self) -> None:
         for name in ("eta_fn", "eta_fp"):
             v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not (0.0 <= v < 0.5):
-                raise ModelError(f"{name} must be in [0, 0.5), got {v!r}")
+            if not isinstance(v, (int, float)) or not (0.0 <= v <= 0.5):
+                raise ModelError(f"{name} must be in [0, 0.5], got {v!r}")
+        if self.eta_fn == 0.5 and self.eta_fp == 0.5:
+            raise ModelError("eta_fn = eta_fp = 0.5 makes the sensor uninformative (z does not depend on the target)")
         if self.detection not in DETECTIONS:
             raise ModelError(f"detection must be one of {', '.join(DETECTIONS)}, got {self.detection!r}")
 

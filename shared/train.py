@@ -55,6 +55,7 @@ class TrainConfig:
     eps: float = 0.1  # smoothing of the cross entropy (shared/cepg.py)
     ce_fraction: float = 0.25  # share of decisions the cross entropy is estimated on (shared/cepg.py)
     j_unit: float = 1.0  # J's unit in steps (shared/cepg.py)
+    ce_states: str = "shared"  # states H is evaluated on: "shared" or "all" (shared/cepg.py)
     belief: str = "em"  # "em": Gamma_hat_0 then EM re-estimates; "true": robots use the true model
     em_first: int = 8192  # episodes before the first EM update
     em_every: int = 100_000  # episodes between later EM updates
@@ -74,6 +75,8 @@ class TrainConfig:
     def check(self) -> None:
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r} (expected one of {', '.join(VARIANTS)})")
+        if self.ce_states not in ("shared", "all"):
+            raise ValueError(f"ce_states must be 'shared' or 'all', got {self.ce_states!r}")
         if self.belief not in ("em", "true"):
             raise ValueError(f"belief must be 'em' or 'true', got {self.belief!r}")
         for b in self.per_robot(self.beta, "beta"):
@@ -175,7 +178,7 @@ def train(
     next_curve = curve_every
     while episodes < cfg.episodes:
         ro = rollout(sim, policy, belief, collective, gen)
-        terms = cepg_loss(policy, ro, beta, cfg.eps, cfg.ce_fraction, gen, cfg.j_unit)
+        terms = cepg_loss(policy, ro, beta, cfg.eps, cfg.ce_fraction, gen, cfg.j_unit, cfg.ce_states)
         opt.zero_grad(set_to_none=False)
         (terms.loss / world).backward()
         stats = torch.tensor(

@@ -47,6 +47,20 @@ def test_milp_finds_the_best_single_robot_path(office):
     assert _team_value(pl, b, [got]) == pytest.approx(best, rel=1e-6)
 
 
+def test_milp_without_an_incumbent_falls_back_to_the_best_uncovered_move(office):
+    g, model, _, _ = office
+    pl = Milp(g, model, Sensor(), time_limit=1e-9)  # HiGHS stops before any incumbent
+    start = next(v for v in range(g.n) if len(g.closed(v)) >= 3)
+    a, c = [int(v) for v in g.closed(start) if v != start][:2]
+    b = np.zeros(g.n)
+    b[a], b[c] = 0.7, 0.3  # a static-ish target: most of the predicted mass stays on a, then c
+    pl.gamma_dense = np.eye(g.n)
+    paths = pl._solve(b, [start, start], {})
+    assert pl.fallbacks == 1
+    assert [p[0] for p in paths] == [a, c]  # robot 1 takes a, robot 2 the best node a does not cover
+    assert all(p == [p[0]] * pl.h for p in paths)
+
+
 def test_fhpe_maximises_over_joint_two_step_paths(office):
     g, model, b, _ = office
     pl = Fhpe(g, model, Sensor(eta_fn=0.2))

@@ -24,7 +24,8 @@ def test_evaluate_json_fields():
     "args, fragment",
     [
         (["--robots", "0", "--searcher", "random"], "positive integer"),
-        (["--robots", "2", "--searcher", "random", "--eta-fn", "0.7"], "[0, 0.5)"),
+        (["--robots", "2", "--searcher", "random", "--eta-fn", "0.7"], "[0, 0.5]"),
+        (["--robots", "2", "--searcher", "random", "--eta-fn", "0.5", "--eta-fp", "0.5"], "uninformative"),
         (["--robots", "2", "--searcher", "astar"], "unknown searcher 'astar'"),
         (["--robots", "2", "--searcher", "random", "--target", "lazy:x"], "lazy:STAY"),
         (["--robots", "2", "--searcher", "random", "--detection", "custom"], "no 'sensing' table"),

@@ -53,5 +53,32 @@ def test_report_tables_robustness_results(tmp_path):
     setup = {"episodes": 10, "seed": 1, "training_episodes": 10, "quick": True, "machine": {"date": "today"}}
     (tmp_path / "fig12" / "fig12.json").write_text(json.dumps({**setup, "rows": rows}))
     text = report(tmp_path, tmp_path / "results.md").read_text()
-    assert "| method | withdrawn none | withdrawn r4@t5 |" in text and "| cepg | 20.0 ± 1.0 | 27.5 ± 1.0 |" in text
-    assert "fig12" not in text.split("## Not yet reproduced")[1]
+    assert "| method | withdrawn none | withdrawn r4@t5 |" in text and "| cepg | 20.00 ± 1.00 | 27.50 ± 1.00 |" in text
+    assert "fig12" not in text.split("## Not recorded")[1] and "fig11" in text.split("## Not recorded")[1]
+
+
+def test_sensor_noise_and_variant_experiments_and_their_report(tmp_path):
+    """fig10 and fig6 at a tiny budget: the cells say which sensor they were flown with, a noiseless
+    sensor never raises a false alarm and eta_fp = 0.5 does, and the report tables both figures."""
+    from shared.experiments import Budget, fig6, fig10
+
+    b = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,))
+    fig10(tmp_path, b)
+    rows = json.loads((tmp_path / "fig10" / "fig10.json").read_text())["rows"]
+    assert {(r["map"], r["eta_fp"]) for r in rows} == {
+        (m, e) for m in ("office", "museum") for e in (0.0, 0.1, 0.3, 0.5)
+    }
+    for r in rows:
+        assert r["episodes"] == 60 and r["robots"] == 2 and r["eta_fn"] == 0.0
+        if r["eta_fp"] == 0.0:
+            assert r["false_alarms_per_episode"] == 0.0
+        if r["eta_fp"] == 0.5:
+            assert r["false_alarms_per_episode"] > 1.0  # 2 robots, each reading z = 1 half the time it is away
+    fig6(tmp_path, b)
+    rows = json.loads((tmp_path / "fig6" / "fig6.json").read_text())["rows"]
+    assert {r["method"]: r["detection"] for r in rows} == {"cepg": "node", "cepg+": "neighbourhood", "c-cepg": "node"}
+    assert (tmp_path / "fig6" / "fig6.png").stat().st_size > 1000
+    text = report(tmp_path, tmp_path / "results.md").read_text()
+    assert "## Fig. 10: eta_fp" in text and "| N | eta_fp 0.0 | eta_fp 0.1 | eta_fp 0.3 | eta_fp 0.5 |" in text
+    assert "| 2 | 0.00 ± 0.00 |" in text  # N = 2, eta_fp = 0: no false alarm in any episode
+    assert "| cepg+ |" in text and "fig6" not in text.split("## Not recorded")[1]

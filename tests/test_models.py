@@ -61,7 +61,10 @@ def test_model_file_round_trip_with_reordered_nodes(small_graph, tmp_path):
 
 def test_sensor_bounds():
     with pytest.raises(ModelError, match="eta_fn"):
-        Sensor(eta_fn=0.5)
+        Sensor(eta_fn=0.6)
+    assert Sensor(eta_fn=0.5).likelihoods() == ((0.5, 0.5), (1.0, 0.0))  # the paper's largest eta_fn
+    with pytest.raises(ModelError, match="uninformative"):
+        Sensor(eta_fn=0.5, eta_fp=0.5)
     with pytest.raises(ModelError, match="detection"):
         Sensor(detection="cone")
     assert Sensor(0.1, 0.2).likelihoods() == ((0.1, 0.9), (0.8, 0.2))
