@@ -196,7 +196,7 @@ def _cell(env: str, robots: int, method: str, make: Callable[[int], Any], episod
     g = builtin_graph(env)
     sensor = sensor or Sensor()
     t0 = time.perf_counter()
-    batched = method in ("random", "greedy", "oracle", *LEARNED)
+    batched = method not in PLANNERS  # planners plan one episode at a time
     res = evaluate(g, uniform_walk(g), sensor, robots, make, episodes=episodes, seed=seed,
                    chunk=4096 if batched else 1, withdraw_at=withdraw_at)  # fmt: skip
     wall = time.perf_counter() - t0
