@@ -343,37 +343,31 @@ def fig6(root: Path, b: Budget) -> Path:
 
 
 # ---------------------------------------------------------------------- fig9, fig10, fig11
-def fig9(root: Path, b: Budget) -> Path:
-    """CE-PG's capture time for eta_fn in {0, 0.1, 0.3, 0.5} (eta_fp = 0), teams trained with that
-    sensor (paper Fig. 9)."""
+def _noise_sweep(root: Path, b: Budget, name: str, eta: str, value: str, ylabel: str) -> Path:
+    """CE-PG teams trained and flown with each ``eta`` ("eta_fn" or "eta_fp") of ETAS, the other 0."""
     rows = []
     for env in ("office", "museum"):
         for N in b.teams:
-            for eta in ETAS:
-                rows.append(_cell(env, N, "cepg", _learned(root, env, N, "cepg", b, eta_fn=eta), b.episodes,
-                                  sensor=sensor_for("cepg", eta_fn=eta)))  # fmt: skip
-            _say(f"fig9: {env} N={N}: " + ", ".join(f"{r['mean_capture_time']:.1f}" for r in rows[-len(ETAS) :]))
-    out = root / "fig9"
-    _write(out, "fig9", _setup("fig9", b), rows)
-    _lines(out / "fig9.png", rows, "eta_fn", "mean_capture_time", "capture time (steps)")
+            for x in ETAS:
+                rows.append(_cell(env, N, "cepg", _learned(root, env, N, "cepg", b, **{eta: x}), b.episodes,
+                                  sensor=sensor_for("cepg", **{eta: x})))  # fmt: skip
+            _say(f"{name}: {env} N={N}: " + ", ".join(f"{r[value]:.2f}" for r in rows[-len(ETAS) :]))
+    out = root / name
+    _write(out, name, _setup(name, b), rows)
+    _lines(out / f"{name}.png", rows, eta, value, ylabel)
     return out
+
+
+def fig9(root: Path, b: Budget) -> Path:
+    """CE-PG's capture time for eta_fn in {0, 0.1, 0.3, 0.5} (eta_fp = 0), teams trained with that
+    sensor (paper Fig. 9)."""
+    return _noise_sweep(root, b, "fig9", "eta_fn", "mean_capture_time", "capture time (steps)")
 
 
 def fig10(root: Path, b: Budget) -> Path:
     """CE-PG's false alarms per episode (the team's total) for eta_fp in {0, 0.1, 0.3, 0.5}
     (eta_fn = 0), teams trained with that sensor (paper Fig. 10)."""
-    rows = []
-    for env in ("office", "museum"):
-        for N in b.teams:
-            for eta in ETAS:
-                rows.append(_cell(env, N, "cepg", _learned(root, env, N, "cepg", b, eta_fp=eta), b.episodes,
-                                  sensor=sensor_for("cepg", eta_fp=eta)))  # fmt: skip
-            _say(f"fig10: {env} N={N}: " + ", ".join(f"{r['false_alarms_per_episode']:.2f}"
-                                                     for r in rows[-len(ETAS):]))  # fmt: skip
-    out = root / "fig10"
-    _write(out, "fig10", _setup("fig10", b), rows)
-    _lines(out / "fig10.png", rows, "eta_fp", "false_alarms_per_episode", "false alarms per episode")
-    return out
+    return _noise_sweep(root, b, "fig10", "eta_fp", "false_alarms_per_episode", "false alarms per episode")
 
 
 def fig11(root: Path, b: Budget) -> Path:
