@@ -65,6 +65,36 @@ def trained_run():
     return g, m, s, res
 
 
+def test_shared_state_cross_entropy_counts_only_where_robots_share_node_and_belief():
+    from shared.cepg import Rollout, cepg_loss
+    from shared.policy import TeamPolicy
+
+    torch.manual_seed(0)
+    adj = torch.ones(4, 4, dtype=torch.bool)
+    policy = TeamPolicy(4, 3, adj)
+    uniform = torch.full((4,), 0.25)
+    # decision 0: robots 0 and 1 on node 0 with the same belief, robot 2 on node 1;
+    # decision 1: robots 0 and 1 on node 2 with different beliefs, robot 2 on node 2 with robot 0's belief
+    pos = torch.tensor([[0, 0, 1], [2, 2, 2]])
+    belief = torch.stack([uniform.expand(3, 4), torch.tensor([[0.7, 0.1, 0.1, 0.1], [0.1, 0.7, 0.1, 0.1],
+                                                              [0.7, 0.1, 0.1, 0.1]])])  # fmt: skip
+    ro = Rollout(pos=pos, belief=belief, action=pos.clone(), t=torch.tensor([0, 0]), episode=torch.tensor([0, 1]),
+                 ret=torch.zeros(2), length=torch.tensor([1, 1]), capture_time=torch.ones(2, dtype=torch.long),
+                 censored=torch.zeros(2, dtype=torch.bool))  # fmt: skip
+    beta = torch.zeros(3)
+    full = cepg_loss(policy, ro, beta, 0.1, ce_states="all").ce
+    shared = cepg_loss(policy, ro, beta, 0.1, ce_states="shared").ce
+    # the pairs counted: (0,1) and (1,0) at decision 0; (0,2) and (2,0) at decision 1
+    with torch.no_grad():
+        pi = torch.softmax(policy.logits(pos, belief), -1)  # (2, 3, 4): pi_i at robot i's own state
+        pj = policy.cross_probs(pos, belief)  # (2, N_i, N_j, 4): pi_j at robot i's state
+    logs = torch.log(0.9 * pi + 0.1 * 0.25)
+    H = lambda k, i, j: float(-(pj[k, i, j] * logs[k, i]).sum())  # noqa: E731
+    want = [(H(0, 0, 1) + H(1, 0, 2)) / 2, H(0, 1, 0) / 2, H(1, 2, 0) / 2]  # mean over N - 1 = 2 others, / B = 2
+    assert torch.allclose(shared, torch.tensor(want) / 2, atol=1e-6)
+    assert (full > shared).all()
+
+
 def test_training_learns_and_estimates_the_model(trained_run):
     g, m, s, res = trained_run
     snap_model = res.model
