@@ -119,7 +119,8 @@ def sensor_for(variant: str, eta_fn: float = 0.0, eta_fp: float = 0.0) -> Any:
 
 def _snapshot(root: Path, env: str, robots: int, beta: float, episodes: int, seed: int, variant: str = "cepg",
               eta_fn: float = 0.0, eta_fp: float = 0.0) -> Path:  # fmt: skip
-    """A cached team (beta = 1: PG) trained with EM-estimated beliefs in the world of ``sensor_for``."""
+    """A cached team (beta = 1: PG) trained with EM-estimated beliefs in the world of ``sensor_for``.
+    A cached snapshot whose stored training configuration differs (an older default) is retrained."""
     from shared.graph import builtin_graph
     from shared.models import uniform_walk
     from shared.snapshot import save_snapshot
@@ -128,10 +129,7 @@ def _snapshot(root: Path, env: str, robots: int, beta: float, episodes: int, see
     tag = "".join(f"-{k}{v}" for k, v in (("", variant if variant != "cepg" else ""), ("fn", eta_fn),
                                           ("fp", eta_fp)) if v)  # fmt: skip
     path = root / "snapshots" / f"{env}-N{robots}-beta{beta}-{episodes}-s{seed}{tag}"
-    if (path / "policy.json").exists():
-        return path
     g = builtin_graph(env)
-    sensor = sensor_for(variant, eta_fn, eta_fp)
     cfg = TrainConfig(
         robots=robots,
         episodes=episodes,
@@ -142,11 +140,15 @@ def _snapshot(root: Path, env: str, robots: int, beta: float, episodes: int, see
         em_missions=min(512, max(32, episodes // 64)),
         em_max_iter=300 if episodes >= 100_000 else 100,
     )  # fmt: skip (EM is most of a small run)
+    config = {**config_dict(cfg), "map": g.name}
+    meta = path / "policy.json"
+    if meta.exists() and json.loads(meta.read_text(encoding="utf-8")).get("training") == json.loads(json.dumps(config)):
+        return path  # cached, and trained with exactly this configuration (code defaults included)
+    sensor = sensor_for(variant, eta_fn, eta_fp)
     noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
     _say(f"  training {'PG' if beta == 1 else variant.upper()} {env} N={robots}{noise}, {episodes:,} episodes")
     res = train(g, uniform_walk(g), sensor, cfg)
-    save_snapshot(path, res.policy, g, res.model, sensor, variant, [beta] * robots,
-                  {**config_dict(cfg), "map": g.name}, res.summary)  # fmt: skip
+    save_snapshot(path, res.policy, g, res.model, sensor, variant, [beta] * robots, config, res.summary)
     return path
 
 
