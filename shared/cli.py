@@ -126,12 +126,15 @@ def _searcher_factory(
     if args.searcher not in REFERENCE_SEARCHERS + BASELINES:
         names = ", ".join((*REFERENCE_SEARCHERS, *BASELINES, "policy:DIR"))
         raise CliError(f"unknown searcher {args.searcher!r} (expected one of {names})")
-    if args.searcher == "oracle" and args.robots > 2:
-        raise CliError("the oracle is computed for 1 or 2 robots only (its state space is n^(N+1))")
-    if args.searcher == "fhpe" and args.detection not in (None, "node"):
-        raise CliError("fhpe enumerates joint paths for node detection only; use fhpe-sa")
-    return lambda seed: make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device,
-                                      n_robots=args.robots)  # fmt: skip
+
+    def make(seed: int) -> Searcher:
+        return make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device, n_robots=args.robots)
+
+    try:
+        make(0)  # the searcher's own checks (the oracle's N <= 2, fhpe's node detection) before any simulation
+    except ValueError as exc:
+        raise CliError(f"{args.searcher}: {exc}") from None
+    return make
 
 
 def _snapshot_detection(args: argparse.Namespace) -> str:
