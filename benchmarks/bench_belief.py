@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 
-from shared.belief import BeliefFilter
-from shared.graph import builtin_graph, grid_graph
-from shared.models import Sensor, uniform_walk
+from shared.core.belief import BeliefFilter
+from shared.core.graph import builtin_graph, grid_graph
+from shared.core.models import Sensor, uniform_walk
 
 
 def bench(graph, steps: int) -> tuple[float, float]:

@@ -14,19 +14,22 @@ import time
 import numpy as np
 import torch
 
-from shared.graph import builtin_graph
-from shared.models import Sensor, uniform_walk
-from shared.policy import TeamPolicy
-from shared.snapshot import PolicyAgent, Snapshot, load_snapshot
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.core.snapshot import PolicyAgent, read_snapshot
+from shared.learning.policy import TeamPolicy
+from shared.learning.snapshot import Snapshot
 
 
 def main() -> None:
     g = builtin_graph("museum")
     if len(sys.argv) > 1:
-        snap = load_snapshot(sys.argv[1], g)
+        snap = read_snapshot(sys.argv[1], g)
     else:
         policy = TeamPolicy(g.n, 4, torch.as_tensor(g.adjacency()))
-        snap = Snapshot(meta={"variant": "cepg", "robots": 4}, policy=policy, model=uniform_walk(g), sensor=Sensor())
+        snap = Snapshot(
+            meta={"variant": "cepg", "robots": 4}, policy=policy, model=uniform_walk(g), sensor=Sensor()
+        ).to_data()
     agent = PolicyAgent(snap, g, robot=0, seed=0)
     rng = np.random.default_rng(0)
     p = g.start

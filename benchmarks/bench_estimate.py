@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.estimate import collect_missions, em, eq8, mean_row_tv
-from shared.evaluate import episode_records, evaluate
-from shared.graph import load_graph_file
-from shared.models import Sensor, lazy_walk, uniform_walk
-from shared.searchers import RandomSearcher
+from shared.core.graph import load_graph_file
+from shared.core.models import Sensor, lazy_walk, uniform_walk
+from shared.engine.estimate import collect_missions, em, eq8, mean_row_tv
+from shared.engine.evaluate import episode_records, evaluate
+from shared.engine.searchers import RandomSearcher
 
 MAP = Path(__file__).resolve().parents[1] / "examples" / "maps" / "warehouse.json"
 

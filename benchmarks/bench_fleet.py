@@ -23,10 +23,10 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from shared.fleet import telemetry_key, zenoh_config
-from shared.fleetsim import launch
-from shared.graph import builtin_graph
-from shared.models import Sensor, uniform_walk
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.core.wire import telemetry_key, zenoh_config
+from shared.tools.fleetsim import launch
 
 
 def main() -> None:
@@ -46,8 +46,9 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        fleet = launch(graph, ["--env", a.env], uniform_walk(graph), Sensor(), a.robots, Path(tmp),
-                       agent_extra=["--telemetry"])  # fmt: skip
+        fleet = launch(
+            graph, ["--env", a.env], uniform_walk(graph), Sensor(), a.robots, Path(tmp), agent_extra=["--telemetry"]
+        )
         try:
             print(f"fleet of {a.robots} agents on {graph.name} up in {time.perf_counter() - t0:.1f} s")
             with zenoh.open(zenoh_config("client", connect=[fleet.zenoh_endpoint])) as s:

@@ -23,11 +23,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from shared.fleet import read_token
-from shared.fleetsim import ApiClient, start_server
-from shared.graph import builtin_graph
-from shared.models import Sensor
-from shared.records import make_record
+from shared.core.files import read_token
+from shared.core.graph import builtin_graph
+from shared.core.http import ApiClient
+from shared.core.models import Sensor
+from shared.core.records import make_record
+from shared.tools.fleetsim import start_server
 
 
 def _payloads(graph, sender: int, count: int, steps: int) -> list[tuple[str, bytes]]:
@@ -37,8 +38,18 @@ def _payloads(graph, sender: int, count: int, steps: int) -> list[tuple[str, byt
         nodes = [graph.start]
         for _ in range(steps - 1):
             nodes.append(int(rng.choice(graph.closed(nodes[-1]))))
-        rec = make_record(graph, fleet="default", mission_id=f"b{sender}-{k}", robot_id=f"s{sender}", nodes=nodes,
-                          z=[0] * steps, sensor=Sensor(), captured=False, capture_time=None, captured_by=None)  # fmt: skip
+        rec = make_record(
+            graph,
+            fleet="default",
+            mission_id=f"b{sender}-{k}",
+            robot_id=f"s{sender}",
+            nodes=nodes,
+            z=[0] * steps,
+            sensor=Sensor(),
+            captured=False,
+            capture_time=None,
+            captured_by=None,
+        )
         out.append((f"mures/default/episodes/s{sender}/b{sender}-{k}", json.dumps(rec).encode()))
     return out
 
@@ -46,7 +57,7 @@ def _payloads(graph, sender: int, count: int, steps: int) -> list[tuple[str, byt
 def _process(endpoint: str, senders: list[int], count: int, steps: int, start, results) -> None:
     import zenoh
 
-    from shared.fleet import zenoh_config
+    from shared.core.wire import zenoh_config
 
     graph = builtin_graph("museum")
     work = {s: _payloads(graph, s, count, steps) for s in senders}

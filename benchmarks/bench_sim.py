@@ -9,10 +9,10 @@ import time
 
 import torch
 
-from shared.graph import builtin_graph
-from shared.models import Sensor, uniform_walk
-from shared.searchers import GreedySearcher, RandomSearcher
-from shared.sim import SearchSim
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.engine.searchers import GreedySearcher, RandomSearcher
+from shared.engine.sim import SearchSim
 
 
 def run(searcher_name: str, batch: int, seconds: float) -> None:

@@ -13,12 +13,13 @@ import time
 
 import torch
 
-from shared.evaluate import evaluate
-from shared.graph import builtin_graph, load_graph_file
-from shared.models import Sensor, uniform_walk
-from shared.searchers import make_searcher
-from shared.snapshot import PolicySearcher, load_snapshot, save_snapshot
-from shared.train import TrainConfig, config_dict, train
+from shared.core.graph import builtin_graph, load_graph_file
+from shared.core.models import Sensor, uniform_walk
+from shared.engine.evaluate import evaluate
+from shared.learning.config import TrainConfig
+from shared.learning.snapshot import PolicySearcher, load_snapshot, save_snapshot
+from shared.learning.train import train
+from shared.registry import make_searcher
 
 
 def main() -> None:
@@ -41,7 +42,7 @@ def main() -> None:
     res = train(g, m, s, cfg)
     wall = time.perf_counter() - t0
     out = a.out or f"out/bench/{g.name.lower()}-N{a.robots}-beta{a.beta:g}-seed{a.seed}"
-    save_snapshot(out, res.policy, g, res.model, s, "cepg", [a.beta] * a.robots, config_dict(cfg), res.summary)
+    save_snapshot(out, res.policy, g, res.model, s, "cepg", [a.beta] * a.robots, cfg.to_dict(), res.summary)
     sm = res.summary
     print(
         f"train {g.name} n={g.n} N={a.robots} beta={a.beta:g} seed={a.seed}: {sm['episodes']:,} episodes, "
@@ -56,8 +57,10 @@ def main() -> None:
     for name, factory in rows:
         r = evaluate(g, m, s, a.robots, factory, episodes=a.eval, seed=a.seed + 1).summary()
         lo, hi = r["ci95"]
-        print(f"  {name:7s} {r['mean_capture_time']:7.2f}  (95% CI {lo:.2f} .. {hi:.2f}, {a.eval} episodes, "
-              f"seed {a.seed + 1})")  # fmt: skip
+        print(
+            f"  {name:7s} {r['mean_capture_time']:7.2f}  (95% CI {lo:.2f} .. {hi:.2f}, {a.eval} episodes, "
+            f"seed {a.seed + 1})"
+        )
         if name == "cepg":
             learned = r["mean_capture_time"]
         else:

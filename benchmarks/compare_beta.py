@@ -4,7 +4,7 @@ Run: python benchmarks/compare_beta.py [--env office] [--robots 2,3,4] [--seeds 
                                        [--episodes 30000] [--belief em|true] [--eval 1500]
                                        [--ce-states shared,all]
 
-CE-PG is trained once per --ce-states value (the states the cross entropy counts at, shared/cepg.py).
+CE-PG is trained once per --ce-states value (the states the cross entropy counts at, shared/learning/cepg.py).
 
 For every (N, seed) both betas train from the same initial weights and simulator seed; each final
 team is evaluated on 1500 episodes (seed 1000 + seed). Printed per run: the final capture time
@@ -19,11 +19,12 @@ import statistics
 
 import torch
 
-from shared.evaluate import evaluate
-from shared.graph import builtin_graph
-from shared.models import Sensor, uniform_walk
-from shared.snapshot import PolicySearcher, Snapshot
-from shared.train import TrainConfig, train
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.engine.evaluate import evaluate
+from shared.learning.config import TrainConfig
+from shared.learning.snapshot import PolicySearcher, Snapshot
+from shared.learning.train import train
 
 T95 = {1: 12.71, 2: 4.30, 3: 3.18, 4: 2.78, 5: 2.57, 6: 2.45, 7: 2.36, 8: 2.31, 9: 2.26}
 
@@ -56,26 +57,39 @@ def main() -> None:
         auc: dict[str, list[float]] = {name: [] for name, _, _ in arms}
         for seed in (int(x) for x in a.seeds.split(",")):
             for name, beta, states in arms:
-                cfg = TrainConfig(robots=N, episodes=a.episodes, beta=[beta], belief=a.belief, seed=seed,
-                                  ce_states=states)  # fmt: skip
+                cfg = TrainConfig(
+                    robots=N, episodes=a.episodes, beta=[beta], belief=a.belief, seed=seed, ce_states=states
+                )
                 res = train(g, m, s, cfg)
                 snap = Snapshot(meta={"variant": "cepg", "robots": N}, policy=res.policy, model=res.model, sensor=s)
-                ev = evaluate(g, m, s, N, lambda sd, snap=snap, N=N: PolicySearcher(snap, g, s, N, seed=sd),
-                              episodes=a.eval, seed=1000 + seed).summary()  # fmt: skip
+                ev = evaluate(
+                    g,
+                    m,
+                    s,
+                    N,
+                    lambda sd, snap=snap, N=N: PolicySearcher(snap, g, s, N, seed=sd),
+                    episodes=a.eval,
+                    seed=1000 + seed,
+                ).summary()
                 curve = res.summary["learning_curve"]
                 area = sum(p["mean_capture_time"] for p in curve) / len(curve)
                 final[name].append(ev["mean_capture_time"])
                 auc[name].append(area)
-                print(f"  N={N} seed={seed} {name}: final {ev['mean_capture_time']:6.2f} "
-                      f"+- {ev['ci95_halfwidth']:.2f}   training mean {area:6.2f}   "
-                      f"({res.summary['wall_seconds']:.0f} s)", flush=True)  # fmt: skip
+                print(
+                    f"  N={N} seed={seed} {name}: final {ev['mean_capture_time']:6.2f} "
+                    f"+- {ev['ci95_halfwidth']:.2f}   training mean {area:6.2f}   "
+                    f"({res.summary['wall_seconds']:.0f} s)",
+                    flush=True,
+                )
         for label, d in (("final capture time", final), ("training mean (AUC)", auc)):
             mp, hp = ci(d["PG"])
             for name, _, _ in arms[:-1]:
                 diff = [p - c for p, c in zip(d["PG"], d[name], strict=True)]
                 (mc, hc), (md, hd) = ci(d[name]), ci(diff)
-                print(f"N={N} {label}: {name} {mc:.2f} +- {hc:.2f}, PG {mp:.2f} +- {hp:.2f}, "
-                      f"PG - {name} {md:+.2f} +- {hd:.2f} over {len(diff)} seeds")  # fmt: skip
+                print(
+                    f"N={N} {label}: {name} {mc:.2f} +- {hc:.2f}, PG {mp:.2f} +- {hp:.2f}, "
+                    f"PG - {name} {md:+.2f} +- {hd:.2f} over {len(diff)} seeds"
+                )
 
 
 if __name__ == "__main__":

@@ -33,8 +33,6 @@ import tarfile
 import tempfile
 import threading
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -42,20 +40,22 @@ import numpy as np
 import zenoh
 
 from robot_agent.backend import BackendError, MissionOver, RobotBackend, load_backend
-from shared.fleet import (
+from shared.core.files import atomic_write, read_token
+from shared.core.graph import Graph, graph_from_dict
+from shared.core.http import ApiClient, ApiError
+from shared.core.models import Sensor
+from shared.core.records import make_record
+from shared.core.snapshot import PolicyAgent, SnapshotData, SnapshotError, read_snapshot
+from shared.core.wire import (
     DEFAULT_FLEET,
     agent_key,
     check_id,
     episode_key,
     mission_key,
     parse_message,
-    read_token,
     telemetry_key,
     zenoh_config,
 )
-from shared.graph import Graph, graph_from_dict
-from shared.models import Sensor
-from shared.records import make_record
 
 log = logging.getLogger("mures.agent")
 
@@ -67,15 +67,6 @@ def mission_seed(seed: int, index: int) -> int:
     return (int(seed) * 1_000_003 + 7_919 * (index + 1)) % (2**63)
 
 
-def _fsync_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
 class Outbox:
     """Records waiting for the server's ok: one file each, written (fsync) before any send."""
 
@@ -85,7 +76,7 @@ class Outbox:
 
     def put(self, record: dict[str, Any]) -> Path:
         path = self.root / f"{record['mission_id']}.json"
-        _fsync_write(path, json.dumps(record, separators=(",", ":")).encode())
+        atomic_write(path, json.dumps(record, separators=(",", ":")).encode())
         return path
 
     def pending(self) -> list[Path]:
@@ -146,17 +137,15 @@ class PolicyStore:
         self.graph = graph
         root.mkdir(parents=True, exist_ok=True)
         self.version: int | None = None
-        self.snapshot: Any = None
+        self.snapshot: SnapshotData | None = None
 
     def load_current(self) -> bool:
-        from shared.snapshot import SnapshotError, load_snapshot
-
         cur = self.root / "current.json"
         if not cur.exists():
             return False
         try:
             v = int(json.loads(cur.read_text(encoding="utf-8"))["version"])
-            self.snapshot = load_snapshot(self.root / f"v{v}", self.graph)
+            self.snapshot = read_snapshot(self.root / f"v{v}", self.graph)
             self.version = v
             return True
         except (SnapshotError, ValueError, KeyError, OSError) as exc:
@@ -165,8 +154,6 @@ class PolicyStore:
 
     def install(self, version: int, tar_path: Path, sha256: str) -> None:
         """Verify and swap in a downloaded artifact; raise ValueError (keeping the last good one)."""
-        from shared.snapshot import PolicyAgent, SnapshotError, load_snapshot
-
         h = hashlib.sha256(tar_path.read_bytes()).hexdigest()
         if h != sha256:
             raise ValueError(f"artifact sha256 {h[:12]}... does not match the server's {sha256[:12]}...")
@@ -175,7 +162,7 @@ class PolicyStore:
             with tarfile.open(tar_path) as tar:
                 tar.extractall(tmp, filter="data")  # refuses absolute paths, links out, devices
             try:
-                snap = load_snapshot(tmp, self.graph)  # graph_id, node order, shapes, weights sha256
+                snap = read_snapshot(tmp, self.graph)  # graph_id, node order, shapes, weights sha256
                 PolicyAgent(snap, self.graph, 0)  # a policy this agent can run (not c-cepg)
             except SnapshotError as exc:
                 raise ValueError(str(exc)) from None
@@ -184,8 +171,8 @@ class PolicyStore:
             os.replace(tmp, final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-        _fsync_write(self.root / "current.json", json.dumps({"version": version, "sha256": sha256}).encode())
-        self.snapshot = load_snapshot(self.root / f"v{version}", self.graph)
+        atomic_write(self.root / "current.json", json.dumps({"version": version, "sha256": sha256}).encode())
+        self.snapshot = read_snapshot(self.root / f"v{version}", self.graph)
         self.version = version
 
 
@@ -194,8 +181,7 @@ class Agent:
         self.args = args
         self.robot_id = check_id("robot id", args.robot_id)
         self.fleet = check_id("fleet", args.fleet)
-        self.server = args.server.rstrip("/")
-        self.token = read_token(args.token_file) if args.token_file else None
+        self.api = ApiClient(args.server, read_token(args.token_file) if args.token_file else None, timeout=10.0)
         self.state = Path(args.state_dir or f"mures-agent-{self.robot_id}")
         self.state.mkdir(parents=True, exist_ok=True)
         self.stop = threading.Event()
@@ -209,27 +195,17 @@ class Agent:
         self.in_mission = False
 
     # ------------------------------------------------------------------ HTTP
-    def _http(self, path: str, headers: dict[str, str] | None = None, timeout: float = 10.0) -> Any:
-        req = urllib.request.Request(self.server + path, headers=dict(headers or {}))
-        if self.token:
-            req.add_header("Authorization", f"Bearer {self.token}")
-        return urllib.request.urlopen(req, timeout=timeout)
-
-    def _get_json(self, path: str) -> Any:
-        with self._http(path) as resp:
-            return json.loads(resp.read())
-
     def fetch_map(self) -> Graph:
         cache = self.state / "map.json"
         while not self.stop.is_set():
             try:
-                data = self._get_json("/api/v1/map")
+                data = self.api.get("/api/v1/map")
                 graph = graph_from_dict(data, "server map")
                 if graph.graph_id != data.get("graph_id"):
                     raise ValueError("the server's map does not hash to its graph_id")
-                _fsync_write(cache, json.dumps(data).encode())
+                atomic_write(cache, json.dumps(data).encode())
                 return graph
-            except (urllib.error.URLError, OSError, ValueError) as exc:
+            except (OSError, ApiError, ValueError) as exc:
                 if cache.exists():
                     log.warning("server unreachable (%s); using the cached map", exc)
                     return graph_from_dict(json.loads(cache.read_text(encoding="utf-8")), str(cache))
@@ -241,7 +217,7 @@ class Agent:
         """Between missions only: take the server's current version if it differs from ours."""
         assert self.policies is not None
         try:
-            meta = self._get_json("/api/v1/policies/current")
+            meta = self.api.get("/api/v1/policies/current")
             version, sha = int(meta["version"]), str(meta["sha256"])
             if meta.get("meta", {}).get("graph_id") != self.graph.graph_id:
                 raise ValueError(f"version {version} is for another map")
@@ -249,19 +225,18 @@ class Agent:
                 return
             tar_path = self.policies.root / f"v{version}.tar"
             headers = {"If-None-Match": f'"{sha}"'} if tar_path.exists() else {}
-            try:
-                with self._http(f"/api/v1/policies/{version}/artifact", headers, timeout=60) as resp:
-                    etag = resp.headers.get("ETag", "").strip('"')
-                    if etag and etag != sha:
-                        raise ValueError(f"artifact ETag {etag[:12]}... differs from the version's sha256")
-                    _fsync_write(tar_path, resp.read())
-            except urllib.error.HTTPError as exc:
-                if exc.code != 304:
-                    raise
+            status, resp_headers, body = self.api.request(
+                "GET", f"/api/v1/policies/{version}/artifact", headers=headers, timeout=60
+            )
+            if status != 304:  # 304: the tar we have is this version's
+                etag = resp_headers.get("ETag", resp_headers.get("etag", "")).strip('"')
+                if etag and etag != sha:
+                    raise ValueError(f"artifact ETag {etag[:12]}... differs from the version's sha256")
+                atomic_write(tar_path, body)
             old = self.policies.version
             self.policies.install(version, tar_path, sha)
             log.info("policy version %s -> %d (%s)", old, version, reason)
-        except (urllib.error.URLError, OSError, ValueError, KeyError, TypeError) as exc:
+        except (OSError, ApiError, ValueError, KeyError, TypeError) as exc:
             have = self.policies.version
             log.warning("policy update failed (%s); keeping version %s", exc, have)
 
@@ -336,8 +311,11 @@ class Agent:
         rec = self._record(header, steps, None)
         self.outbox.put(rec)
         self.journal.finish()
-        log.warning("mission %s was cut short (%d steps recorded); its record is in the outbox",
-                    header["mission_id"], len(steps))  # fmt: skip
+        log.warning(
+            "mission %s was cut short (%d steps recorded); its record is in the outbox",
+            header["mission_id"],
+            len(steps),
+        )
 
     def _record(self, header: dict[str, Any], steps: list[dict[str, int]], end: dict[str, Any] | None) -> dict:
         graph = self.graph
@@ -347,14 +325,21 @@ class Agent:
             captured, ct, by = True, int(end["t"]), end.get("captured_by")
             steps = steps[: ct + 1]
         sensor = Sensor(**header["sensor"])
-        return make_record(graph, fleet=self.fleet, mission_id=header["mission_id"], robot_id=self.robot_id,
-                           nodes=[graph.index[s["node"]] for s in steps], z=[s["z"] for s in steps], sensor=sensor,
-                           captured=captured, capture_time=ct, captured_by=by,
-                           policy_version=header.get("policy_version"))  # fmt: skip
+        return make_record(
+            graph,
+            fleet=self.fleet,
+            mission_id=header["mission_id"],
+            robot_id=self.robot_id,
+            nodes=[graph.index[s["node"]] for s in steps],
+            z=[s["z"] for s in steps],
+            sensor=sensor,
+            captured=captured,
+            capture_time=ct,
+            captured_by=by,
+            policy_version=header.get("policy_version"),
+        )
 
     def run_mission(self, msg: dict[str, Any], backend: RobotBackend) -> None:
-        from shared.snapshot import PolicyAgent
-
         assert self.policies is not None and self.graph is not None
         graph = self.graph
         mid = msg["mission_id"]
@@ -365,8 +350,13 @@ class Agent:
         snap = self.policies.snapshot
         agent = PolicyAgent(snap, graph, index, seed=mission_seed(msg.get("seed", 0), index))
         max_steps = int(msg.get("max_steps") or 3 * graph.n)
-        header = {"mission_id": mid, "policy_version": self.policies.version, "sensor": snap.sensor.to_json(),
-                  "seed": msg.get("seed"), "index": index}  # fmt: skip
+        header = {
+            "mission_id": mid,
+            "policy_version": self.policies.version,
+            "sensor": snap.sensor.to_json(),
+            "seed": msg.get("seed"),
+            "index": index,
+        }
         steps: list[dict[str, int]] = []
         end: dict[str, Any] | None = None
         decide_us: list[float] = []
@@ -393,8 +383,18 @@ class Agent:
                 goal = int(graph.labels[agent.act(p)])  # a_t ~ pi_i(. | onehot(p_t), b_t), Algorithm 1
                 decide_us.append((time.perf_counter() - t0) * 1e6)
                 if pub is not None:
-                    pub.put(json.dumps({"mission_id": mid, "t": t, "node": node, "z": z, "goal": goal,
-                                        "decide_us": round(decide_us[-1], 1)}).encode())  # fmt: skip
+                    pub.put(
+                        json.dumps(
+                            {
+                                "mission_id": mid,
+                                "t": t,
+                                "node": node,
+                                "z": z,
+                                "goal": goal,
+                                "decide_us": round(decide_us[-1], 1),
+                            }
+                        ).encode()
+                    )
                 node = int(backend.move(goal))
                 if node not in graph.index:
                     raise BackendError(f"backend reports node {node}, which is not on the map")
@@ -417,20 +417,32 @@ class Agent:
         self.flush_now.set()
         med = float(np.median(decide_us)) if decide_us else float("nan")
         out = rec["outcome"]
-        log.info("mission %s over after %d steps: %s; decision step median %.1f us",
-                 mid, len(rec["steps"]) - 1,
-                 f"captured at t={out['capture_time']} by {out['captured_by']}" if out["captured"] else
-                 (end or {}).get("type", "not captured"), med)  # fmt: skip
-        _fsync_write(self.state / "last_mission.json", json.dumps({"mission_id": mid, "decide_us_median": med,
-                     "decisions": len(decide_us), "steps": len(rec["steps"])}).encode())  # fmt: skip
+        log.info(
+            "mission %s over after %d steps: %s; decision step median %.1f us",
+            mid,
+            len(rec["steps"]) - 1,
+            f"captured at t={out['capture_time']} by {out['captured_by']}"
+            if out["captured"]
+            else (end or {}).get("type", "not captured"),
+            med,
+        )
+        atomic_write(
+            self.state / "last_mission.json",
+            json.dumps(
+                {"mission_id": mid, "decide_us_median": med, "decisions": len(decide_us), "steps": len(rec["steps"])}
+            ).encode(),
+        )
 
     def _control_for(self, mid: str, wait: float = 0.0) -> dict[str, Any] | None:
         """The end message (captured/stop) of mission ``mid`` if one has arrived; others are dropped."""
         deadline = time.monotonic() + wait
         while True:
             try:
-                msg = self.control.get(timeout=max(0.0, deadline - time.monotonic())) if wait else \
-                    self.control.get_nowait()  # fmt: skip
+                msg = (
+                    self.control.get(timeout=max(0.0, deadline - time.monotonic()))
+                    if wait
+                    else self.control.get_nowait()
+                )
             except queue.Empty:
                 return None
             if msg["mission_id"] == mid and msg["type"] in ("captured", "stop"):
@@ -455,8 +467,9 @@ class Agent:
             self.recover_journal()
             flusher = threading.Thread(target=self.flush_loop, name="outbox", daemon=True)
             flusher.start()
-            backend = load_backend(self.args.backend, graph=self.graph, robot_id=self.robot_id,
-                                   session=self.session, fleet=self.fleet)  # fmt: skip
+            backend = load_backend(
+                self.args.backend, graph=self.graph, robot_id=self.robot_id, session=self.session, fleet=self.fleet
+            )
             log.info("robot %s up in fleet %r with policy version %s", self.robot_id, self.fleet, self.policies.version)
             while not self.stop.is_set():
                 try:
@@ -486,8 +499,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="robot-agent", description="MuRES fleet robot agent")
     p.add_argument("--robot-id", required=True, help="this robot's id (A-Z a-z 0-9 _ . -)")
     p.add_argument("--server", required=True, metavar="URL", help="the training server, e.g. http://10.0.0.2:8000")
-    p.add_argument("--zenoh-connect", action="append", required=True, metavar="ENDPOINT",
-                   help="Zenoh router endpoint, e.g. tcp/10.0.0.2:7447 (repeatable)")  # fmt: skip
+    p.add_argument(
+        "--zenoh-connect",
+        action="append",
+        required=True,
+        metavar="ENDPOINT",
+        help="Zenoh router endpoint, e.g. tcp/10.0.0.2:7447 (repeatable)",
+    )
     p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file (TLS, credentials)")
     p.add_argument("--fleet", default=DEFAULT_FLEET)
     p.add_argument("--token-file", help="the agent bearer token for the REST API")
@@ -500,8 +518,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
-                        format=f"%(asctime)s %(levelname)s agent[{args.robot_id}]: %(message)s")  # fmt: skip
+    logging.basicConfig(
+        level=args.log_level.upper(),
+        stream=sys.stderr,
+        format=f"%(asctime)s %(levelname)s agent[{args.robot_id}]: %(message)s",
+    )
     try:
         agent = Agent(args)
     except ValueError as exc:

@@ -27,8 +27,8 @@ from typing import Any, Protocol
 
 import zenoh
 
-from shared.fleet import sim_key
-from shared.graph import Graph
+from shared.core.graph import Graph
+from shared.core.wire import sim_key
 
 
 class MissionOver(Exception):
@@ -47,7 +47,7 @@ class RobotBackend(Protocol):
 
 
 class SimBackend:
-    """A simulated robot in the fleet simulator's world (shared/world.py), over Zenoh.
+    """A simulated robot in the fleet simulator's world (shared/tools/world.py), over Zenoh.
 
     Moves always arrive. ``detect`` sends this robot's (t, node) to the world's queryable
     ``mures/<fleet>/sim/<mission>/<robot>`` and returns the world's z; the world answers once

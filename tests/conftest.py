@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from shared.graph import Graph, graph_from_dict
+from shared.core.graph import Graph, graph_from_dict
 
 
 @pytest.fixture

@@ -9,10 +9,11 @@ import torch.distributed as dist
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from shared.graph import builtin_graph
-from shared.models import Sensor, uniform_walk
-from shared.policy import TeamPolicy
-from shared.train import TrainConfig, train
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.learning.config import TrainConfig
+from shared.learning.policy import TeamPolicy
+from shared.learning.train import train
 
 
 def main() -> None:

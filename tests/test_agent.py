@@ -12,11 +12,10 @@ import torch
 from robot_agent.agent import Journal, Outbox, PolicyStore
 from robot_agent.backend import BackendError, load_backend
 from robot_agent.examples.nav_goal import NavGoalBackend
-from shared.graph import builtin_graph
-from shared.models import Sensor
-from shared.policy import TeamPolicy
-from shared.snapshot import save_snapshot
-from shared.train import identity_model
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, identity_model
+from shared.learning.policy import TeamPolicy
+from shared.learning.snapshot import save_snapshot
 
 
 def test_journal_recovers_the_steps_of_a_killed_mission(tmp_path):

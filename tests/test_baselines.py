@@ -1,4 +1,4 @@
-"""The paper's comparison methods (shared/baselines.py) against brute force and each other."""
+"""The paper's comparison methods (shared/planners/) against brute force and each other."""
 
 from __future__ import annotations
 
@@ -7,11 +7,14 @@ import itertools
 import numpy as np
 import pytest
 
-from shared.baselines import GAMMA, Fhpe, FhpeSA, Milp, OracleSearcher, oracle_expected_time, walks
-from shared.evaluate import evaluate
-from shared.graph import builtin_graph
-from shared.models import Sensor, uniform_walk
-from shared.searchers import make_searcher
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.engine.evaluate import evaluate
+from shared.planners.base import GAMMA, walks
+from shared.planners.fhpe import Fhpe, FhpeSA
+from shared.planners.milp import Milp
+from shared.planners.oracle import OracleSearcher, oracle_expected_time
+from shared.registry import make_searcher
 
 
 def _team_value(planner, b, paths):
@@ -99,7 +102,14 @@ def test_planners_beat_random(office):
     sensor = Sensor()
     res = {}
     for name in ("random", "fhpe-sa", "fhpe"):
-        r = evaluate(g, model, sensor, 2, lambda s, name=name: make_searcher(name, g, model, sensor, s, n_robots=2),
-                     episodes=80, seed=4).summary()  # fmt: skip
+        r = evaluate(
+            g,
+            model,
+            sensor,
+            2,
+            lambda s, name=name: make_searcher(name, g, model, sensor, s, n_robots=2),
+            episodes=80,
+            seed=4,
+        ).summary()
         res[name] = r["mean_capture_time"]
     assert res["fhpe-sa"] < res["random"] and res["fhpe"] < res["random"], res

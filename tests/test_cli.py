@@ -6,7 +6,7 @@ import pytest
 
 
 def mures(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "shared.cli", *args], capture_output=True, text=True, cwd=cwd)
+    return subprocess.run([sys.executable, "-m", "shared.tools.cli", *args], capture_output=True, text=True, cwd=cwd)
 
 
 def test_evaluate_json_fields():
@@ -40,8 +40,21 @@ def test_bad_arguments_exit_2_with_a_clear_error(args, fragment):
 
 def test_simulate_then_estimate(tmp_path):
     eps, model = tmp_path / "eps.jsonl", tmp_path / "model.json"
-    r = mures("simulate", "--env", "office", "--robots", "3", "--missions", "60", "--target", "lazy:0.8",
-              "--eta-fn", "0.1", "--out", str(eps))  # fmt: skip
+    r = mures(
+        "simulate",
+        "--env",
+        "office",
+        "--robots",
+        "3",
+        "--missions",
+        "60",
+        "--target",
+        "lazy:0.8",
+        "--eta-fn",
+        "0.1",
+        "--out",
+        str(eps),
+    )
     assert r.returncode == 0, r.stderr
     assert len(eps.read_text().splitlines()) == 180
     r = mures("estimate", "--env", "office", "--episodes", str(eps), "--out", str(model), "--truth", "lazy:0.8")
@@ -50,8 +63,19 @@ def test_simulate_then_estimate(tmp_path):
     assert len(out["nodes"]) == 60 and len(out["gamma"]) == 60 and len(out["b0"]) == 60
     assert out["records_used"] == 180 and out["log_likelihood"]
     # the estimate is itself a valid target model for the simulator
-    r = mures("evaluate", "--env", "office", "--robots", "1", "--searcher", "random", "--episodes", "50",
-              "--target", str(model))  # fmt: skip
+    r = mures(
+        "evaluate",
+        "--env",
+        "office",
+        "--robots",
+        "1",
+        "--searcher",
+        "random",
+        "--episodes",
+        "50",
+        "--target",
+        str(model),
+    )
     assert r.returncode == 0, r.stderr
     # records for another map are all skipped: nothing written, exit 2
     r = mures("estimate", "--env", "museum", "--episodes", str(eps), "--out", str(tmp_path / "m2.json"))

@@ -4,12 +4,12 @@ import json
 import numpy as np
 import pytest
 
-from shared.estimate import collect_missions, em, eq8, mean_row_tv
-from shared.evaluate import episode_records, evaluate
-from shared.graph import grid_graph
-from shared.models import Sensor, lazy_walk, uniform_walk
-from shared.records import RecordError, parse_record, read_jsonl
-from shared.searchers import RandomSearcher
+from shared.core.graph import grid_graph
+from shared.core.models import Sensor, lazy_walk, uniform_walk
+from shared.core.records import RecordError, parse_record, read_jsonl
+from shared.engine.estimate import collect_missions, em, eq8, mean_row_tv
+from shared.engine.evaluate import episode_records, evaluate
+from shared.engine.searchers import RandomSearcher
 
 
 def simulated_records(graph, truth, sensor, N, missions, seed):

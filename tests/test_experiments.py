@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 
-from shared.cli import main
-from shared.experiments import report
+from shared.tools.cli import main
+from shared.tools.experiments import report
 
 
 def test_fig4_quick_and_report(tmp_path, capsys):
@@ -23,15 +23,42 @@ def test_fig4_quick_and_report(tmp_path, capsys):
 
 def test_report_reading_follows_the_numbers(tmp_path):
     rows = []
-    for method, mean, half in (("cepg", 10.0, 0.5), ("random", 26.0, 1.0), ("milp", 8.0, 0.5), ("greedy", 10.4, 0.6),
-                               ("oracle", 5.0, 0.2)):  # fmt: skip
-        rows.append({"map": "office", "robots": 4, "method": method, "episodes": 100, "seed": 1,
-                     "mean_capture_time": mean, "ci95_halfwidth": half, "censored_fraction": 0.0, "team_steps": 1,
-                     "wall_seconds": 1.0, "decision_ms": 1.0})  # fmt: skip
+    for method, mean, half in (
+        ("cepg", 10.0, 0.5),
+        ("random", 26.0, 1.0),
+        ("milp", 8.0, 0.5),
+        ("greedy", 10.4, 0.6),
+        ("oracle", 5.0, 0.2),
+    ):
+        rows.append(
+            {
+                "map": "office",
+                "robots": 4,
+                "method": method,
+                "episodes": 100,
+                "seed": 1,
+                "mean_capture_time": mean,
+                "ci95_halfwidth": half,
+                "censored_fraction": 0.0,
+                "team_steps": 1,
+                "wall_seconds": 1.0,
+                "decision_ms": 1.0,
+            }
+        )
     (tmp_path / "fig7").mkdir()
-    setup = {"episodes": 100, "planner_episodes": 2, "fhpe_sa_episodes": 8, "seed": 1, "training_episodes": 10,
-             "horizons": {}, "discount": 0.97, "milp_time_limit_s": 1.0, "quick": True, "wall_seconds": 1.0,
-             "machine": {"cpus": 2, "date": "today"}}  # fmt: skip
+    setup = {
+        "episodes": 100,
+        "planner_episodes": 2,
+        "fhpe_sa_episodes": 8,
+        "seed": 1,
+        "training_episodes": 10,
+        "horizons": {},
+        "discount": 0.97,
+        "milp_time_limit_s": 1.0,
+        "quick": True,
+        "wall_seconds": 1.0,
+        "machine": {"cpus": 2, "date": "today"},
+    }
     (tmp_path / "fig7" / "fig7.json").write_text(json.dumps({**setup, "rows": rows}))
     text = report(tmp_path, tmp_path / "results.md").read_text()
     line = next(x for x in text.splitlines() if x.startswith("- OFFICE N=4"))
@@ -45,10 +72,21 @@ def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
 
 
 def test_report_tables_robustness_results(tmp_path):
-    rows = [{"map": env, "robots": 4, "method": m, "episodes": 10, "seed": 1, "withdrawn": w,
-             "mean_capture_time": mean, "ci95_halfwidth": 1.0, "censored_fraction": 0.0}
-            for env in ("office", "museum")
-            for m, w, mean in (("cepg", "none", 20.0), ("cepg", "r4@t5", 27.5))]  # fmt: skip
+    rows = [
+        {
+            "map": env,
+            "robots": 4,
+            "method": m,
+            "episodes": 10,
+            "seed": 1,
+            "withdrawn": w,
+            "mean_capture_time": mean,
+            "ci95_halfwidth": 1.0,
+            "censored_fraction": 0.0,
+        }
+        for env in ("office", "museum")
+        for m, w, mean in (("cepg", "none", 20.0), ("cepg", "r4@t5", 27.5))
+    ]
     (tmp_path / "fig12").mkdir()
     setup = {"episodes": 10, "seed": 1, "training_episodes": 10, "quick": True, "machine": {"date": "today"}}
     (tmp_path / "fig12" / "fig12.json").write_text(json.dumps({**setup, "rows": rows}))
@@ -60,7 +98,7 @@ def test_report_tables_robustness_results(tmp_path):
 def test_sensor_noise_and_variant_experiments_and_their_report(tmp_path):
     """fig10 and fig6 at a tiny budget: the cells say which sensor they were flown with, a noiseless
     sensor never raises a false alarm and eta_fp = 0.5 does, and the report tables both figures."""
-    from shared.experiments import Budget, fig6, fig10
+    from shared.tools.experiments import Budget, fig6, fig10
 
     b = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,))
     fig10(tmp_path, b)

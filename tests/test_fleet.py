@@ -1,5 +1,5 @@
 """The fleet end to end on loopback: a training server process, the simulated world and three
-robot-agent processes (shared/fleetsim.py), driven through the REST API as an operator would."""
+robot-agent processes (shared/tools/fleetsim.py), driven through the REST API as an operator would."""
 
 from __future__ import annotations
 
@@ -17,13 +17,16 @@ import pytest
 import zenoh
 
 from robot_agent.agent import mission_seed
-from shared.evaluate import evaluate, mean_ci95
-from shared.fleet import episode_key, read_token, zenoh_config
-from shared.fleetsim import ApiClient, ApiError, launch, start_server, wait_until
-from shared.graph import builtin_graph
-from shared.models import Sensor, uniform_walk
-from shared.records import make_record
-from shared.snapshot import PolicyAgent, PolicySearcher, load_snapshot
+from shared.core.files import read_token
+from shared.core.graph import builtin_graph
+from shared.core.http import ApiClient, ApiError
+from shared.core.models import Sensor, uniform_walk
+from shared.core.records import make_record
+from shared.core.snapshot import PolicyAgent, read_snapshot
+from shared.core.wire import episode_key, zenoh_config
+from shared.engine.evaluate import evaluate, mean_ci95
+from shared.learning.snapshot import PolicySearcher, load_snapshot
+from shared.tools.fleetsim import launch, start_server, wait_until
 
 ROBOTS = ["r1", "r2", "r3"]
 
@@ -31,14 +34,19 @@ ROBOTS = ["r1", "r2", "r3"]
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
     graph = builtin_graph("office")
-    f = launch(graph, ["--env", "office"], uniform_walk(graph), Sensor(), 3, tmp_path_factory.mktemp("fleet"),
-               step_timeout=3.0)  # fmt: skip
+    f = launch(
+        graph, ["--env", "office"], uniform_walk(graph), Sensor(), 3, tmp_path_factory.mktemp("fleet"), step_timeout=3.0
+    )
     yield f
     f.close()
 
 
+def _snapshot_dir(fleet, version):
+    return fleet.workdir / "server" / "policies" / f"v{version}" / "snapshot"
+
+
 def _snapshot(fleet, version):
-    return load_snapshot(fleet.workdir / "server" / "policies" / f"v{version}" / "snapshot", fleet.graph)
+    return load_snapshot(_snapshot_dir(fleet, version), fleet.graph)
 
 
 def _fly_many(fleet, seeds):
@@ -54,7 +62,7 @@ def _replay(fleet, robot, mission):
     """Re-decide a robot's mission from its own record only: its nodes and z's, the mission seed
     and its index; the policy of the record's version must choose exactly the recorded moves."""
     rec = fleet.api.get(f"/api/v1/episodes/{robot}/{mission['id']}")
-    snap = _snapshot(fleet, rec["policy_version"])
+    snap = read_snapshot(_snapshot_dir(fleet, rec["policy_version"]), fleet.graph)  # what the agent reads
     g = fleet.graph
     index = mission["robots"].index(robot)
     agent = PolicyAgent(snap, g, index, seed=mission_seed(mission["params"]["seed"], index))
@@ -78,8 +86,9 @@ def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
     m_fleet, h_fleet = mean_ci95(ct)
     g = fleet.graph
     snap = _snapshot(fleet, 1)
-    res = evaluate(g, uniform_walk(g), Sensor(), 3, lambda s: PolicySearcher(snap, g, Sensor(), 3, seed=s),
-                   episodes=1500, seed=5).summary()  # fmt: skip
+    res = evaluate(
+        g, uniform_walk(g), Sensor(), 3, lambda s: PolicySearcher(snap, g, Sensor(), 3, seed=s), episodes=1500, seed=5
+    ).summary()
     m_eval, h_eval = res["mean_capture_time"], res["ci95_halfwidth"]
     assert abs(m_fleet - m_eval) <= h_fleet + h_eval, (m_fleet, h_fleet, m_eval, h_eval)
     # the world and the agents are deterministic for a mission seed and a policy version
@@ -99,15 +108,20 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
     before = _fly_many(fleet, range(1000, 1060))
     run = fleet.api.post("/api/v1/training-runs", {"episodes": 30000, "seed": 1})
     assert run["status"] == "queued"
-    seen_running = wait_until(lambda: fleet.api.get(f"/api/v1/training-runs/{run['id']}")["status"] != "queued",
-                              60, "the run to start")  # fmt: skip
+    seen_running = wait_until(
+        lambda: fleet.api.get(f"/api/v1/training-runs/{run['id']}")["status"] != "queued", 60, "the run to start"
+    )
     assert seen_running
     # the API stays responsive while training runs
     t0 = time.perf_counter()
     fleet.api.get("/api/v1/episodes/stats")
     assert time.perf_counter() - t0 < 2.0
-    done = wait_until(lambda: (r := fleet.api.get(f"/api/v1/training-runs/{run['id']}"))["status"]
-                      not in ("queued", "running") and r, 600, "the training run", every=0.5)  # fmt: skip
+    done = wait_until(
+        lambda: (r := fleet.api.get(f"/api/v1/training-runs/{run['id']}"))["status"] not in ("queued", "running") and r,
+        600,
+        "the training run",
+        every=0.5,
+    )
     assert done["status"] == "succeeded", done
     assert done["version"] == 2 and fleet.api.get("/api/v1/policies/current")["version"] == 2
     assert done["metrics"]["em"]["missions"] >= 360
@@ -119,8 +133,11 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
     # a version change during a mission takes effect only at the next mission
     fleet.world.step_delay = 0.02
     m1 = fleet.api.post("/api/v1/missions", {"robots": ROBOTS, "seed": 7, "max_steps": 60})
-    wait_until(lambda: m1["id"] in fleet.world.missions and fleet.world.missions[m1["id"]].t >= 5, 30,
-               "the mission to run a few steps")  # fmt: skip
+    wait_until(
+        lambda: m1["id"] in fleet.world.missions and fleet.world.missions[m1["id"]].t >= 5,
+        30,
+        "the mission to run a few steps",
+    )
     fleet.api.post("/api/v1/policies/current", {"version": 1})  # roll back mid-mission
     wait_until(lambda: fleet.api.get(f"/api/v1/missions/{m1['id']}")["status"] == "completed", 60, "mission")
     fleet.world.step_delay = 0.0
@@ -146,20 +163,36 @@ def test_agent_killed_mid_mission_resends_its_journal_and_outbox(fleet):
     flown = len(journal.read_text().splitlines()) - 1  # the header, then one line per step
     assert flown >= 4
     # the world withdraws r1 after its step timeout; r2 and r3 finish the mission
-    wait_until(lambda: set(fleet.api.get(f"/api/v1/missions/{m['id']}")["episodes_received"]) == {"r2", "r3"},
-               60, "r2 and r3 to report")  # fmt: skip
+    wait_until(
+        lambda: set(fleet.api.get(f"/api/v1/missions/{m['id']}")["episodes_received"]) == {"r2", "r3"},
+        60,
+        "r2 and r3 to report",
+    )
     fleet.world.step_delay = 0.0
     # an unsent record in the outbox (as if the link had been down) is sent after the restart too
     outbox = fleet.workdir / "agents" / "r1" / "outbox"
     g = fleet.graph
-    rec = make_record(g, fleet="default", mission_id="offline-1", robot_id="r1", nodes=[g.start, g.start],
-                      z=[0, 0], sensor=Sensor(), captured=False, capture_time=None, captured_by=None,
-                      policy_version=2)  # fmt: skip
+    rec = make_record(
+        g,
+        fleet="default",
+        mission_id="offline-1",
+        robot_id="r1",
+        nodes=[g.start, g.start],
+        z=[0, 0],
+        sensor=Sensor(),
+        captured=False,
+        capture_time=None,
+        captured_by=None,
+        policy_version=2,
+    )
     (outbox / "offline-1.json").write_text(json.dumps(rec))
     fleet.start_agent("r1")
     wait_until(lambda: "r1" in fleet.online(), 60, "r1 back online")
-    got = wait_until(lambda: (r := fleet.api.get(f"/api/v1/missions/{m['id']}"))["status"] == "completed" and r,
-                     30, "r1's cut-short record")  # fmt: skip
+    got = wait_until(
+        lambda: (r := fleet.api.get(f"/api/v1/missions/{m['id']}"))["status"] == "completed" and r,
+        30,
+        "r1's cut-short record",
+    )
     assert set(got["episodes_received"]) == set(ROBOTS)
     r1 = fleet.api.get(f"/api/v1/episodes/r1/{m['id']}")
     assert len(r1["steps"]) == flown and r1["outcome"]["captured"] is False
@@ -171,8 +204,9 @@ def test_agent_killed_mid_mission_resends_its_journal_and_outbox(fleet):
 
 
 def _send(session, fleet_name, robot, mission, payload: bytes):
-    for reply in session.get(episode_key(fleet_name, robot, mission), payload=payload, timeout=10,
-                             consolidation=zenoh.ConsolidationMode.NONE):  # fmt: skip
+    for reply in session.get(
+        episode_key(fleet_name, robot, mission), payload=payload, timeout=10, consolidation=zenoh.ConsolidationMode.NONE
+    ):
         if reply.ok is not None:
             return True, json.loads(reply.ok.payload.to_bytes())
         return False, json.loads(reply.err.payload.to_bytes())
@@ -181,8 +215,18 @@ def _send(session, fleet_name, robot, mission, payload: bytes):
 
 def test_bad_records_and_requests_get_clear_errors_and_change_nothing(fleet):
     g = fleet.graph
-    good = make_record(g, fleet="default", mission_id="bad-test", robot_id="r9", nodes=[g.start, g.start], z=[0, 1],
-                       sensor=Sensor(), captured=True, capture_time=1, captured_by="r9")  # fmt: skip
+    good = make_record(
+        g,
+        fleet="default",
+        mission_id="bad-test",
+        robot_id="r9",
+        nodes=[g.start, g.start],
+        z=[0, 1],
+        sensor=Sensor(),
+        captured=True,
+        capture_time=1,
+        captured_by="r9",
+    )
     far = next(int(x) for x in g.labels if g.index[int(x)] not in g.closed(g.start))
     cases = {
         "json": b"{not json",
@@ -235,8 +279,10 @@ def test_bad_records_and_requests_get_clear_errors_and_change_nothing(fleet):
     assert fleet.api.get("/api/v1/health")["status"] == "ok"
     assert fleet.api.get("/api/v1/episodes/stats")["stored"] == after["stored"]
     meta = agent.get("/api/v1/policies/current")
-    req = urllib.request.Request(fleet.api.base + meta["artifact"], headers={
-        "Authorization": f"Bearer {agent.token}", "If-None-Match": f'"{meta["sha256"]}"'})  # fmt: skip
+    req = urllib.request.Request(
+        fleet.api.base + meta["artifact"],
+        headers={"Authorization": f"Bearer {agent.token}", "If-None-Match": f'"{meta["sha256"]}"'},
+    )
     with pytest.raises(urllib.error.HTTPError) as exc:
         urllib.request.urlopen(req, timeout=10)
     assert exc.value.code == 304
@@ -258,9 +304,18 @@ def test_server_killed_loses_no_acknowledged_episode(tmp_path):
                 nodes = [graph.start]
                 for _ in range(30):
                     nodes.append(int(rng.choice(graph.closed(nodes[-1]))))
-                rec = make_record(graph, fleet="default", mission_id=f"m{k}", robot_id="r1", nodes=nodes,
-                                  z=[0] * len(nodes), sensor=Sensor(), captured=False, capture_time=None,
-                                  captured_by=None)  # fmt: skip
+                rec = make_record(
+                    graph,
+                    fleet="default",
+                    mission_id=f"m{k}",
+                    robot_id="r1",
+                    nodes=nodes,
+                    z=[0] * len(nodes),
+                    sensor=Sensor(),
+                    captured=False,
+                    capture_time=None,
+                    captured_by=None,
+                )
                 ok, _body = _send(s, "default", "r1", f"m{k}", json.dumps(rec).encode())
                 if ok:
                     acked.append(f"m{k}")
@@ -289,20 +344,43 @@ def test_server_killed_loses_no_acknowledged_episode(tmp_path):
 
 
 def test_agent_rejects_bad_arguments(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "robot_agent.agent", "--robot-id", "bad/id", "--server", "http://127.0.0.1:9",
-                        "--zenoh-connect", "tcp/127.0.0.1:9", "--state-dir", str(tmp_path)],
-                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "robot_agent.agent",
+            "--robot-id",
+            "bad/id",
+            "--server",
+            "http://127.0.0.1:9",
+            "--zenoh-connect",
+            "tcp/127.0.0.1:9",
+            "--state-dir",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and "robot id" in r.stderr
     server = [sys.executable, "-m", "training_server.server"]
-    r = subprocess.run([*server, "--env", "office", "--http", "nowhere", "--data-dir", str(tmp_path)],
-                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    r = subprocess.run(
+        [*server, "--env", "office", "--http", "nowhere", "--data-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and "HOST:PORT" in r.stderr
     other = tmp_path / "srv"
     proc, _base, _ = start_server(["--env", "office"], other, 2, Sensor(), tmp_path)
     proc.send_signal(signal.SIGTERM)
     proc.wait(30)
-    r = subprocess.run([*server, "--env", "museum", "--data-dir", str(other), "--http", "127.0.0.1:0"],
-                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    r = subprocess.run(
+        [*server, "--env", "museum", "--data-dir", str(other), "--http", "127.0.0.1:0"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and "another map" in r.stderr
     assert Path(other / "mures.db").exists()
 
@@ -314,8 +392,11 @@ def test_cancelled_run_leaves_the_current_policy(fleet):
     run = fleet.api.post("/api/v1/training-runs", {"episodes": 2_000_000})
     wait_until(lambda: fleet.api.get(f"/api/v1/training-runs/{run['id']}")["status"] == "running", 60, "running")
     fleet.api.post(f"/api/v1/training-runs/{run['id']}/cancel")
-    r = wait_until(lambda: (x := fleet.api.get(f"/api/v1/training-runs/{run['id']}"))["status"] == "cancelled" and x,
-                   120, "the run to stop")  # fmt: skip
+    r = wait_until(
+        lambda: (x := fleet.api.get(f"/api/v1/training-runs/{run['id']}"))["status"] == "cancelled" and x,
+        120,
+        "the run to stop",
+    )
     assert r["version"] is None
     assert fleet.api.get("/api/v1/policies/current")["version"] == before
     assert len(fleet.api.get("/api/v1/policies")["items"]) == versions

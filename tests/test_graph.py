@@ -2,14 +2,16 @@ import hashlib
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from shared.graph import GraphError, builtin_graph, graph_from_dict, grid_graph, load_graph_file
+from shared.core.graph import GraphError, builtin_graph, graph_from_dict, grid_graph, load_graph_file
 
 
 def test_builtin_maps_match_the_reference_data():
-    ref = json.loads(_reference().read_text())
+    """The built-in maps against the published node and edge lists, kept apart in tests/data."""
+    ref = json.loads((Path(__file__).parent / "data" / "reference_graphs.json").read_text())
     for key, n, m, start in (("office", 60, 65, 43), ("museum", 70, 93, 1)):
         g = builtin_graph(key)
         assert (g.n, g.m) == (n, m)
@@ -17,15 +19,6 @@ def test_builtin_maps_match_the_reference_data():
         assert sorted(int(x) for x in g.labels) == sorted(ref[key]["nodes"])
         got = sorted(sorted((int(g.labels[u]), int(g.labels[v]))) for u, v in g.edges)
         assert got == sorted(sorted(e) for e in ref[key]["edges"])
-
-
-def _reference():
-    from pathlib import Path
-
-    p = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "graphs.json"
-    if not p.exists():
-        pytest.skip("../shared/reference/graphs.json not present")
-    return p
 
 
 def test_graph_id_is_the_spec_formula():
@@ -78,7 +71,9 @@ def test_bad_graphs_name_the_problem(data, fragment):
 def test_bad_graph_file_gives_one_line_and_exit_2(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"nodes": [1, 2, 3], "edges": [[1, 2], [2, 2]]}))
-    r = subprocess.run([sys.executable, "-m", "shared.cli", "map", "--graph", str(bad)], capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "shared.tools.cli", "map", "--graph", str(bad)], capture_output=True, text=True
+    )
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "Traceback" not in r.stderr
     assert "edge #1 [2, 2] is a self-loop" in r.stderr

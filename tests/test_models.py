@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from shared.models import ModelError, Sensor, from_matrix, lazy_walk, load_model_file, parse_target, uniform_walk
+from shared.core.models import ModelError, Sensor, from_matrix, lazy_walk, load_model_file, parse_target, uniform_walk
 
 
 def test_uniform_walk_is_the_paper_target(small_graph):

@@ -4,12 +4,12 @@ import math
 
 import torch
 
-from shared.belief import BatchedBelief
-from shared.cepg import cepg_loss, rollout
-from shared.graph import builtin_graph
-from shared.models import Sensor, uniform_walk
-from shared.policy import TeamPolicy
-from shared.sim import SearchSim
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.engine.belief import BatchedBelief
+from shared.engine.sim import SearchSim
+from shared.learning.cepg import cepg_loss, rollout
+from shared.learning.policy import TeamPolicy
 
 
 def setup(N=3, B=32):
@@ -55,7 +55,7 @@ def test_each_robot_gets_only_its_own_gradient_and_ce_is_bounded():
 
 
 def test_sample_never_draws_a_zero_probability_action():
-    from shared.cepg import sample
+    from shared.learning.policy import sample
 
     gen = torch.Generator().manual_seed(0)
     probs = torch.tensor([[0.0, 0.5, 0.0, 0.5, 0.0], [0.0, 0.0, 1.0, 0.0, 0.0]]).repeat(50_000, 1)

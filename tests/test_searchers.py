@@ -1,11 +1,11 @@
 import numpy as np
 import torch
 
-from shared.belief import BeliefFilter
-from shared.graph import builtin_graph, graph_from_dict
-from shared.models import Sensor, uniform_walk
-from shared.searchers import GreedySearcher, RandomSearcher
-from shared.sim import SearchSim
+from shared.core.belief import BeliefFilter
+from shared.core.graph import builtin_graph, graph_from_dict
+from shared.core.models import Sensor, uniform_walk
+from shared.engine.searchers import GreedySearcher, RandomSearcher
+from shared.engine.sim import SearchSim
 
 
 def test_random_picks_uniformly_from_the_closed_neighbourhood():

@@ -1,19 +1,19 @@
-"""The batched simulator against the paper setup (SPEC section 1) and an independent plain-Python one."""
+"""The batched simulator against the paper setup (docs/SPEC.md section 1) and an independent plain-Python one."""
 
 import math
 
 import numpy as np
 import torch
 
-from shared.evaluate import evaluate
-from shared.graph import builtin_graph, graph_from_dict
-from shared.models import Sensor, from_matrix, uniform_walk
-from shared.searchers import RandomSearcher
-from shared.sim import SearchSim
+from shared.core.graph import builtin_graph, graph_from_dict
+from shared.core.models import Sensor, from_matrix, uniform_walk
+from shared.engine.evaluate import evaluate
+from shared.engine.searchers import RandomSearcher
+from shared.engine.sim import SearchSim
 
 
 def reference_random_search(graph, model, sensor, N, episodes, seed):
-    """A direct, one-episode-at-a-time transcription of SPEC section 1 with the random searcher."""
+    """A direct, one-episode-at-a-time transcription of docs/SPEC.md section 1 with the random searcher."""
     rng = np.random.default_rng(seed)
     G = model.dense()
     ptr, idx = graph.detection_sets(sensor.detection)

@@ -13,13 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from shared.evaluate import evaluate
-from shared.graph import builtin_graph, load_graph_file
-from shared.models import Sensor, uniform_walk
-from shared.searchers import RandomSearcher
-from shared.snapshot import PolicyAgent, PolicySearcher, SnapshotError, load_snapshot, save_snapshot
-from shared.toy import toy_fig4
-from shared.train import TrainConfig, train
+from shared.core.graph import builtin_graph, load_graph_file
+from shared.core.models import Sensor, uniform_walk
+from shared.core.snapshot import PolicyAgent, SnapshotError, read_snapshot
+from shared.engine.evaluate import evaluate
+from shared.engine.searchers import RandomSearcher
+from shared.learning.config import TrainConfig
+from shared.learning.snapshot import PolicySearcher, load_snapshot, save_snapshot
+from shared.learning.train import train
+from shared.tools.toy import toy_fig4
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,7 +45,7 @@ def test_toy_fig4_own_rewards_beta_half_splits_and_pg_conglomerates_at_a():
 
 
 def test_toy_fig4_team_reward_cross_entropy_splits_sooner():
-    """SPEC toy (team reward): CE-PG splits in 9 of 10 seeds; PG reaches the split only by
+    """The toy of docs/SPEC.md section 3 (team reward): CE-PG splits in 9 of 10 seeds; PG reaches the split only by
     escaping the (0.6, 0.6) saddle, later."""
     ce = [toy_fig4(0.5, seed=s, updates=150) for s in range(10)]
     pg = [toy_fig4(1.0, seed=s, updates=150) for s in range(10)]
@@ -66,8 +68,8 @@ def trained_run():
 
 
 def test_shared_state_cross_entropy_counts_only_where_robots_share_node_and_belief():
-    from shared.cepg import Rollout, cepg_loss
-    from shared.policy import TeamPolicy
+    from shared.learning.cepg import Rollout, cepg_loss
+    from shared.learning.policy import TeamPolicy
 
     torch.manual_seed(0)
     adj = torch.ones(4, 4, dtype=torch.bool)
@@ -76,11 +78,20 @@ def test_shared_state_cross_entropy_counts_only_where_robots_share_node_and_beli
     # decision 0: robots 0 and 1 on node 0 with the same belief, robot 2 on node 1;
     # decision 1: robots 0 and 1 on node 2 with different beliefs, robot 2 on node 2 with robot 0's belief
     pos = torch.tensor([[0, 0, 1], [2, 2, 2]])
-    belief = torch.stack([uniform.expand(3, 4), torch.tensor([[0.7, 0.1, 0.1, 0.1], [0.1, 0.7, 0.1, 0.1],
-                                                              [0.7, 0.1, 0.1, 0.1]])])  # fmt: skip
-    ro = Rollout(pos=pos, belief=belief, action=pos.clone(), t=torch.tensor([0, 0]), episode=torch.tensor([0, 1]),
-                 ret=torch.zeros(2), length=torch.tensor([1, 1]), capture_time=torch.ones(2, dtype=torch.long),
-                 censored=torch.zeros(2, dtype=torch.bool))  # fmt: skip
+    belief = torch.stack(
+        [uniform.expand(3, 4), torch.tensor([[0.7, 0.1, 0.1, 0.1], [0.1, 0.7, 0.1, 0.1], [0.7, 0.1, 0.1, 0.1]])]
+    )
+    ro = Rollout(
+        pos=pos,
+        belief=belief,
+        action=pos.clone(),
+        t=torch.tensor([0, 0]),
+        episode=torch.tensor([0, 1]),
+        ret=torch.zeros(2),
+        length=torch.tensor([1, 1]),
+        capture_time=torch.ones(2, dtype=torch.long),
+        censored=torch.zeros(2, dtype=torch.bool),
+    )
     beta = torch.zeros(3)
     full = cepg_loss(policy, ro, beta, 0.1, ce_states="all").ce
     shared = cepg_loss(policy, ro, beta, 0.1, ce_states="shared").ce
@@ -102,12 +113,12 @@ def test_training_learns_and_estimates_the_model(trained_run):
     (em_info,) = res.summary["em_updates"]
     assert em_info["episodes"] >= 2048 and em_info["missions"] == 128
     # from 128 missions the estimate is much closer to the truth than Gamma_hat_0 = I is
-    from shared.estimate import mean_row_tv
-    from shared.train import identity_model
+    from shared.core.models import identity_model
+    from shared.engine.estimate import mean_row_tv
 
     tv_identity = mean_row_tv(identity_model(g), m)
     assert em_info["mean_row_tv_to_true"] < tv_identity - 0.1 and snap_model.kind == "em"
-    from shared.snapshot import Snapshot
+    from shared.learning.snapshot import Snapshot
 
     snap = Snapshot(meta={"variant": "cepg", "robots": 2}, policy=res.policy, model=res.model, sensor=s)
     learned = evaluate(g, m, s, 2, lambda sd: PolicySearcher(snap, g, s, 2, seed=sd), episodes=1000, seed=5)
@@ -124,13 +135,20 @@ def test_snapshot_round_trip_and_checks(trained_run, tmp_path):
         assert torch.equal(p, q), k
     assert np.allclose(snap.model.dense(), res.model.dense())
     assert json.loads((d / "training_summary.json").read_text())["episodes"] == res.summary["episodes"]
-    # the weights file is plain tensors
-    assert set(torch.load(d / "weights.pt", weights_only=True)) == {"w_pos", "w_bel", "b1", "w2", "b2"}
+    # the weights file is numpy-readable: the agent's reader gets the same float32 values, no torch
+    from safetensors.numpy import load_file
+
+    stored = load_file(d / "weights.safetensors")
+    assert set(stored) == {"w_pos", "w_bel", "b1", "w2", "b2"}
+    for k, p in res.policy.named_parameters():
+        assert np.array_equal(stored[k], p.detach().numpy()), k
+    data = read_snapshot(d, g)
+    assert data.robots == 2 and data.variant == "cepg" and np.array_equal(data.weights["w2"], stored["w2"])
     with pytest.raises(SnapshotError, match="not on 'MUSEUM'"):  # trained on the warehouse map
         load_snapshot(d, builtin_graph("museum"))
-    w = bytearray((d / "weights.pt").read_bytes())
+    w = bytearray((d / "weights.safetensors").read_bytes())
     w[-10] ^= 0xFF
-    (d / "weights.pt").write_bytes(bytes(w))
+    (d / "weights.safetensors").write_bytes(bytes(w))
     with pytest.raises(SnapshotError, match="sha256"):
         load_snapshot(d, g)
     (d / "policy.json").write_text("{not json")
@@ -143,22 +161,28 @@ def test_snapshot_round_trip_and_checks(trained_run, tmp_path):
 def test_numpy_agent_matches_the_batched_policy(trained_run):
     """The robot agent's numpy decision step computes the same distribution as the trainer's."""
     g, m, s, res = trained_run
-    from shared.snapshot import Snapshot
+    from shared.learning.snapshot import Snapshot
 
     snap = Snapshot(meta={"variant": "cepg", "robots": 2}, policy=res.policy, model=res.model, sensor=s)
-    agent = PolicyAgent(snap, g, robot=1, greedy_actions=True)
+    agent = PolicyAgent(snap.to_data(), g, robot=1, greedy_actions=True)
     batched = PolicySearcher(snap, g, s, 2, greedy_actions=True)
     ev = evaluate(g, m, s, 2, lambda sd: PolicySearcher(snap, g, s, 2, seed=sd), episodes=20, seed=9, record=True)
     tr = ev.trajectories[0]
-    from shared.sim import Obs
+    from shared.engine.sim import Obs
 
     for b in range(20):
         L = int(tr.length[b])
         for t in range(L - 1):
             pos = torch.as_tensor(tr.pos[t, b : b + 1])
             z = torch.as_tensor(tr.z[t, b : b + 1]).bool()
-            obs = Obs(pos, z, torch.tensor([t]), torch.tensor([t == 0]), torch.ones(1, 2, dtype=torch.bool),
-                      torch.ones(1, dtype=torch.bool))  # fmt: skip
+            obs = Obs(
+                pos,
+                z,
+                torch.tensor([t]),
+                torch.tensor([t == 0]),
+                torch.ones(1, 2, dtype=torch.bool),
+                torch.ones(1, dtype=torch.bool),
+            )
             want = int(batched.act(obs)[0, 1])
             p, zz = int(tr.pos[t, b, 1]), int(tr.z[t, b, 1])
             agent.reset(p, zz) if t == 0 else agent.observe(p, zz)
@@ -166,13 +190,30 @@ def test_numpy_agent_matches_the_batched_policy(trained_run):
 
 
 def mures(*args, **kw):
-    return subprocess.run([sys.executable, "-m", "shared.cli", *args], capture_output=True, text=True, cwd=ROOT, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "shared.tools.cli", *args], capture_output=True, text=True, cwd=ROOT, **kw
+    )
 
 
 def test_cli_train_then_evaluate_policy(tmp_path):
     out = tmp_path / "team"
-    r = mures("train", "--env", "office", "--robots", "3", "--episodes", "1024", "--em-first", "512",
-              "--em-missions", "64", "--seed", "1", "--out", str(out))  # fmt: skip
+    r = mures(
+        "train",
+        "--env",
+        "office",
+        "--robots",
+        "3",
+        "--episodes",
+        "1024",
+        "--em-first",
+        "512",
+        "--em-missions",
+        "64",
+        "--seed",
+        "1",
+        "--out",
+        str(out),
+    )
     assert r.returncode == 0, r.stderr
     summary = json.loads((out / "training_summary.json").read_text())
     for key in ("episodes", "env_steps", "wall_seconds", "learning_curve", "em_updates"):
@@ -180,8 +221,9 @@ def test_cli_train_then_evaluate_policy(tmp_path):
     meta = json.loads((out / "policy.json").read_text())
     assert meta["robots"] == 3 and meta["variant"] == "cepg" and meta["beta"] == [0.5] * 3
     assert meta["graph_id"] == builtin_graph("office").graph_id and len(meta["model"]["gamma"]) == 60
-    r = mures("evaluate", "--env", "office", "--robots", "2", "--searcher", f"policy:{out}", "--episodes", "300",
-              "--json")  # fmt: skip
+    r = mures(
+        "evaluate", "--env", "office", "--robots", "2", "--searcher", f"policy:{out}", "--episodes", "300", "--json"
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["episodes"] == 300
     r = mures("evaluate", "--env", "office", "--robots", "5", "--searcher", f"policy:{out}", "--episodes", "50")
@@ -208,10 +250,26 @@ def test_cli_train_bad_arguments(tmp_path, args, fragment):
 def test_ctrl_c_leaves_a_valid_snapshot(tmp_path):
     out = tmp_path / "team"
     p = subprocess.Popen(
-        [sys.executable, "-m", "shared.cli", "train", "--env", "office", "--robots", "2", "--episodes", "10000000",
-         "--true-model", "--out", str(out)],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "shared.tools.cli",
+            "train",
+            "--env",
+            "office",
+            "--robots",
+            "2",
+            "--episodes",
+            "10000000",
+            "--true-model",
+            "--out",
+            str(out),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     time.sleep(6)
     p.send_signal(signal.SIGINT)
     stdout, stderr = p.communicate(timeout=60)
@@ -224,10 +282,22 @@ def test_ctrl_c_leaves_a_valid_snapshot(tmp_path):
 def test_two_process_data_parallel_training_ends_with_identical_weights(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     r = subprocess.run(
-        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-         str(ROOT / "tests" / "dist_worker.py"), str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, env=env, timeout=300,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc-per-node",
+            "2",
+            str(ROOT / "tests" / "dist_worker.py"),
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
     w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)

@@ -20,7 +20,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field
 
 import shared
-from shared.records import ID_RE
+from shared.core.records import ID_RE
 from training_server.jobs import check_params
 
 ROLE_AGENT, ROLE_OPERATOR = 1, 2
@@ -32,7 +32,9 @@ class MissionRequest(BaseModel):
         default=None, description="robot ids to fly (default: every agent online)", min_length=1, max_length=256
     )
     seed: int | None = Field(default=None, description="mission seed (agents' and simulated world's randomness)")
-    max_steps: int | None = Field(default=None, ge=1, le=100_000, description="step limit (default 3n, SPEC 1)")
+    max_steps: int | None = Field(
+        default=None, ge=1, le=100_000, description="step limit (default 3n, docs/SPEC.md section 1)"
+    )
     mission_id: str | None = Field(default=None, pattern=ID_RE.pattern, description="default: generated")
 
 
@@ -99,9 +101,14 @@ def create_app(srv: Any) -> FastAPI:
     # ------------------------------------------------------------------ health, map, fleet
     @app.get("/api/v1/health")
     def health() -> dict[str, Any]:
-        return {"status": "ok", "version": shared.__version__,
-                "fleet": srv.fleet, "graph_id": srv.graph.graph_id, "current_policy": srv.current_version(),
-                "uptime_s": round(time.time() - srv.started, 1)}  # fmt: skip
+        return {
+            "status": "ok",
+            "version": shared.__version__,
+            "fleet": srv.fleet,
+            "graph_id": srv.graph.graph_id,
+            "current_policy": srv.current_version(),
+            "uptime_s": round(time.time() - srv.started, 1),
+        }
 
     @app.get("/api/v1/map", dependencies=[reader])
     def get_map() -> dict[str, Any]:
@@ -110,8 +117,11 @@ def create_app(srv: Any) -> FastAPI:
     @app.get("/api/v1/fleet", dependencies=[reader])
     def fleet() -> dict[str, Any]:
         online = srv.bus.agents_online()
-        return {"fleet": srv.fleet, "online": len(online),
-                "agents": [{"robot_id": r, "since": s} for r, s in sorted(online.items())]}  # fmt: skip
+        return {
+            "fleet": srv.fleet,
+            "online": len(online),
+            "agents": [{"robot_id": r, "since": s} for r, s in sorted(online.items())],
+        }
 
     # ------------------------------------------------------------------ missions
     def mission_view(mid: str) -> Mission:
@@ -126,14 +136,26 @@ def create_app(srv: Any) -> FastAPI:
         outcome = None
         if recs:
             caps = [ct for _r, c, ct, _pv in recs if c and ct is not None]
-            outcome = {"captured": bool(caps), "capture_time": min(caps) if caps else None,
-                       "steps": max((ct or 0) for *_x, ct, _pv in recs) if caps else None,
-                       "policy_versions": sorted({pv for *_x, pv in recs if pv is not None})}  # fmt: skip
+            outcome = {
+                "captured": bool(caps),
+                "capture_time": min(caps) if caps else None,
+                "steps": max((ct or 0) for *_x, ct, _pv in recs) if caps else None,
+                "policy_versions": sorted({pv for *_x, pv in recs if pv is not None}),
+            }
             if m["event"] and m["event"].get("type") == "captured":
                 outcome["captured_by"] = m["event"].get("captured_by")
-        return Mission(id=m["id"], status=status, robots=m["robots"], params=m["params"],
-                       policy_version=m["policy_version"], created=m["created"], ended=m["ended"], event=m["event"],
-                       episodes_received=got, outcome=outcome)  # fmt: skip
+        return Mission(
+            id=m["id"],
+            status=status,
+            robots=m["robots"],
+            params=m["params"],
+            policy_version=m["policy_version"],
+            created=m["created"],
+            ended=m["ended"],
+            event=m["event"],
+            episodes_received=got,
+            outcome=outcome,
+        )
 
     @app.post("/api/v1/missions", status_code=201, dependencies=[writer])
     def start_mission(req: MissionRequest, response: Response) -> Mission:
@@ -200,8 +222,7 @@ def create_app(srv: Any) -> FastAPI:
         p = srv.store.policy(version)
         if p is None:
             raise HTTPException(404, f"no policy version {version}")
-        return {**p, "current": version == srv.current_version(),
-                "artifact": f"/api/v1/policies/{version}/artifact"}  # fmt: skip
+        return {**p, "current": version == srv.current_version(), "artifact": f"/api/v1/policies/{version}/artifact"}
 
     @app.get("/api/v1/policies", dependencies=[reader])
     def policies() -> dict[str, Any]:
@@ -233,8 +254,12 @@ def create_app(srv: Any) -> FastAPI:
         etag = f'"{p["sha256"]}"'
         if if_none_match and etag in [t.strip() for t in if_none_match.split(",")]:
             return Response(status_code=304, headers={"ETag": etag})
-        return FileResponse(srv.artifact(version), media_type="application/x-tar", headers={"ETag": etag},
-                            filename=f"policy-v{version}.tar")  # fmt: skip
+        return FileResponse(
+            srv.artifact(version),
+            media_type="application/x-tar",
+            headers={"ETag": etag},
+            filename=f"policy-v{version}.tar",
+        )
 
     # ------------------------------------------------------------------ training runs
     @app.post("/api/v1/training-runs", status_code=202, dependencies=[writer])

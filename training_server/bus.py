@@ -1,6 +1,6 @@
 """The server's Zenoh side: episode ingest, agent presence, mission control.
 
-Callbacks only hand work to queues (../shared/notes/zenoh.md); worker threads validate, store
+Callbacks only hand work to queues (docs/zenoh.md); worker threads validate, store
 and reply. Ingest drains its queue in batches so one SQLite transaction (and one fsync) covers
 many records, then replies to each query: ok {"status": "stored"|"duplicate"} or err
 {"reason": <code>, "error": <message>}.
@@ -17,8 +17,8 @@ from typing import Any
 
 import zenoh
 
-from shared.fleet import agent_key, episode_key, mission_key, parse_message
-from shared.records import MAX_RECORD_BYTES, RecordError, parse_record
+from shared.core.records import MAX_RECORD_BYTES, RecordError, parse_record
+from shared.core.wire import agent_key, episode_key, mission_key, parse_message
 
 log = logging.getLogger("mures.server.bus")
 
@@ -151,8 +151,18 @@ class Bus:
                 accepted.append((q, None))
                 continue
             seen.add((ep.robot_id, ep.mission_id))
-            rows.append((fleet, ep.robot_id, ep.mission_id, ep.policy_version, len(ep.nodes), ep.captured,
-                         ep.capture_time, json.dumps(rec, separators=(",", ":"))))  # fmt: skip
+            rows.append(
+                (
+                    fleet,
+                    ep.robot_id,
+                    ep.mission_id,
+                    ep.policy_version,
+                    len(ep.nodes),
+                    ep.captured,
+                    ep.capture_time,
+                    json.dumps(rec, separators=(",", ":")),
+                )
+            )
             accepted.append((q, len(rows) - 1))
         stored = store.add_episodes(rows) if rows else []
         if rejected:

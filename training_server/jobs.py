@@ -81,12 +81,13 @@ class _Cancelled(Exception):
 def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     import torch
 
-    from shared.estimate import collect_missions, em
-    from shared.evaluate import evaluate
-    from shared.graph import graph_from_dict
-    from shared.models import uniform_walk
-    from shared.snapshot import PolicySearcher, load_snapshot, save_snapshot
-    from shared.train import TrainConfig, config_dict, train
+    from shared.core.graph import graph_from_dict
+    from shared.core.models import uniform_walk
+    from shared.engine.estimate import collect_missions, em
+    from shared.engine.evaluate import evaluate
+    from shared.learning.config import TrainConfig
+    from shared.learning.snapshot import PolicySearcher, load_snapshot, save_snapshot
+    from shared.learning.train import train
 
     p = job["params"]
     if p["threads"]:
@@ -114,22 +115,39 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     say("em", message=f"EM on {len(data.length)} missions ({data.used_records} records)")
     est = em(graph, data, init=uniform_walk(graph), max_iter=p["em_max_iter"], tol=1e-5)
     model = est.model
-    em_info = {"missions": len(data.length), "records": data.used_records, "iterations": est.iterations,
-               "converged": est.converged, "skipped": dict(data.skipped)}  # fmt: skip
+    em_info = {
+        "missions": len(data.length),
+        "records": data.used_records,
+        "iterations": est.iterations,
+        "converged": est.converged,
+        "skipped": dict(data.skipped),
+    }
     if cancel.is_set():
         raise _Cancelled
 
     # 2. CE-PG in simulation under the estimated model, from the current policy
-    cfg = TrainConfig(robots=current.robots, episodes=p["episodes"], beta=[p["beta"]], lr=[p["lr"]],
-                      variant=current.variant, belief="true", seed=p["seed"], hidden=current.policy.H)  # fmt: skip
+    cfg = TrainConfig(
+        robots=current.robots,
+        episodes=p["episodes"],
+        beta=[p["beta"]],
+        lr=[p["lr"]],
+        variant=current.variant,
+        belief="true",
+        seed=p["seed"],
+        hidden=current.policy.H,
+    )
     last = [0.0]
 
     def on_progress(point: dict[str, Any]) -> None:
         now = time.perf_counter()
         if now - last[0] >= 0.5 or point["episodes"] >= point["total"]:
             last[0] = now
-            say("train", episodes=point["episodes"], total=point["total"],
-                mean_capture_time=round(float(point.get("mean_capture_time", float("nan"))), 3))  # fmt: skip
+            say(
+                "train",
+                episodes=point["episodes"],
+                total=point["total"],
+                mean_capture_time=round(float(point.get("mean_capture_time", float("nan"))), 3),
+            )
 
     res = train(graph, model, sensor, cfg, init_policy=current, progress=on_progress, should_stop=cancel.is_set)
     if res.interrupted:
@@ -137,22 +155,30 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
 
     # 3. the evaluation gate: both policies on the same seeds under the estimated model
     say("gate", message=f"evaluating new and current policy on {p['gate_episodes']} episodes")
-    from shared.snapshot import Snapshot
+    from shared.learning.snapshot import Snapshot
 
-    new = Snapshot(meta={"variant": current.variant, "robots": current.robots}, policy=res.policy, model=model,
-                   sensor=sensor)  # fmt: skip
+    new = Snapshot(
+        meta={"variant": current.variant, "robots": current.robots}, policy=res.policy, model=model, sensor=sensor
+    )
     figures = {}
     for name, snap in (("current", current), ("new", new)):
-        r = evaluate(graph, model, sensor, current.robots,
-                     lambda s, snap=snap: PolicySearcher(snap, graph, sensor, current.robots, seed=s),
-                     episodes=p["gate_episodes"], seed=p["seed"] + 1).summary()  # fmt: skip
+        r = evaluate(
+            graph,
+            model,
+            sensor,
+            current.robots,
+            lambda s, snap=snap: PolicySearcher(snap, graph, sensor, current.robots, seed=s),
+            episodes=p["gate_episodes"],
+            seed=p["seed"] + 1,
+        ).summary()
         figures[name] = {k: r[k] for k in ("mean_capture_time", "ci95", "censored_fraction", "episodes")}
     passed = figures["new"]["mean_capture_time"] <= figures["current"]["mean_capture_time"]
     out = Path(job["staging"])
     shutil.rmtree(out, ignore_errors=True)
-    config = {**config_dict(cfg), "target": "em-estimate", "map": graph.name, "parent_version": job["parent"]}
-    save_snapshot(out, res.policy, graph, model, sensor, current.variant, cfg.per_robot(cfg.beta, "beta"), config,
-                  res.summary)  # fmt: skip
+    config = {**cfg.to_dict(), "target": "em-estimate", "map": graph.name, "parent_version": job["parent"]}
+    save_snapshot(
+        out, res.policy, graph, model, sensor, current.variant, cfg.per_robot(cfg.beta, "beta"), config, res.summary
+    )
     return {
         "metrics": {
             "em": em_info,
@@ -232,8 +258,15 @@ class Supervisor:
         assert run is not None
         parent = srv.current_version()
         staging = srv.data_dir / "staging" / run_id
-        job = {"params": run["params"], "graph": srv.graph.to_json(), "db": str(store.path), "fleet": srv.fleet,
-               "current_path": str(srv.snapshot_dir(parent)), "parent": parent, "staging": str(staging)}  # fmt: skip
+        job = {
+            "params": run["params"],
+            "graph": srv.graph.to_json(),
+            "db": str(store.path),
+            "fleet": srv.fleet,
+            "current_path": str(srv.snapshot_dir(parent)),
+            "parent": parent,
+            "staging": str(staging),
+        }
         events = self.ctx.Queue()
         proc = self.ctx.Process(target=run_training, args=(job, events, cancel), name=f"train-{run_id}", daemon=True)
         store.update_run(run_id, status="running", started=time.time(), progress={"phase": "starting"})
@@ -267,14 +300,26 @@ class Supervisor:
             log.warning("training run %s failed: %s", run_id, result["error"])
         elif not result["passed"]:
             g = result["metrics"]["gate"]
-            store.update_run(run_id, status="failed", finished=now, metrics=result["metrics"],
-                             error=f"evaluation gate: new policy {g['new']['mean_capture_time']:.2f} steps, "
-                                   f"current {g['current']['mean_capture_time']:.2f}; current policy kept")  # fmt: skip
+            store.update_run(
+                run_id,
+                status="failed",
+                finished=now,
+                metrics=result["metrics"],
+                error=f"evaluation gate: new policy {g['new']['mean_capture_time']:.2f} steps, "
+                f"current {g['current']['mean_capture_time']:.2f}; current policy kept",
+            )
             log.info("training run %s did not pass the gate; version %s stays current", run_id, parent)
         else:
-            version = srv.publish_version(staging, parent=parent, run_id=run_id, metrics=result["metrics"],
-                                          promote=bool(run["params"]["promote"]))  # fmt: skip
-            store.update_run(run_id, status="succeeded", finished=now, metrics=result["metrics"], version=version,
-                             progress={"phase": "done"})  # fmt: skip
+            version = srv.publish_version(
+                staging, parent=parent, run_id=run_id, metrics=result["metrics"], promote=bool(run["params"]["promote"])
+            )
+            store.update_run(
+                run_id,
+                status="succeeded",
+                finished=now,
+                metrics=result["metrics"],
+                version=version,
+                progress={"phase": "done"},
+            )
             log.info("training run %s succeeded: version %d", run_id, version)
         shutil.rmtree(staging, ignore_errors=True)

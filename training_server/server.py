@@ -1,4 +1,4 @@
-"""`training-server`: the fleet's central server (SPEC section 7; README "The fleet").
+"""`training-server`: the fleet's central server (docs/SPEC.md section 7; README "The fleet").
 
     training-server (--env office|museum | --graph FILE) [--data-dir DIR] [--http HOST:PORT]
                     [--zenoh-listen ENDPOINT] [--zenoh-config FILE] [--fleet NAME]
@@ -26,8 +26,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from shared.fleet import DEFAULT_FLEET, DEFAULT_HTTP, DEFAULT_ZENOH_ENDPOINT, check_id, read_token, write_private
-from shared.graph import BUILTIN_MAPS, Graph, GraphError, builtin_graph, load_graph_file
+from shared.core.choices import BUILTIN_MAPS, DETECTIONS
+from shared.core.files import read_token, write_private
+from shared.core.graph import Graph, GraphError, builtin_graph, load_graph_file
+from shared.core.snapshot import WEIGHTS, SnapshotData, read_meta, read_snapshot
+from shared.core.wire import DEFAULT_FLEET, DEFAULT_HTTP, DEFAULT_ZENOH_ENDPOINT, check_id
 from training_server.store import Store
 
 log = logging.getLogger("mures.server")
@@ -37,8 +40,12 @@ ARTIFACT = "policy.tar"
 
 class JsonFormatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
-        out = {"ts": round(record.created, 3), "level": record.levelname.lower(), "logger": record.name,
-               "msg": record.getMessage()}  # fmt: skip
+        out = {
+            "ts": round(record.created, 3),
+            "level": record.levelname.lower(),
+            "logger": record.name,
+            "msg": record.getMessage(),
+        }
         if record.exc_info:
             out["exc"] = self.formatException(record.exc_info)
         return json.dumps(out)
@@ -111,20 +118,18 @@ class Server:
     def publish_version(
         self, snapshot_dir: Path, parent: int | None, run_id: str | None, metrics: dict[str, Any], promote: bool
     ) -> int:
-        """Turn a snapshot directory into the next immutable version (and make it current)."""
-        from shared.snapshot import load_snapshot
+        """Turn a snapshot directory into the next immutable version (and make it current).
 
-        snap = load_snapshot(snapshot_dir, self.graph)  # checks graph, shapes, hash
+        The version holds the snapshot in the numpy-readable format (an older torch-format one is
+        converted) and the tar agents download."""
         with self.version_lock:
             version = self.store.next_version()
             final = self.policy_dir(version)
             tmp = final.with_name(f".{final.name}.tmp")
             shutil.rmtree(tmp, ignore_errors=True)
             shutil.copytree(snapshot_dir, tmp / "snapshot")
-            with tarfile.open(tmp / f".{ARTIFACT}", "w") as tar:  # what agents download
-                for f in sorted((tmp / "snapshot").iterdir()):
-                    tar.add(f, arcname=f.name)
-            os.replace(tmp / f".{ARTIFACT}", tmp / ARTIFACT)
+            snap = self._numpy_snapshot(tmp / "snapshot")  # checks graph, shapes, hash
+            _write_artifact(tmp)
             shutil.rmtree(final, ignore_errors=True)
             os.replace(tmp, final)
             digest = sha256_file(final / ARTIFACT)
@@ -144,31 +149,77 @@ class Server:
         log.info("policy version %d published (sha256 %s...)%s", version, digest[:12], " and made current" * promote)
         return version
 
+    def _numpy_snapshot(self, path: Path) -> SnapshotData:
+        """Read (and check) a snapshot, converting an older torch-format one in place first."""
+        if read_meta(path)["weights"].get("file") != WEIGHTS:
+            from shared.learning.snapshot import convert_snapshot
+
+            convert_snapshot(path)
+        return read_snapshot(path, self.graph)
+
+    def migrate_versions(self) -> list[int]:
+        """Convert stored versions of the older torch format (weights.pt) so that torch-free agents
+        can run them: the snapshot is rewritten with the same values, the tar rebuilt, and the
+        version's sha256 updated (agents then download it again). Returns the versions converted."""
+        done = []
+        for p in self.store.policies():
+            v = int(p["version"])
+            snap_dir = self.snapshot_dir(v)
+            if not snap_dir.is_dir() or read_meta(snap_dir)["weights"].get("file") == WEIGHTS:
+                continue
+            with self.version_lock:
+                snap = self._numpy_snapshot(snap_dir)
+                _write_artifact(self.policy_dir(v))
+                art = self.artifact(v)
+                self.store.update_policy_artifact(
+                    v, sha256_file(art), art.stat().st_size, snap.meta["weights"]["sha256"]
+                )
+            done.append(v)
+            log.info("policy version %d converted to %s (new sha256 %s...)", v, WEIGHTS, sha256_file(art)[:12])
+        return done
+
     def ensure_initial_policy(self, robots: int, init_policy: str | None, sensor: Any, seed: int) -> None:
         if self.store.get_setting("current_version") is not None:
             return
-        from shared.snapshot import load_snapshot, save_snapshot
+        from shared.learning.snapshot import load_snapshot, save_snapshot
 
         staging = self.data_dir / "staging" / "initial"
         if init_policy:
-            load_snapshot(init_policy, self.graph)  # clear error before anything is written
+            load_snapshot(init_policy, self.graph)  # clear error before anything is written (either format)
             shutil.rmtree(staging, ignore_errors=True)
             shutil.copytree(init_policy, staging)
             note = f"from {init_policy}"
         else:
             import torch
 
-            from shared.policy import TeamPolicy
-            from shared.train import identity_model
+            from shared.core.models import identity_model
+            from shared.learning.policy import TeamPolicy
 
             torch.manual_seed(seed)
             policy = TeamPolicy(self.graph.n, robots, torch.as_tensor(self.graph.adjacency()))
-            save_snapshot(staging, policy, self.graph, identity_model(self.graph), sensor, "cepg", [0.5] * robots,
-                          {"episodes": 0, "seed": seed, "belief": "identity", "map": self.graph.name},
-                          {"episodes": 0, "note": "untrained initial policy"})  # fmt: skip
+            save_snapshot(
+                staging,
+                policy,
+                self.graph,
+                identity_model(self.graph),
+                sensor,
+                "cepg",
+                [0.5] * robots,
+                {"episodes": 0, "seed": seed, "belief": "identity", "map": self.graph.name},
+                {"episodes": 0, "note": "untrained initial policy"},
+            )
             note = "untrained"
         self.publish_version(staging, None, None, {"note": f"initial policy ({note})"}, promote=True)
         shutil.rmtree(staging, ignore_errors=True)
+
+
+def _write_artifact(version_dir: Path) -> None:
+    """(Re)build the tar agents download from ``version_dir/snapshot``, atomically."""
+    tmp = version_dir / f".{ARTIFACT}"
+    with tarfile.open(tmp, "w") as tar:
+        for f in sorted((version_dir / "snapshot").iterdir()):
+            tar.add(f, arcname=f.name)
+    os.replace(tmp, version_dir / ARTIFACT)
 
 
 def _load_or_create_token(path: Path, given: str | None, kind: str) -> str:
@@ -192,17 +243,25 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="training-server", description="MuRES fleet central server (REST + Zenoh)")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--env", choices=BUILTIN_MAPS, help="a built-in map")
-    g.add_argument("--graph", metavar="FILE", help="a JSON graph file (SPEC section 7)")
+    g.add_argument("--graph", metavar="FILE", help="a JSON graph file (docs/SPEC.md section 7)")
     p.add_argument(
         "--data-dir", default="mures-data", help="where the database and policies live (default ./mures-data)"
     )
     p.add_argument(
         "--http", type=parse_hostport, default=DEFAULT_HTTP, help=f"REST API address (default {DEFAULT_HTTP})"
     )
-    p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT",
-                   help=f"Zenoh endpoint to listen on as the router (default {DEFAULT_ZENOH_ENDPOINT})")  # fmt: skip
-    p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT",
-                   help="connect to these routers (e.g. zenohd) instead of being the router")  # fmt: skip
+    p.add_argument(
+        "--zenoh-listen",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"Zenoh endpoint to listen on as the router (default {DEFAULT_ZENOH_ENDPOINT})",
+    )
+    p.add_argument(
+        "--zenoh-connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="connect to these routers (e.g. zenohd) instead of being the router",
+    )
     p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file (overrides the two above)")
     p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet name (default 'default')")
     p.add_argument("--operator-token-file", help="operator bearer token (default: created in the data dir)")
@@ -211,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init-policy", metavar="DIR", help="start from this snapshot (mures train) instead of untrained")
     p.add_argument("--eta-fn", type=float, default=0.0, help="sensor false-negative rate of the initial policy")
     p.add_argument("--eta-fp", type=float, default=0.0, help="sensor false-positive rate of the initial policy")
-    p.add_argument("--detection", choices=("node", "neighbourhood", "custom"), default="node")
+    p.add_argument("--detection", choices=DETECTIONS, default="node")
     p.add_argument("--seed", type=int, default=0, help="seed of the initial policy's weights")
     p.add_argument("--log-json", action="store_true", help="structured (JSON Lines) logs")
     p.add_argument("--log-level", default="INFO")
@@ -231,8 +290,8 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from shared.fleet import zenoh_config
-    from shared.models import Sensor
+    from shared.core.models import Sensor
+    from shared.core.wire import zenoh_config
     from training_server.api import create_app
     from training_server.bus import Bus
     from training_server.jobs import Supervisor
@@ -247,6 +306,7 @@ def _run(args: argparse.Namespace) -> int:
     op = _load_or_create_token(data_dir / "operator.token", args.operator_token_file, "operator")
     ag = _load_or_create_token(data_dir / "agent.token", args.agent_token_file, "agent")
     srv = Server(data_dir, graph, args.fleet, op, ag)
+    srv.migrate_versions()
     srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)
     for run_id in srv.store.interrupted_runs():
         srv.store.update_run(run_id, status="failed", finished=time.time(), error="server restarted during the run")
@@ -265,10 +325,15 @@ def _run(args: argparse.Namespace) -> int:
     http = uvicorn.Server(config)
     log.info(
         "serving fleet %r on map %s (n=%d): http://%s:%d/api/v1, zenoh %s, data in %s, policy version %d",
-        args.fleet, graph.name, graph.n, host, port,
+        args.fleet,
+        graph.name,
+        graph.n,
+        host,
+        port,
         args.zenoh_config or args.zenoh_connect or args.zenoh_listen or DEFAULT_ZENOH_ENDPOINT,
-        data_dir, srv.current_version(),
-    )  # fmt: skip
+        data_dir,
+        srv.current_version(),
+    )
     # uvicorn handles SIGINT/SIGTERM while serving and re-raises the signal afterwards; these
     # handlers take that re-raise, so the clean shutdown below runs and the exit status is 0
     signal.signal(signal.SIGTERM, lambda *_a: None)

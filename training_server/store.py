@@ -192,10 +192,6 @@ class Store:
             "ended": row[8],
         }
 
-    def count_missions(self) -> int:
-        with self.lock:
-            return int(self.db.execute("SELECT COUNT(*) FROM missions").fetchone()[0])
-
     # ------------------------------------------------------------------ policies
     def add_policy(
         self, version: int, sha256: str, size: int, parent: int | None, run_id: str | None, meta: dict[str, Any]
@@ -204,6 +200,15 @@ class Store:
             self.db.execute(
                 "INSERT INTO policies (version, created, sha256, bytes, parent, run_id, meta) VALUES (?,?,?,?,?,?,?)",
                 (version, time.time(), sha256, size, parent, run_id, _j(meta)),
+            )
+
+    def update_policy_artifact(self, version: int, sha256: str, size: int, weights_sha256: str) -> None:
+        """A version's artifact was rebuilt (format conversion): its new digest and size."""
+        with self.lock:
+            (meta,) = self.db.execute("SELECT meta FROM policies WHERE version=?", (version,)).fetchone()
+            meta = {**json.loads(meta), "weights_sha256": weights_sha256}
+            self.db.execute(
+                "UPDATE policies SET sha256=?, bytes=?, meta=? WHERE version=?", (sha256, size, _j(meta), version)
             )
 
     def policies(self) -> list[dict[str, Any]]:

@@ -8,8 +8,8 @@ ROS 2 Nav2 action client that sends the goal pose of a node and waits for the re
         --token-file /etc/mures/agent.token --backend mypackage.mybackend:MyBackend
 
 where ``MyBackend`` subclasses ``NavGoalBackend`` and builds your navigator and detector in
-``__init__``. Node positions come from the map's "positions" table ({label: [x, y]}, SPEC
-section 7) unless your navigator resolves node labels itself.
+``__init__``. Node positions come from the map's "positions" table ({label: [x, y]},
+docs/SPEC.md section 7) unless your navigator resolves node labels itself.
 
 The agent needs nothing else from the robot: it never sees other robots' state, and a failed
 move simply leaves the robot where it is (the record then shows it stayed, a legal move).
@@ -20,7 +20,7 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 from robot_agent.backend import BackendError
-from shared.graph import Graph
+from shared.core.graph import Graph
 
 
 class Navigator(Protocol):
@@ -33,7 +33,7 @@ class Navigator(Protocol):
 
 class Detector(Protocol):
     def detect(self) -> bool:
-        """Whether the target is seen from the current node (the sensor of SPEC section 1)."""
+        """Whether the target is seen from the current node (the sensor of docs/SPEC.md section 1)."""
 
 
 class NavGoalBackend:

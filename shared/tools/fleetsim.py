@@ -1,7 +1,7 @@
 """`mures fleet-sim`: the whole product on one machine, on loopback.
 
 Starts a training server (or attaches to one with --server/--zenoh-connect/--token-file), a
-simulated world that owns the hidden target (shared/world.py), and N `robot-agent` processes
+simulated world that owns the hidden target (shared/tools/world.py), and N `robot-agent` processes
 with the simulated backend; then flies M missions through the REST API, optionally retraining
 every K missions over HTTP, and reports the capture times per policy version.
 """
@@ -17,57 +17,18 @@ import sys
 import tempfile
 import time
 import urllib.error
-import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from shared.evaluate import mean_ci95
-from shared.fleet import read_token, zenoh_config
-from shared.graph import Graph
-from shared.models import Sensor, TargetModel
-
-
-class ApiError(RuntimeError):
-    def __init__(self, status: int, body: Any) -> None:
-        super().__init__(f"HTTP {status}: {body}")
-        self.status = status
-        self.body = body
-
-
-class ApiClient:
-    """A small client of the server's REST API (urllib; JSON in and out)."""
-
-    def __init__(self, base: str, token: str | None) -> None:
-        self.base = base.rstrip("/")
-        self.token = token
-
-    def call(self, method: str, path: str, body: Any = None, timeout: float = 30.0) -> Any:
-        data = None if body is None else json.dumps(body).encode()
-        req = urllib.request.Request(self.base + path, data=data, method=method)
-        if data is not None:
-            req.add_header("Content-Type", "application/json")
-        if self.token:
-            req.add_header("Authorization", f"Bearer {self.token}")
-        try:
-            with urllib.request.urlopen(req, timeout=timeout) as resp:
-                raw = resp.read()
-                return json.loads(raw) if raw else None
-        except urllib.error.HTTPError as exc:
-            raw = exc.read()
-            try:
-                payload = json.loads(raw)
-            except ValueError:
-                payload = raw.decode(errors="replace")
-            raise ApiError(exc.code, payload) from None
-
-    def get(self, path: str) -> Any:
-        return self.call("GET", path)
-
-    def post(self, path: str, body: Any = None) -> Any:
-        return self.call("POST", path, body if body is not None else {})
+from shared.core.files import read_token
+from shared.core.graph import Graph
+from shared.core.http import ApiClient, ApiError
+from shared.core.models import Sensor, TargetModel
+from shared.core.wire import zenoh_config
+from shared.engine.evaluate import mean_ci95
 
 
 def free_port() -> int:
@@ -107,9 +68,24 @@ class Fleet:
 
     def start_agent(self, robot: str, extra: list[str] | None = None) -> subprocess.Popen:
         assert self.log_dir is not None
-        cmd = [sys.executable, "-m", "robot_agent.agent", "--robot-id", robot, "--server", self.api.base,
-               "--zenoh-connect", self.zenoh_endpoint, "--token-file", str(self.agent_token_file),
-               "--state-dir", str(self.workdir / "agents" / robot), "--backend", "sim", *(extra or [])]  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "robot_agent.agent",
+            "--robot-id",
+            robot,
+            "--server",
+            self.api.base,
+            "--zenoh-connect",
+            self.zenoh_endpoint,
+            "--token-file",
+            str(self.agent_token_file),
+            "--state-dir",
+            str(self.workdir / "agents" / robot),
+            "--backend",
+            "sim",
+            *(extra or []),
+        ]
         log = open(self.log_dir / f"agent-{robot}.log", "ab")  # noqa: SIM115 - owned by the process
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_child_env(agent=True))
         self.agents[robot] = proc
@@ -134,8 +110,10 @@ class Fleet:
         mid = m["id"]
         return wait_until(
             lambda: (r := self.api.get(f"/api/v1/missions/{mid}"))["status"] == "completed" and r,
-            timeout, f"mission {mid}", every=0.01,
-        )  # fmt: skip
+            timeout,
+            f"mission {mid}",
+            every=0.01,
+        )
 
     def close(self) -> None:
         for robot in list(self.agents):
@@ -163,16 +141,37 @@ def _child_env(agent: bool = False) -> dict[str, str]:
 
 
 def start_server(
-    graph_args: list[str], data_dir: Path, robots: int, sensor: Sensor, log_dir: Path,
+    graph_args: list[str],
+    data_dir: Path,
+    robots: int,
+    sensor: Sensor,
+    log_dir: Path,
     extra: list[str] | None = None,
-) -> tuple[subprocess.Popen, str, str]:  # fmt: skip
+) -> tuple[subprocess.Popen, str, str]:
     """A training-server process on free loopback ports: (process, base URL, zenoh endpoint)."""
     http_port, z_port = free_port(), free_port()
     endpoint = f"tcp/127.0.0.1:{z_port}"
-    cmd = [sys.executable, "-m", "training_server.server", *graph_args, "--data-dir", str(data_dir),
-           "--http", f"127.0.0.1:{http_port}", "--zenoh-listen", endpoint, "--robots", str(robots),
-           "--eta-fn", str(sensor.eta_fn), "--eta-fp", str(sensor.eta_fp), "--detection", sensor.detection,
-           *(extra or [])]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "training_server.server",
+        *graph_args,
+        "--data-dir",
+        str(data_dir),
+        "--http",
+        f"127.0.0.1:{http_port}",
+        "--zenoh-listen",
+        endpoint,
+        "--robots",
+        str(robots),
+        "--eta-fn",
+        str(sensor.eta_fn),
+        "--eta-fp",
+        str(sensor.eta_fp),
+        "--detection",
+        sensor.detection,
+        *(extra or []),
+    ]
     log = open(log_dir / "server.log", "ab")  # noqa: SIM115 - owned by the process
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_child_env())
     base = f"http://127.0.0.1:{http_port}"
@@ -207,7 +206,7 @@ def launch(
     """Start (or attach to) a server, the world and ``robots`` agents r1..rN; wait until all are online."""
     import zenoh
 
-    from shared.world import World
+    from shared.tools.world import World
 
     workdir.mkdir(parents=True, exist_ok=True)
     log_dir = workdir / "logs"
@@ -224,15 +223,23 @@ def launch(
         proc, base, endpoint = start_server(graph_args, data_dir, robots, sensor, log_dir, server_extra)
         op_token = read_token(data_dir / "operator.token")
         agent_tok = data_dir / "agent.token"
-    fleet = Fleet(graph=graph, api=ApiClient(base, op_token), zenoh_endpoint=endpoint, workdir=workdir,
-                  agent_token_file=agent_tok, server=proc, log_dir=log_dir)  # fmt: skip
+    fleet = Fleet(
+        graph=graph,
+        api=ApiClient(base, op_token),
+        zenoh_endpoint=endpoint,
+        workdir=workdir,
+        agent_token_file=agent_tok,
+        server=proc,
+        log_dir=log_dir,
+    )
     try:
         health = fleet.api.get("/api/v1/health")
         if health["graph_id"] != graph.graph_id:
             raise ValueError(f"the server at {base} serves another map ({health['graph_id'][:20]}...)")
         fleet.session = zenoh.open(zenoh_config("client", connect=[endpoint]))
-        fleet.world = World(fleet.session, health["fleet"], graph, target, sensor, step_timeout=step_timeout,
-                            step_delay=step_delay)  # fmt: skip
+        fleet.world = World(
+            fleet.session, health["fleet"], graph, target, sensor, step_timeout=step_timeout, step_delay=step_delay
+        )
         for i in range(robots):
             fleet.start_agent(f"r{i + 1}", agent_extra)
         want = {f"r{i + 1}" for i in range(robots)}
@@ -244,10 +251,19 @@ def launch(
 
 
 def run_fleet_sim(
-    graph: Graph, graph_args: list[str], target: TargetModel, sensor: Sensor, robots: int, missions: int,
-    seed: int, retrain_every: int, retrain_params: dict[str, Any], workdir: Path | None, quiet: bool,
+    graph: Graph,
+    graph_args: list[str],
+    target: TargetModel,
+    sensor: Sensor,
+    robots: int,
+    missions: int,
+    seed: int,
+    retrain_every: int,
+    retrain_params: dict[str, Any],
+    workdir: Path | None,
+    quiet: bool,
     **launch_kw: Any,
-) -> dict[str, Any]:  # fmt: skip
+) -> dict[str, Any]:
     """Fly ``missions`` missions and return the summary (see ``mures fleet-sim``)."""
     say = (lambda *_a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     tmp = None
@@ -268,9 +284,14 @@ def run_fleet_sim(
             out = m["outcome"] or {}
             ct = out.get("capture_time")
             max_steps = m["params"]["max_steps"]
-            results.append({"mission_id": m["id"], "captured": ct is not None,
-                            "capture_time": ct if ct is not None else max_steps,
-                            "policy_version": (out.get("policy_versions") or [m["policy_version"]])[0]})  # fmt: skip
+            results.append(
+                {
+                    "mission_id": m["id"],
+                    "captured": ct is not None,
+                    "capture_time": ct if ct is not None else max_steps,
+                    "policy_version": (out.get("policy_versions") or [m["policy_version"]])[0],
+                }
+            )
             if (k + 1) % max(1, missions // 10) == 0 or k + 1 == missions:
                 done = [r["capture_time"] for r in results]
                 mean, half = mean_ci95(done)
@@ -292,8 +313,10 @@ def run_fleet_sim(
 
                 r = wait_until(finished, 3600, f"training run {run['id']}", every=0.25)
                 runs.append({k2: r[k2] for k2 in ("id", "status", "version", "error", "metrics")})
-                say(f"fleet-sim: run {r['id']} {r['status']}" + (f": version {r['version']}" if r["version"] else
-                    f" ({r['error']})"))  # fmt: skip
+                say(
+                    f"fleet-sim: run {r['id']} {r['status']}"
+                    + (f": version {r['version']}" if r["version"] else f" ({r['error']})")
+                )
         stats = fleet.api.get("/api/v1/episodes/stats")
     finally:
         fleet.close()
@@ -305,9 +328,12 @@ def run_fleet_sim(
     for v in sorted({r["policy_version"] for r in results}):
         x = [r["capture_time"] for r in results if r["policy_version"] == v]
         mv, hv = mean_ci95(x)
-        by_version[str(v)] = {"missions": len(x), "mean_capture_time": mv, "ci95_halfwidth": hv,
-                              "censored_fraction": float(np.mean([not r["captured"] for r in results
-                                                                  if r["policy_version"] == v]))}  # fmt: skip
+        by_version[str(v)] = {
+            "missions": len(x),
+            "mean_capture_time": mv,
+            "ci95_halfwidth": hv,
+            "censored_fraction": float(np.mean([not r["captured"] for r in results if r["policy_version"] == v])),
+        }
     step_ms = np.asarray(fleet.world.step_seconds) * 1e3 if fleet.world else np.zeros(0)
     return {
         "missions": len(results),

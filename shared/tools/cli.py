@@ -1,4 +1,4 @@
-"""The `mures` command line (SPEC section 7).
+"""The `mures` command line (docs/SPEC.md section 7).
 
     mures evaluate  (--env office|museum | --graph FILE) --robots N --searcher NAME ...
     mures simulate  (--env | --graph) --robots N --missions M --out FILE.jsonl ...
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import signal
 import sys
@@ -25,27 +24,22 @@ from typing import Any
 import numpy as np
 import torch
 
-from shared.estimate import collect_missions, em, eq8, mean_row_tv
-from shared.evaluate import episode_records, evaluate
-from shared.graph import BUILTIN_MAPS, Graph, GraphError, builtin_graph, load_graph_file
-from shared.models import ModelError, Sensor, TargetModel, parse_target
-from shared.records import read_jsonl
-from shared.searchers import REFERENCE_SEARCHERS, Searcher, make_searcher
-from shared.snapshot import VARIANTS, PolicySearcher, SnapshotError, load_snapshot, save_snapshot
+from shared.core.choices import BUILTIN_MAPS, DETECTIONS, ESTIMATORS
+from shared.core.graph import Graph, GraphError, builtin_graph, load_graph_file
+from shared.core.models import ModelError, Sensor, TargetModel, parse_target
+from shared.core.records import read_jsonl
+from shared.core.snapshot import SnapshotError
+from shared.engine.estimate import collect_missions, em, eq8, mean_row_tv
+from shared.engine.evaluate import episode_records, evaluate
+from shared.engine.searchers import Searcher
+from shared.learning import config as train_config
+from shared.learning.config import positive_int
+from shared.learning.snapshot import load_snapshot, save_snapshot
+from shared.registry import searcher_factory
 
 
 class CliError(Exception):
     pass
-
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
-    return v
 
 
 def _eta(text: str) -> float:
@@ -61,17 +55,17 @@ def _eta(text: str) -> float:
 def _add_map_args(p: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--env", choices=BUILTIN_MAPS, help="a built-in map")
-    g.add_argument("--graph", metavar="FILE", help="a JSON graph file (SPEC section 7)")
+    g.add_argument("--graph", metavar="FILE", help="a JSON graph file (docs/SPEC.md section 7)")
 
 
 def _add_world_args(p: argparse.ArgumentParser) -> None:
     _add_map_args(p)
-    p.add_argument("--robots", type=_positive_int, required=True, help="number of robots N")
+    p.add_argument("--robots", type=positive_int, required=True, help="number of robots N")
     p.add_argument("--eta-fn", type=_eta, default=0.0, help="false-negative rate, in [0, 0.5] (default 0)")
     p.add_argument("--eta-fp", type=_eta, default=0.0, help="false-positive rate, in [0, 0.5] (default 0)")
     p.add_argument(
         "--detection",
-        choices=("node", "neighbourhood", "custom"),
+        choices=DETECTIONS,
         default=None,
         help="detection set D(p): {p}, N[p], or the graph file's sensing table (default node; "
         "neighbourhood for cepg+; a policy snapshot's own when evaluating one)",
@@ -115,26 +109,20 @@ def _searcher_factory(
     args: argparse.Namespace, graph: Graph, target: TargetModel, sensor: Sensor, device: torch.device
 ) -> Callable[[int], Searcher]:
     """seed -> searcher for evaluate(); checks the name (and loads a snapshot) once, before any simulation."""
-    if args.searcher.startswith("policy:"):
-        snap = load_snapshot(args.searcher.removeprefix("policy:"), graph, device=device)
-        note = snap.team_note(args.robots)
-        if note:
-            print(f"mures: note: {note}", file=sys.stderr)
-        return lambda seed: PolicySearcher(snap, graph, sensor, args.robots, seed=seed, device=device)
-    from shared.baselines import BASELINES
-
-    if args.searcher not in REFERENCE_SEARCHERS + BASELINES:
-        names = ", ".join((*REFERENCE_SEARCHERS, *BASELINES, "policy:DIR"))
-        raise CliError(f"unknown searcher {args.searcher!r} (expected one of {names})")
-
-    def make(seed: int) -> Searcher:
-        return make_searcher(args.searcher, graph, target, sensor, seed=seed, device=device, n_robots=args.robots)
-
     try:
-        make(0)  # the searcher's own checks (the oracle's N <= 2, fhpe's node detection) before any simulation
+        return searcher_factory(
+            args.searcher,
+            graph,
+            target,
+            sensor,
+            args.robots,
+            device,
+            note=lambda text: print(f"mures: note: {text}", file=sys.stderr),
+        )
+    except SnapshotError:
+        raise
     except ValueError as exc:
-        raise CliError(f"{args.searcher}: {exc}") from None
-    return make
+        raise CliError(str(exc)) from None
 
 
 def _snapshot_detection(args: argparse.Namespace) -> str:
@@ -253,16 +241,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------- train
-def _floats(text: str) -> list[float]:
-    try:
-        vals = [float(x) for x in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number or comma-separated numbers, got {text!r}") from None
-    if not vals or any(math.isnan(v) for v in vals):
-        raise argparse.ArgumentTypeError(f"expected a number or comma-separated numbers, got {text!r}")
-    return vals
-
-
 class _Progress:
     """A one-line progress bar on a terminal; a line every 10% otherwise (logs)."""
 
@@ -307,10 +285,9 @@ def _init_distributed(device: torch.device) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from shared.train import TrainConfig, config_dict, train
+    from shared.learning import config
+    from shared.learning.train import train
 
-    if args.variant not in VARIANTS:
-        raise CliError(f"unknown variant {args.variant!r}")
     detection = "neighbourhood" if args.variant == "cepg+" else "node"
     if args.variant == "cepg+" and args.detection == "node":
         raise CliError("cepg+ trains with a sensing range: use --detection neighbourhood or custom, or leave it out")
@@ -321,16 +298,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise CliError(f"--out {out} exists and is not a policy snapshot; refusing to replace it")
     init_model = None
     if args.model:
-        from shared.models import load_model_file
+        from shared.core.models import load_model_file
 
         init_model = load_model_file(graph, args.model)
     init_policy = load_snapshot(args.init, graph) if args.init else None
-    cfg = TrainConfig(
-        robots=args.robots, episodes=args.episodes, beta=args.beta, lr=args.lr, variant=args.variant,
-        batch=args.batch, eps=args.eps, ce_states=args.ce_states, belief="true" if args.true_model else "em",
-        em_first=args.em_first,
-        em_every=args.em_every, em_missions=args.em_missions, seed=args.seed, device=str(device),
-    )  # fmt: skip
+    cfg = config.from_flags(args, robots=args.robots, seed=args.seed, device=str(device))
     try:
         cfg.check()
         cfg.per_robot(cfg.beta, "--beta")
@@ -346,28 +318,44 @@ def cmd_train(args: argparse.Namespace) -> int:
         if stop["requested"]:
             raise KeyboardInterrupt
         stop["requested"] = True
-        print("\nmures: stopping after the current update (Ctrl-C again to abort without a snapshot)",
-              file=sys.stderr)  # fmt: skip
+        print("\nmures: stopping after the current update (Ctrl-C again to abort without a snapshot)", file=sys.stderr)
 
     old_handler = signal.signal(signal.SIGINT, on_sigint)
     bar = _Progress() if rank == 0 and not args.quiet else None
     if rank == 0:
         print(
             f"training {args.variant} on {graph.name} (n={graph.n}), N={args.robots}, beta={args.beta}, "
-            f"{args.episodes:,} episodes, {'true model' if args.true_model else 'EM-estimated model'}",
+            f"{args.episodes:,} episodes, {'true model' if cfg.belief == 'true' else 'EM-estimated model'}",
             file=sys.stderr,
         )
     try:
-        res = train(graph, target, sensor, cfg, init_model=init_model, init_policy=init_policy, progress=bar,
-                    should_stop=lambda: stop["requested"])  # fmt: skip
+        res = train(
+            graph,
+            target,
+            sensor,
+            cfg,
+            init_model=init_model,
+            init_policy=init_policy,
+            progress=bar,
+            should_stop=lambda: stop["requested"],
+        )
     finally:
         signal.signal(signal.SIGINT, old_handler)
         if bar:
             bar.close()
     if rank == 0:
-        config = {**config_dict(cfg), "target": target.kind, "map": graph.name}
-        save_snapshot(out, res.policy, graph, res.model, sensor, args.variant, cfg.per_robot(cfg.beta, "beta"),
-                      config, res.summary)  # fmt: skip
+        config = {**cfg.to_dict(), "target": target.kind, "map": graph.name}
+        save_snapshot(
+            out,
+            res.policy,
+            graph,
+            res.model,
+            sensor,
+            args.variant,
+            cfg.per_robot(cfg.beta, "beta"),
+            config,
+            res.summary,
+        )
         s = res.summary
         print(
             f"{'interrupted: ' if res.interrupted else ''}{s['episodes']:,} episodes ({s['env_steps']:,} team steps) "
@@ -396,7 +384,8 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------- fleet-sim
 def cmd_fleet_sim(args: argparse.Namespace) -> int:
-    from shared.fleetsim import ApiError, run_fleet_sim
+    from shared.core.http import ApiError
+    from shared.tools.fleetsim import run_fleet_sim
 
     graph, target, sensor = _world(args, "node")
     graph_args = ["--env", args.env] if args.env else ["--graph", str(Path(args.graph).resolve())]
@@ -408,11 +397,24 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         load_snapshot(args.init_policy, graph)  # a clear error before anything starts
     try:
         res = run_fleet_sim(
-            graph, graph_args, target, sensor, args.robots, args.missions, args.seed, args.retrain_every, retrain,
-            Path(args.workdir) if args.workdir else None, quiet=args.json,
-            server=args.server, zenoh_connect=args.zenoh_connect, token_file=args.token_file,
-            agent_token_file=args.agent_token_file, step_delay=args.step_delay, server_extra=server_extra,
-        )  # fmt: skip
+            graph,
+            graph_args,
+            target,
+            sensor,
+            args.robots,
+            args.missions,
+            args.seed,
+            args.retrain_every,
+            retrain,
+            Path(args.workdir) if args.workdir else None,
+            quiet=args.json,
+            server=args.server,
+            zenoh_connect=args.zenoh_connect,
+            token_file=args.token_file,
+            agent_token_file=args.agent_token_file,
+            step_delay=args.step_delay,
+            server_extra=server_extra,
+        )
     except (ValueError, TimeoutError, RuntimeError, ApiError) as exc:
         raise CliError(f"fleet-sim: {exc}") from None
     except OSError as exc:  # urllib's URLError included
@@ -427,22 +429,30 @@ def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
         print(json.dumps({k: v for k, v in res.items() if k != "results"}, indent=1))
         return 0
     lo, hi = res["ci95"]
-    print(f"missions: {res['missions']} on {res['map']} with {res['robots']} robots (seed {res['seed']}), "
-          f"{res['wall_seconds']:.1f} s")  # fmt: skip
-    print(f"mean capture time: {res['mean_capture_time']:.2f} (95% CI {lo:.2f}..{hi:.2f}), "
-          f"censored {100 * res['censored_fraction']:.1f}%")  # fmt: skip
+    print(
+        f"missions: {res['missions']} on {res['map']} with {res['robots']} robots (seed {res['seed']}), "
+        f"{res['wall_seconds']:.1f} s"
+    )
+    print(
+        f"mean capture time: {res['mean_capture_time']:.2f} (95% CI {lo:.2f}..{hi:.2f}), "
+        f"censored {100 * res['censored_fraction']:.1f}%"
+    )
     for v, d in res["by_policy_version"].items():
-        print(f"  policy version {v}: {d['missions']} missions, {d['mean_capture_time']:.2f} "
-              f"± {d['ci95_halfwidth']:.2f} steps, censored {100 * d['censored_fraction']:.1f}%")  # fmt: skip
-    print(f"episodes stored: {res['episodes_stored']}; rejected: {sum(res['episodes_rejected'].values())}; "
-          f"policy versions used: {', '.join(map(str, res['policy_versions_used']))}; "
-          f"lockstep step median {res['lockstep_step_ms_median']:.2f} ms")  # fmt: skip
+        print(
+            f"  policy version {v}: {d['missions']} missions, {d['mean_capture_time']:.2f} "
+            f"± {d['ci95_halfwidth']:.2f} steps, censored {100 * d['censored_fraction']:.1f}%"
+        )
+    print(
+        f"episodes stored: {res['episodes_stored']}; rejected: {sum(res['episodes_rejected'].values())}; "
+        f"policy versions used: {', '.join(map(str, res['policy_versions_used']))}; "
+        f"lockstep step median {res['lockstep_step_ms_median']:.2f} ms"
+    )
     return 0
 
 
 # ---------------------------------------------------------------------- experiments, report
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from shared.experiments import run
+    from shared.tools.experiments import run
 
     t0 = time.perf_counter()
     try:
@@ -454,7 +464,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from shared.experiments import report
+    from shared.tools.experiments import report
 
     out = report(Path(args.results), Path(args.out))
     print(f"wrote {out}")
@@ -467,16 +477,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="evaluate a searcher in simulation and print capture-time statistics")
     _add_world_args(p)
-    p.add_argument("--searcher", required=True,
-                   help="random, greedy, fhpe, fhpe-sa, milp, d-milp, oracle, or policy:DIR")  # fmt: skip
-    p.add_argument("--episodes", type=_positive_int, default=1500, help="episodes (default 1500)")
+    p.add_argument(
+        "--searcher", required=True, help="random, greedy, fhpe, fhpe-sa, milp, d-milp, oracle, or policy:DIR"
+    )
+    p.add_argument("--episodes", type=positive_int, default=1500, help="episodes (default 1500)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("simulate", help="simulate missions and write their episode records (JSON Lines)")
     _add_world_args(p)
     p.add_argument("--searcher", default="random", help="searcher that drives the robots (default random)")
-    p.add_argument("--missions", type=_positive_int, required=True, help="number of missions")
+    p.add_argument("--missions", type=positive_int, required=True, help="number of missions")
     p.add_argument("--fleet", default="default", help="fleet name written into the records")
     p.add_argument("--out", required=True, metavar="FILE.jsonl", help="output records")
     p.add_argument("--truth", metavar="FILE", help="also write the true target model as model.json")
@@ -486,44 +497,30 @@ def build_parser() -> argparse.ArgumentParser:
     _add_map_args(p)
     p.add_argument("--episodes", required=True, metavar="FILE.jsonl", help="episode records (JSON Lines)")
     p.add_argument("--out", required=True, metavar="model.json")
-    p.add_argument("--method", choices=("em", "eq8"), default="em", help="EM (default) or the paper's Eq. 8")
-    p.add_argument("--max-iter", type=_positive_int, default=1000, help="EM forward-backward passes at most")
+    p.add_argument("--method", choices=ESTIMATORS, default="em", help="EM (default) or the paper's Eq. 8")
+    p.add_argument("--max-iter", type=positive_int, default=1000, help="EM forward-backward passes at most")
     p.add_argument("--tol", type=float, default=1e-6, help="EM relative log-likelihood tolerance")
     p.add_argument("--pseudo-count", type=float, default=0.0, help="Dirichlet pseudo-count per transition")
-    p.add_argument("--rounds", type=_positive_int, default=1, help="Eq. 8 rounds (filter <-> Eq. 8)")
+    p.add_argument("--rounds", type=positive_int, default=1, help="Eq. 8 rounds (filter <-> Eq. 8)")
     p.add_argument("--truth", metavar="MODEL", help="a known model (lazy:STAY, uniform, or .json): report the TV")
     p.set_defaults(func=cmd_estimate)
 
     p = sub.add_parser("train", help="train a team with CE-PG in simulation and write a policy snapshot")
     _add_world_args(p)
     p.add_argument("--out", required=True, metavar="DIR", help="snapshot directory to write")
-    p.add_argument("--episodes", type=_positive_int, default=400_000, help="training episodes (default 400000)")
-    p.add_argument("--beta", type=_floats, default=[0.5], help="beta, one or one per robot (default 0.5; 1 = PG)")
-    p.add_argument("--lr", type=_floats, default=[1e-2], help="Adam learning rate, one or one per robot (default 0.01)")
-    p.add_argument("--variant", choices=VARIANTS, default="cepg", help="cepg (default), cepg+ or c-cepg")
-    p.add_argument("--batch", type=_positive_int, default=256, help="episodes per update (default 256)")
-    p.add_argument("--eps", type=float, default=0.1, help="cross-entropy smoothing epsilon (default 0.1)")
-    p.add_argument(
-        "--ce-states",
-        choices=("shared", "all"),
-        default="shared",
-        help="states the cross entropy counts at: where two robots share node and belief (default), or all",
-    )
-    p.add_argument("--true-model", action="store_true", help="robots' beliefs use the true target model (no EM)")
+    train_config.add_flags(p)  # one flag per TrainConfig field, its defaults
+    p.add_argument("--true-model", dest="belief", action="store_const", const="true", help="the same as --belief true")
     p.add_argument("--model", metavar="model.json", help="Gamma_hat_0 and b0 for the beliefs (default I, uniform)")
-    p.add_argument("--em-first", type=_positive_int, default=8192, help="episodes before the first EM update")
-    p.add_argument("--em-every", type=_positive_int, default=100_000, help="episodes between EM updates")
-    p.add_argument("--em-missions", type=_positive_int, default=512, help="missions recorded per EM update")
     p.add_argument("--init", metavar="DIR", help="start from this snapshot's weights")
-    p.add_argument("--threads", type=_positive_int, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("fleet-sim", help="run server, simulated world and N robot agents on loopback; fly missions")
     _add_world_args(p)
-    p.add_argument("--missions", type=_positive_int, required=True, help="missions to fly")
+    p.add_argument("--missions", type=positive_int, required=True, help="missions to fly")
     p.add_argument("--retrain-every", type=int, default=0, metavar="K", help="retrain over HTTP every K missions")
-    p.add_argument("--retrain-episodes", type=_positive_int, default=20_000, help="CE-PG episodes per retrain")
+    p.add_argument("--retrain-episodes", type=positive_int, default=20_000, help="CE-PG episodes per retrain")
     p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")
     p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step, seconds")
     p.add_argument("--workdir", help="keep the server's data, agents' state and logs here (default: a temp dir)")
@@ -541,7 +538,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--train-episodes",
-        type=_positive_int,
+        type=positive_int,
         metavar="N",
         help="training episodes per learned team (default: 400000, or 2000 with --quick)",
     )

@@ -1,7 +1,7 @@
 """Estimating the target's motion model (Gamma_hat, b0) from the robots' own records.
 
 Only robots' positions, observations and the mission outcome are used, never the target's
-true positions (SPEC section 2). The hidden state is the target's node e_t; at each t the
+true positions (docs/SPEC.md section 2). The hidden state is the target's node e_t; at each t the
 emission is the product of the Lambdas of every robot of the mission (Theorem 3, Eq. 7).
 
 ``em`` (default): Baum-Welch with the sensor known. Scaled forward-backward smoothing over all
@@ -29,9 +29,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from shared.graph import Graph
-from shared.models import TargetModel, from_matrix, uniform_walk
-from shared.records import Episode, RecordError, parse_record
+from shared.core.graph import Graph
+from shared.core.models import TargetModel, from_matrix, uniform_walk
+from shared.core.records import Episode, RecordError, parse_record
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """CE-PG: cross-entropy regularized policy gradient (paper section IV-C, Eq. 9-13): the batched
 rollout of a team's stochastic policies and the loss whose gradient is the CE-PG update. The
-training loop (Algorithm 2) is in shared/train.py.
+training loop (Algorithm 2) is in shared/learning/train.py.
 
 For robot i (Eq. 9), maximised:
 
@@ -38,9 +38,9 @@ from dataclasses import dataclass
 
 import torch
 
-from shared.belief import BatchedBelief
-from shared.policy import TeamPolicy
-from shared.sim import SearchSim
+from shared.engine.belief import BatchedBelief
+from shared.engine.sim import SearchSim
+from shared.learning.policy import TeamPolicy, sample
 
 
 @dataclass
@@ -61,22 +61,6 @@ class Rollout:
     length: torch.Tensor
     capture_time: torch.Tensor
     censored: torch.Tensor
-
-
-def sample(probs: torch.Tensor, gen: torch.Generator | None, u: torch.Tensor | None = None) -> torch.Tensor:
-    """One draw per row of ``probs`` (..., n) by inverting the CDF: (...,) long.
-
-    Same distribution as torch.multinomial, several times faster for many small rows. Entries
-    with probability 0 are never drawn: ``<=`` steps over leading zeros when u = 0, and the
-    index is capped at the row's last positive entry when rounding puts u * total at the top.
-    ``u`` (..., 1) in [0, 1) replaces the random draw (tests).
-    """
-    if u is None:
-        u = torch.rand((*probs.shape[:-1], 1), generator=gen, device=probs.device, dtype=probs.dtype)
-    cdf = probs.cumsum(-1)
-    idx = (cdf <= u * cdf[..., -1:]).sum(-1)
-    last = ((probs > 0) * torch.arange(1, probs.shape[-1] + 1, device=probs.device)).argmax(-1)
-    return torch.minimum(idx, last)
 
 
 @torch.no_grad()

@@ -1,8 +1,8 @@
-"""What the fleet's programs share on the wire (SPEC sections 5 and 6): Zenoh key expressions,
+"""What the fleet's programs share on the wire (docs/SPEC.md sections 5 and 6): Zenoh key expressions,
 session configuration, and the mission-control messages.
 
 Key expressions, segment by segment (``<fleet>`` defaults to ``default``; ids match
-``shared.records.ID_RE`` so that each is exactly one key segment)::
+``shared.core.records.ID_RE`` so that each is exactly one key segment)::
 
     mures/<fleet>/agents/<robot_id>                   liveliness token: the agent is up
         e.g. mures/default/agents/r2
@@ -24,11 +24,9 @@ Mission-control messages (JSON objects with a ``type``):
 from __future__ import annotations
 
 import json
-import os
-from pathlib import Path
 from typing import Any
 
-from shared.records import ID_RE
+from shared.core.records import ID_RE
 
 DEFAULT_FLEET = "default"
 DEFAULT_ZENOH_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -68,7 +66,7 @@ def zenoh_config(
     config_file: str | None = None,
 ) -> Any:
     """A zenoh.Config: from ``config_file`` if given (its own settings win), else built here with
-    multicast scouting off and explicit endpoints (../shared/notes/zenoh.md)."""
+    multicast scouting off and explicit endpoints (docs/zenoh.md)."""
     import zenoh
 
     if config_file:
@@ -81,29 +79,6 @@ def zenoh_config(
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
     return conf
-
-
-def read_token(path: str | Path) -> str:
-    """A bearer token from a file (first line, stripped); a clear error when missing or empty."""
-    p = Path(path)
-    try:
-        tok = p.read_text(encoding="utf-8").strip()
-    except OSError as exc:
-        raise ValueError(f"cannot read token file {p}: {exc.strerror}") from None
-    if not tok:
-        raise ValueError(f"token file {p} is empty")
-    return tok
-
-
-def write_private(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` with mode 0600, atomically."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def parse_message(payload: bytes) -> dict[str, Any] | None:

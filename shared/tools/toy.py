@@ -1,10 +1,10 @@
-"""The paper's toy scenario (Fig. 4, SPEC section 3), trained with the same CE-PG loss.
+"""The paper's toy scenario (Fig. 4, docs/SPEC.md section 3), trained with the same CE-PG loss.
 
 Two robots wait at a depot; the target waits at its spot. In one step every robot goes to A or
 to B and the target goes to A with probability ``p_a`` (0.6), else to B. The team's reward is 1
-if any robot meets the target, else 0 (``reward="team"``, SPEC section 3); with ``reward="own"``
+if any robot meets the target, else 0 (``reward="team"``, docs/SPEC.md section 3); with ``reward="own"``
 each robot is rewarded only for its own meeting (the paper's t_cap^(i), robot i's capture).
-Each robot has its own network (the MLP of SPEC section 3
+Each robot has its own network (the MLP of docs/SPEC.md section 3
 on a 4-node graph: depot, spot, A, B) whose only allowed actions at the depot are A and B, and
 its state is (onehot(depot), b) with b the point mass on the target's spot.
 
@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import torch
 
-from shared.cepg import Rollout, cepg_loss, sample
-from shared.policy import TeamPolicy
+from shared.learning.cepg import Rollout, cepg_loss
+from shared.learning.policy import TeamPolicy, sample
 
 DEPOT, SPOT, A, B = 0, 1, 2, 3
 
@@ -77,10 +77,16 @@ def _train_toy(
             met = action == target.unsqueeze(1)  # (batch, 2)
             ret = met.any(1, keepdim=True).float().expand(-1, 2) if reward == "team" else met.float()
         ro = Rollout(
-            pos=pos, belief=belief, action=action, t=torch.zeros(batch, dtype=torch.long),
-            episode=torch.arange(batch), ret=ret, length=torch.ones(batch, dtype=torch.long),
-            capture_time=torch.ones(batch, dtype=torch.long), censored=~met.any(1),
-        )  # fmt: skip
+            pos=pos,
+            belief=belief,
+            action=action,
+            t=torch.zeros(batch, dtype=torch.long),
+            episode=torch.arange(batch),
+            ret=ret,
+            length=torch.ones(batch, dtype=torch.long),
+            capture_time=torch.ones(batch, dtype=torch.long),
+            censored=~met.any(1),
+        )
         terms = cepg_loss(policy, ro, betas, eps)
         opt.zero_grad()
         terms.loss.backward()

@@ -3,7 +3,7 @@
 Each simulated robot (robot_agent.backend.SimBackend) sends its (t, node) as a query on
 ``mures/<fleet>/sim/<mission>/<robot>``. When every robot still in the mission has reported step
 t, the world moves the target (t > 0: e_t ~ Gamma(e_{t-1}, .)), draws each robot's z_t from the
-sensor model (SPEC section 1), replies to every query, and, if some robot has e_t in D(p_t) and
+sensor model (docs/SPEC.md section 1), replies to every query, and, if some robot has e_t in D(p_t) and
 z_t = 1, publishes {"type": "captured", "t", "captured_by"} on the mission's key. Robots learn the
 outcome only from that message. A robot that does not report within ``step_timeout`` is
 withdrawn from the mission and the others go on (robustness, paper Fig. 12).
@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from shared.fleet import mission_key, parse_message, sim_key
-from shared.graph import Graph
-from shared.models import Sensor, TargetModel
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+from shared.core.wire import mission_key, parse_message, sim_key
 
 log = logging.getLogger("mures.world")
 
@@ -112,8 +112,13 @@ class World:
             rng = np.random.default_rng(int(msg.get("seed", 0)) % (2**63))
             e0 = int(np.searchsorted(self.b0, rng.random() * self.b0[-1], side="right"))
             robots = list(msg.get("robots") or [])
-            m = _Mission(robots=robots, rng=rng, max_steps=int(msg.get("max_steps") or 3 * self.graph.n),
-                         target=min(e0, self.graph.n - 1), active=set(robots))  # fmt: skip
+            m = _Mission(
+                robots=robots,
+                rng=rng,
+                max_steps=int(msg.get("max_steps") or 3 * self.graph.n),
+                target=min(e0, self.graph.n - 1),
+                active=set(robots),
+            )
             m.path.append(m.target)
             self.missions[mid] = m
             for q in self.parked.pop(mid, []):
@@ -220,5 +225,8 @@ class World:
         m.reports = {}
         if publish is not None:
             self.finished[mid] = publish
-            self.session.put(mission_key(self.fleet, mid), json.dumps(publish).encode(),
-                             congestion_control=zenoh.CongestionControl.BLOCK)  # fmt: skip
+            self.session.put(
+                mission_key(self.fleet, mid),
+                json.dumps(publish).encode(),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )

@@ -1,4 +1,4 @@
-"""Episode records (SPEC section 5): validation, parsing and writing.
+"""Episode records (docs/SPEC.md section 5): validation, parsing and writing.
 
 A record is what one robot reports after one mission. ``parse_record`` checks everything a
 receiver must check (schema, fleet, graph_id, sensor bounds, the t sequence, moves that stay or
@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from shared.graph import Graph
-from shared.models import DETECTIONS, ModelError, Sensor
+from shared.core.choices import DETECTIONS
+from shared.core.graph import Graph
+from shared.core.models import ModelError, Sensor
 
 SCHEMA = "mures.episode/1"
 MAX_STEPS = 100_000

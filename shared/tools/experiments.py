@@ -33,8 +33,12 @@ PLANNERS = ("fhpe", "fhpe-sa", "milp", "d-milp")
 
 
 def machine() -> dict[str, Any]:
-    return {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
-            "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")}  # fmt: skip
+    return {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "cpus": os.cpu_count(),
+        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+    }
 
 
 def _write(out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]]) -> None:
@@ -59,7 +63,7 @@ def fig4(root: Path, quick: bool) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from shared.toy import toy_fig4
+    from shared.tools.toy import toy_fig4
 
     seeds = range(3 if quick else 10)
     updates = 150 if quick else 400
@@ -72,8 +76,16 @@ def fig4(root: Path, quick: bool) -> Path:
             ax.plot(pa[:, 0], color="C0", alpha=0.5)
             ax.plot(pa[:, 1], color="C1", alpha=0.5)
             split = bool(max(pa[-1]) >= 0.9 and min(pa[-1]) <= 0.1)
-            rows.append({"beta": beta, "seed": s, "updates": updates, "p_a_robot1": round(float(pa[-1, 0]), 4),
-                         "p_a_robot2": round(float(pa[-1, 1]), 4), "split": split})  # fmt: skip
+            rows.append(
+                {
+                    "beta": beta,
+                    "seed": s,
+                    "updates": updates,
+                    "p_a_robot1": round(float(pa[-1, 0]), 4),
+                    "p_a_robot2": round(float(pa[-1, 1]), 4),
+                    "split": split,
+                }
+            )
         ax.set_title(f"{'CE-PG' if beta < 1 else 'PG'} (beta = {beta})")
         ax.set_xlabel("update")
     axes[0].set_ylabel("P(go to A)")
@@ -112,22 +124,33 @@ LEARNED = {"pg": ("cepg", 1.0), "cepg": ("cepg", 0.5), "cepg+": ("cepg+", 0.5), 
 
 def sensor_for(variant: str, eta_fn: float = 0.0, eta_fp: float = 0.0) -> Any:
     """The world's sensor for a method: CE-PG+ robots see N[p] (the paper's broader field of view)."""
-    from shared.models import Sensor
+    from shared.core.models import Sensor
 
     return Sensor(eta_fn=eta_fn, eta_fp=eta_fp, detection="neighbourhood" if variant == "cepg+" else "node")
 
 
-def _snapshot(root: Path, env: str, robots: int, beta: float, episodes: int, seed: int, variant: str = "cepg",
-              eta_fn: float = 0.0, eta_fp: float = 0.0) -> Path:  # fmt: skip
+def _snapshot(
+    root: Path,
+    env: str,
+    robots: int,
+    beta: float,
+    episodes: int,
+    seed: int,
+    variant: str = "cepg",
+    eta_fn: float = 0.0,
+    eta_fp: float = 0.0,
+) -> Path:
     """A cached team (beta = 1: PG) trained with EM-estimated beliefs in the world of ``sensor_for``.
     A cached snapshot whose stored training configuration differs (an older default) is retrained."""
-    from shared.graph import builtin_graph
-    from shared.models import uniform_walk
-    from shared.snapshot import save_snapshot
-    from shared.train import TrainConfig, config_dict, train
+    from shared.core.graph import builtin_graph
+    from shared.core.models import uniform_walk
+    from shared.learning.config import TrainConfig
+    from shared.learning.snapshot import save_snapshot
+    from shared.learning.train import train
 
-    tag = "".join(f"-{k}{v}" for k, v in (("", variant if variant != "cepg" else ""), ("fn", eta_fn),
-                                          ("fp", eta_fp)) if v)  # fmt: skip
+    tag = "".join(
+        f"-{k}{v}" for k, v in (("", variant if variant != "cepg" else ""), ("fn", eta_fn), ("fp", eta_fp)) if v
+    )
     path = root / "snapshots" / f"{env}-N{robots}-beta{beta}-{episodes}-s{seed}{tag}"
     g = builtin_graph(env)
     cfg = TrainConfig(
@@ -139,8 +162,8 @@ def _snapshot(root: Path, env: str, robots: int, beta: float, episodes: int, see
         em_first=min(8192, episodes // 2),
         em_missions=min(512, max(32, episodes // 64)),
         em_max_iter=300 if episodes >= 100_000 else 100,
-    )  # fmt: skip (EM is most of a small run)
-    config = {**config_dict(cfg), "map": g.name}
+    )  # small runs: fewer EM missions and iterations (EM is most of a small run)
+    config = {**cfg.to_dict(), "map": g.name}
     meta = path / "policy.json"
     if meta.exists() and json.loads(meta.read_text(encoding="utf-8")).get("training") == json.loads(json.dumps(config)):
         return path  # cached, and trained with exactly this configuration (code defaults included)
@@ -152,11 +175,12 @@ def _snapshot(root: Path, env: str, robots: int, beta: float, episodes: int, see
     return path
 
 
-def _learned(root: Path, env: str, robots: int, method: str, b: Budget, eta_fn: float = 0.0,
-             eta_fp: float = 0.0) -> Callable[[int], Any]:  # fmt: skip
+def _learned(
+    root: Path, env: str, robots: int, method: str, b: Budget, eta_fn: float = 0.0, eta_fp: float = 0.0
+) -> Callable[[int], Any]:
     """seed -> searcher for a learned method (pg, cepg, cepg+, c-cepg), training it if not cached."""
-    from shared.graph import builtin_graph
-    from shared.snapshot import load_snapshot
+    from shared.core.graph import builtin_graph
+    from shared.learning.snapshot import load_snapshot
 
     variant, beta = LEARNED[method]
     g = builtin_graph(env)
@@ -166,17 +190,17 @@ def _learned(root: Path, env: str, robots: int, method: str, b: Budget, eta_fn: 
 
 def _flown(snap: Any, g: Any, sensor: Any, robots: int) -> Callable[[int], Any]:
     """seed -> the snapshot's team flown by ``robots`` robots."""
-    from shared.snapshot import PolicySearcher
+    from shared.learning.snapshot import PolicySearcher
 
     return lambda s: PolicySearcher(snap, g, sensor, robots, seed=s)
 
 
 def _reference(env: str, robots: int, method: str, sensor: Any, **kw: Any) -> Callable[[int], Any]:
     """seed -> searcher for random, greedy and the planners (true model, all robots' observations)."""
-    from shared.baselines import make_baseline
-    from shared.graph import builtin_graph
-    from shared.models import uniform_walk
-    from shared.searchers import make_searcher
+    from shared.core.graph import builtin_graph
+    from shared.core.models import uniform_walk
+    from shared.planners import make_baseline
+    from shared.registry import make_searcher
 
     g = builtin_graph(env)
     model = uniform_walk(g)
@@ -185,31 +209,59 @@ def _reference(env: str, robots: int, method: str, sensor: Any, **kw: Any) -> Ca
     return lambda s: make_baseline(method, g, model, sensor, robots, s, **kw)
 
 
-def _cell(env: str, robots: int, method: str, make: Callable[[int], Any], episodes: int, seed: int = SEED,
-          sensor: Any = None, withdraw_at: list[int | None] | None = None,
-          latency: bool = False) -> dict[str, Any]:  # fmt: skip
+def _cell(
+    env: str,
+    robots: int,
+    method: str,
+    make: Callable[[int], Any],
+    episodes: int,
+    seed: int = SEED,
+    sensor: Any = None,
+    withdraw_at: list[int | None] | None = None,
+    latency: bool = False,
+) -> dict[str, Any]:
     """One evaluated cell: capture time and false alarms (mean, 95% CI) over ``episodes`` seeded
     episodes; with ``latency``, the decision time per team step, one episode at a time (batch 1,
     so batching does not hide the per-step latency; the simulator's step included)."""
-    from shared.evaluate import evaluate, mean_ci95
-    from shared.graph import builtin_graph
-    from shared.models import Sensor, uniform_walk
+    from shared.core.graph import builtin_graph
+    from shared.core.models import Sensor, uniform_walk
+    from shared.engine.evaluate import evaluate, mean_ci95
 
     g = builtin_graph(env)
     sensor = sensor or Sensor()
     t0 = time.perf_counter()
     batched = method not in PLANNERS  # planners plan one episode at a time
-    res = evaluate(g, uniform_walk(g), sensor, robots, make, episodes=episodes, seed=seed,
-                   chunk=4096 if batched else 1, withdraw_at=withdraw_at)  # fmt: skip
+    res = evaluate(
+        g,
+        uniform_walk(g),
+        sensor,
+        robots,
+        make,
+        episodes=episodes,
+        seed=seed,
+        chunk=4096 if batched else 1,
+        withdraw_at=withdraw_at,
+    )
     wall = time.perf_counter() - t0
     s = res.summary()
     fa, fa_half = mean_ci95(res.false_alarms)
-    row = {"map": env, "robots": robots, "method": method, "eta_fn": sensor.eta_fn, "eta_fp": sensor.eta_fp,
-           "detection": sensor.detection, "episodes": episodes, "seed": seed,
-           "mean_capture_time": round(s["mean_capture_time"], 3), "ci95_halfwidth": round(s["ci95_halfwidth"], 3),
-           "censored_fraction": round(s["censored_fraction"], 4), "false_alarms_per_episode": round(fa, 4),
-           "false_alarms_ci95_halfwidth": round(fa_half, 4), "team_steps": int(res.capture_time.sum()),
-           "wall_seconds": round(wall, 2)}  # fmt: skip
+    row = {
+        "map": env,
+        "robots": robots,
+        "method": method,
+        "eta_fn": sensor.eta_fn,
+        "eta_fp": sensor.eta_fp,
+        "detection": sensor.detection,
+        "episodes": episodes,
+        "seed": seed,
+        "mean_capture_time": round(s["mean_capture_time"], 3),
+        "ci95_halfwidth": round(s["ci95_halfwidth"], 3),
+        "censored_fraction": round(s["censored_fraction"], 4),
+        "false_alarms_per_episode": round(fa, 4),
+        "false_alarms_ci95_halfwidth": round(fa_half, 4),
+        "team_steps": int(res.capture_time.sum()),
+        "wall_seconds": round(wall, 2),
+    }
     if latency:
         if batched:
             t1 = time.perf_counter()
@@ -223,11 +275,22 @@ def _cell(env: str, robots: int, method: str, make: Callable[[int], Any], episod
 def _all_methods(root: Path, env: str, N: int, b: Budget, eta_fn: float = 0.0) -> list[dict[str, Any]]:
     """Every method of the paper's comparison on one (map, N, eta_fn), with decision times."""
     sensor = sensor_for("cepg", eta_fn)
-    rows = [_cell(env, N, m, _reference(env, N, m, sensor), b.episodes, sensor=sensor, latency=True)
-            for m in ("random", "greedy")]  # fmt: skip
+    rows = [
+        _cell(env, N, m, _reference(env, N, m, sensor), b.episodes, sensor=sensor, latency=True)
+        for m in ("random", "greedy")
+    ]
     for m in LEARNED:
-        rows.append(_cell(env, N, m, _learned(root, env, N, m, b, eta_fn), b.episodes,
-                          sensor=sensor_for(LEARNED[m][0], eta_fn), latency=True))  # fmt: skip
+        rows.append(
+            _cell(
+                env,
+                N,
+                m,
+                _learned(root, env, N, m, b, eta_fn),
+                b.episodes,
+                sensor=sensor_for(LEARNED[m][0], eta_fn),
+                latency=True,
+            )
+        )
     for m in PLANNERS:
         if m == "fhpe" and N > 3:
             continue  # 36^4 joint paths and more per decision: see the report
@@ -235,15 +298,23 @@ def _all_methods(root: Path, env: str, N: int, b: Budget, eta_fn: float = 0.0) -
         eps = b.planner * (4 if m == "fhpe-sa" else 1)
         rows.append(_cell(env, N, m, _reference(env, N, m, sensor, **kw), eps, sensor=sensor, latency=True))
     if N <= 2:
-        rows.append(_cell(env, N, "oracle", _reference(env, N, "oracle", sensor), b.episodes, sensor=sensor,
-                          latency=True))  # fmt: skip
+        rows.append(
+            _cell(env, N, "oracle", _reference(env, N, "oracle", sensor), b.episodes, sensor=sensor, latency=True)
+        )
     _say(f"  {env} N={N} eta_fn={eta_fn}: " + ", ".join(f"{r['method']} {r['mean_capture_time']:.1f}" for r in rows))
     return rows
 
 
 def _setup(name: str, b: Budget, **extra: Any) -> dict[str, Any]:
-    return {"experiment": name, "quick": b.quick, "episodes": b.episodes, "training_episodes": b.train, "seed": SEED,
-            **extra, "machine": machine()}  # fmt: skip
+    return {
+        "experiment": name,
+        "quick": b.quick,
+        "episodes": b.episodes,
+        "training_episodes": b.train,
+        "seed": SEED,
+        **extra,
+        "machine": machine(),
+    }
 
 
 # ---------------------------------------------------------------------- fig7 / fig8
@@ -256,9 +327,16 @@ def fig7(root: Path, b: Budget) -> Path:
             _say(f"fig7: {env} N={N}")
             rows += _all_methods(root, env, N, b)
     out = root / "fig7"
-    setup = _setup("fig7", b, planner_episodes=b.planner, fhpe_sa_episodes=b.planner * 4,
-                   horizons={"fhpe": 2, "fhpe-sa": 5, "milp": 5, "d-milp": 5}, discount=0.97,
-                   milp_time_limit_s=b.milp_limit, wall_seconds=round(time.perf_counter() - t_start, 1))  # fmt: skip
+    setup = _setup(
+        "fig7",
+        b,
+        planner_episodes=b.planner,
+        fhpe_sa_episodes=b.planner * 4,
+        horizons={"fhpe": 2, "fhpe-sa": 5, "milp": 5, "d-milp": 5},
+        discount=0.97,
+        milp_time_limit_s=b.milp_limit,
+        wall_seconds=round(time.perf_counter() - t_start, 1),
+    )
     _write(out, "fig7", setup, rows)
     _plot_fig7(out, rows)
     _plot_fig8(root / "fig8", rows, setup)
@@ -276,8 +354,14 @@ def _plot_fig7(out: Path, rows: list[dict[str, Any]]) -> None:
         for method in dict.fromkeys(r["method"] for r in rows):
             pts = [r for r in rows if r["map"] == env and r["method"] == method]
             if pts:
-                ax.errorbar([r["robots"] for r in pts], [r["mean_capture_time"] for r in pts],
-                            yerr=[r["ci95_halfwidth"] for r in pts], marker="o", capsize=3, label=method)  # fmt: skip
+                ax.errorbar(
+                    [r["robots"] for r in pts],
+                    [r["mean_capture_time"] for r in pts],
+                    yerr=[r["ci95_halfwidth"] for r in pts],
+                    marker="o",
+                    capsize=3,
+                    label=method,
+                )
         ax.set_title(env.upper())
         ax.set_xlabel("robots N")
         ax.set_ylabel("capture time (steps)")
@@ -294,8 +378,18 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
     import matplotlib.pyplot as plt
 
     sel = [{k: r[k] for k in ("map", "robots", "method", "decision_ms")} for r in rows]
-    _write(out, "fig8", {"experiment": "fig8", "from": "fig7", "quick": setup["quick"], "machine": setup["machine"],
-                         "note": "ms per team step, one episode at a time, simulator step included"}, sel)  # fmt: skip
+    _write(
+        out,
+        "fig8",
+        {
+            "experiment": "fig8",
+            "from": "fig7",
+            "quick": setup["quick"],
+            "machine": setup["machine"],
+            "note": "ms per team step, one episode at a time, simulator step included",
+        },
+        sel,
+    )
     fig, ax = plt.subplots(figsize=(6, 4))
     for method in dict.fromkeys(r["method"] for r in sel):
         pts = [r for r in sel if r["map"] == "museum" and r["method"] == method]
@@ -313,8 +407,8 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
 # ---------------------------------------------------------------------- fig5, fig6
 def fig5(root: Path, b: Budget) -> Path:
     """beta in {0.1, 0.3, 0.5, 0.7, 0.9} and 1 (PG) for a 4-robot team on OFFICE and MUSEUM (paper Fig. 5)."""
-    from shared.graph import builtin_graph
-    from shared.snapshot import load_snapshot
+    from shared.core.graph import builtin_graph
+    from shared.learning.snapshot import load_snapshot
 
     N, rows = 4, []
     sensor = sensor_for("cepg")
@@ -322,8 +416,9 @@ def fig5(root: Path, b: Budget) -> Path:
         g = builtin_graph(env)
         for beta in (0.1, 0.3, 0.5, 0.7, 0.9, 1.0):
             snap = load_snapshot(_snapshot(root, env, N, beta, b.train, 0), g)
-            rows.append({**_cell(env, N, "pg" if beta == 1.0 else "cepg", _flown(snap, g, sensor, N), b.episodes),
-                         "beta": beta})  # fmt: skip
+            rows.append(
+                {**_cell(env, N, "pg" if beta == 1.0 else "cepg", _flown(snap, g, sensor, N), b.episodes), "beta": beta}
+            )
     out = root / "fig5"
     _write(out, "fig5", _setup("fig5", b, robots=N), rows)
     _bars(out / "fig5.png", rows, "beta", "capture time (steps), N = 4")
@@ -351,8 +446,16 @@ def _noise_sweep(root: Path, b: Budget, name: str, eta: str, value: str, ylabel:
     for env in ("office", "museum"):
         for N in b.teams:
             for x in ETAS:
-                rows.append(_cell(env, N, "cepg", _learned(root, env, N, "cepg", b, **{eta: x}), b.episodes,
-                                  sensor=sensor_for("cepg", **{eta: x})))  # fmt: skip
+                rows.append(
+                    _cell(
+                        env,
+                        N,
+                        "cepg",
+                        _learned(root, env, N, "cepg", b, **{eta: x}),
+                        b.episodes,
+                        sensor=sensor_for("cepg", **{eta: x}),
+                    )
+                )
             _say(f"{name}: {env} N={N}: " + ", ".join(f"{r[value]:.2f}" for r in rows[-len(ETAS) :]))
     out = root / name
     _write(out, name, _setup(name, b), rows)
@@ -380,9 +483,20 @@ def fig11(root: Path, b: Budget) -> Path:
         for eta in ETAS:
             rows += _all_methods(root, env, 4, b, eta_fn=eta)
     out = root / "fig11"
-    _write(out, "fig11", _setup("fig11", b, robots=4, planner_episodes=b.planner, fhpe_sa_episodes=b.planner * 4,
-                                milp_time_limit_s=b.milp_limit, wall_seconds=round(time.perf_counter() - t_start, 1)),
-           rows)  # fmt: skip
+    _write(
+        out,
+        "fig11",
+        _setup(
+            "fig11",
+            b,
+            robots=4,
+            planner_episodes=b.planner,
+            fhpe_sa_episodes=b.planner * 4,
+            milp_time_limit_s=b.milp_limit,
+            wall_seconds=round(time.perf_counter() - t_start, 1),
+        ),
+        rows,
+    )
     _bars(out / "fig11.png", rows, "eta_fn", "capture time (steps), N = 4")
     return out
 
@@ -407,8 +521,8 @@ def fig12(root: Path, b: Budget) -> Path:
 def fig13(root: Path, b: Budget) -> Path:
     """Robustness: a team trained for 5 robots flown by k = 1..5 of them (paper Fig. 13), against
     teams trained for k."""
-    from shared.graph import builtin_graph
-    from shared.snapshot import load_snapshot
+    from shared.core.graph import builtin_graph
+    from shared.learning.snapshot import load_snapshot
 
     rows = []
     sensor = sensor_for("cepg")
@@ -416,10 +530,12 @@ def fig13(root: Path, b: Budget) -> Path:
         g = builtin_graph(env)
         five = load_snapshot(_snapshot(root, env, 5, 0.5, b.train, 0), g)
         for k in range(1, 6):
-            rows.append({**_cell(env, k, "cepg trained for 5", _flown(five, g, sensor, k), b.episodes),
-                         "trained_for": 5})  # fmt: skip
-            rows.append({**_cell(env, k, "cepg trained for k", _learned(root, env, k, "cepg", b), b.episodes),
-                         "trained_for": k})  # fmt: skip
+            rows.append(
+                {**_cell(env, k, "cepg trained for 5", _flown(five, g, sensor, k), b.episodes), "trained_for": 5}
+            )
+            rows.append(
+                {**_cell(env, k, "cepg trained for k", _learned(root, env, k, "cepg", b), b.episodes), "trained_for": k}
+            )
     out = root / "fig13"
     _write(out, "fig13", _setup("fig13", b), rows)
     _bars(out / "fig13.png", rows, "robots", "capture time (steps)")
@@ -440,8 +556,14 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
         w = 0.8 / len(methods)
         for j, m in enumerate(methods):
             pts = [(i, r) for i, gk in enumerate(groups) for r in sel if r[key] == gk and r["method"] == m]
-            ax.bar([i + j * w for i, _ in pts], [r["mean_capture_time"] for _, r in pts], w,
-                   yerr=[r["ci95_halfwidth"] for _, r in pts], capsize=2, label=m)  # fmt: skip
+            ax.bar(
+                [i + j * w for i, _ in pts],
+                [r["mean_capture_time"] for _, r in pts],
+                w,
+                yerr=[r["ci95_halfwidth"] for _, r in pts],
+                capsize=2,
+                label=m,
+            )
         ax.set_xticks(np.arange(len(groups)) + 0.4 - w / 2, [str(gk) for gk in groups])
         ax.set_xlabel(key)
         ax.set_title(env.upper())
@@ -464,8 +586,14 @@ def _lines(path: Path, rows: list[dict[str, Any]], key: str, value: str, ylabel:
     for ax, env in zip(axes, ("office", "museum"), strict=True):
         for N in sorted({r["robots"] for r in rows if r["map"] == env}):
             pts = [r for r in rows if r["map"] == env and r["robots"] == N]
-            ax.errorbar([r[key] for r in pts], [r[value] for r in pts], yerr=[r[half] for r in pts], marker="o",
-                        capsize=3, label=f"N = {N}")  # fmt: skip
+            ax.errorbar(
+                [r[key] for r in pts],
+                [r[value] for r in pts],
+                yerr=[r[half] for r in pts],
+                marker="o",
+                capsize=3,
+                label=f"N = {N}",
+            )
         ax.set_title(env.upper())
         ax.set_xlabel(key)
         ax.set_ylabel(ylabel)
@@ -476,9 +604,15 @@ def _lines(path: Path, rows: list[dict[str, Any]], key: str, value: str, ylabel:
 
 
 RUNNERS: dict[str, Callable[[Path, Budget], Path]] = {
-    "fig5": fig5, "fig6": fig6, "fig7": fig7, "fig9": fig9, "fig10": fig10, "fig11": fig11, "fig12": fig12,
+    "fig5": fig5,
+    "fig6": fig6,
+    "fig7": fig7,
+    "fig9": fig9,
+    "fig10": fig10,
+    "fig11": fig11,
+    "fig12": fig12,
     "fig13": fig13,
-}  # fmt: skip
+}
 
 
 def run(name: str, root: Path, quick: bool, train_episodes: int | None = None) -> Path:
@@ -504,16 +638,26 @@ def run(name: str, root: Path, quick: bool, train_episodes: int | None = None) -
 # ---------------------------------------------------------------------- report
 def report(root: Path, out: Path) -> Path:
     """docs/results.md from the recorded results (tables, plots, setup, a reading computed from the data)."""
-    lines = ["# Results", "", "Generated by `mures report` from the data under `results/`; do not edit by hand.",
-             "Regenerate with `mures experiment NAME [--quick]` then `mures report`.", ""]  # fmt: skip
+    lines = [
+        "# Results",
+        "",
+        "Generated by `mures report` from the data under `results/`; do not edit by hand.",
+        "Regenerate with `mures experiment NAME [--quick]` then `mures report`.",
+        "",
+    ]
     rel = os.path.relpath(root, out.parent)
     f4 = root / "fig4" / "fig4.json"
     if f4.exists():
         d = json.loads(f4.read_text())
-        lines += ["## Fig. 4: the toy (two robots, one step, A with 0.6, B with 0.4)", "",
-                  f"Setup: {len(d['rows']) // 2} seeds per beta, reward {d['reward']!r}, quick={d['quick']}; "
-                  f"{d['machine']['date']}.", "", "| beta | seeds | split (each robot >= 0.9 on a different node) |",
-                  "| --- | --- | --- |"]  # fmt: skip
+        lines += [
+            "## Fig. 4: the toy (two robots, one step, A with 0.6, B with 0.4)",
+            "",
+            f"Setup: {len(d['rows']) // 2} seeds per beta, reward {d['reward']!r}, quick={d['quick']}; "
+            f"{d['machine']['date']}.",
+            "",
+            "| beta | seeds | split (each robot >= 0.9 on a different node) |",
+            "| --- | --- | --- |",
+        ]
         for beta in (0.5, 1.0):
             rs = [r for r in d["rows"] if r["beta"] == beta]
             lines.append(f"| {beta} | {len(rs)} | {sum(r['split'] for r in rs)} |")
@@ -523,25 +667,33 @@ def report(root: Path, out: Path) -> Path:
         d = json.loads(f7.read_text())
         rows = d["rows"]
         methods = list(dict.fromkeys(r["method"] for r in rows))
-        lines += ["## Fig. 7: capture time of all methods, N = 1..5", "",
-                  f"Setup: {d['episodes']} episodes per cell for random, greedy, the learned teams and oracle; "
-                  f"{d['planner_episodes']} for fhpe, milp and d-milp, {d['fhpe_sa_episodes']} for fhpe-sa "
-                  f"(planners are slow; see Fig. 8); seed {d['seed']}; learned teams trained for "
-                  f"{d['training_episodes']:,} episodes with EM-estimated beliefs (Gamma_hat_0 = I); horizons "
-                  f"{d['horizons']}, discount {d['discount']}, MILP time limit {d['milp_time_limit_s']} s per solve "
-                  f"(HiGHS); quick={d['quick']}; {d['machine']['cpus']} CPUs, {d['machine']['date']}; the whole "
-                  f"grid took {d['wall_seconds']:.0f} s.", "",
-                  "The planners (fhpe, fhpe-sa, milp, d-milp) and the oracle get the true target model and see all "
-                  "robots' observations (centralised); pg, cepg and cepg+ robots use only their own observations "
-                  "and an estimated model (cepg+ robots sense N[p], a broader field of view than the others' "
-                  "node); c-cepg robots share all observations (collective belief); oracle robots see the target "
-                  "(a lower bound, exact DP, N <= 2 only). fhpe is not run for N > 3: the joint paths per decision "
-                  "exceed 10^6.", ""]  # fmt: skip
+        lines += [
+            "## Fig. 7: capture time of all methods, N = 1..5",
+            "",
+            f"Setup: {d['episodes']} episodes per cell for random, greedy, the learned teams and oracle; "
+            f"{d['planner_episodes']} for fhpe, milp and d-milp, {d['fhpe_sa_episodes']} for fhpe-sa "
+            f"(planners are slow; see Fig. 8); seed {d['seed']}; learned teams trained for "
+            f"{d['training_episodes']:,} episodes with EM-estimated beliefs (Gamma_hat_0 = I); horizons "
+            f"{d['horizons']}, discount {d['discount']}, MILP time limit {d['milp_time_limit_s']} s per solve "
+            f"(HiGHS); quick={d['quick']}; {d['machine']['cpus']} CPUs, {d['machine']['date']}; the whole "
+            f"grid took {d['wall_seconds']:.0f} s.",
+            "",
+            "The planners (fhpe, fhpe-sa, milp, d-milp) and the oracle get the true target model and see all "
+            "robots' observations (centralised); pg, cepg and cepg+ robots use only their own observations "
+            "and an estimated model (cepg+ robots sense N[p], a broader field of view than the others' "
+            "node); c-cepg robots share all observations (collective belief); oracle robots see the target "
+            "(a lower bound, exact DP, N <= 2 only). fhpe is not run for N > 3: the joint paths per decision "
+            "exceed 10^6.",
+            "",
+        ]
         for env in ("office", "museum"):
             Ns = sorted({r["robots"] for r in rows if r["map"] == env})
-            lines += [f"### {env.upper()} (mean capture time ± 95% CI half-width, episodes)", "",
-                      "| method | " + " | ".join(f"N={n}" for n in Ns) + " |",
-                      "| --- |" + " --- |" * len(Ns)]  # fmt: skip
+            lines += [
+                f"### {env.upper()} (mean capture time ± 95% CI half-width, episodes)",
+                "",
+                "| method | " + " | ".join(f"N={n}" for n in Ns) + " |",
+                "| --- |" + " --- |" * len(Ns),
+            ]
             for m in methods:
                 cells = []
                 for n in Ns:
@@ -555,16 +707,31 @@ def report(root: Path, out: Path) -> Path:
                     cells.append(txt if r is None else f"{txt} ({r['episodes']})")
                 lines.append(f"| {m} | " + " | ".join(cells) + " |")
             lines.append("")
-        lines += [f"![fig7]({rel}/fig7/fig7.png)", "", "### Reading (computed from the table)", "",
-                  f"The learned teams here were trained for {d['training_episodes']:,} episodes, "
-                  f"{100 * d['training_episodes'] / 400_000:.1f}% of the paper's budget of 400,000"
-                  + (", and the planners ran on one to four episodes: a quick run, not the paper's protocol."
-                     if d["quick"] else "."), ""]  # fmt: skip
+        lines += [
+            f"![fig7]({rel}/fig7/fig7.png)",
+            "",
+            "### Reading (computed from the table)",
+            "",
+            f"The learned teams here were trained for {d['training_episodes']:,} episodes, "
+            f"{100 * d['training_episodes'] / 400_000:.1f}% of the paper's budget of 400,000"
+            + (
+                ", and the planners ran on one to four episodes: a quick run, not the paper's protocol."
+                if d["quick"]
+                else "."
+            ),
+            "",
+        ]
         lines += _reading(rows)
-        lines += ["", "## Fig. 8: decision time per team step", "",
-                  "Milliseconds per team step, one episode at a time (batch 1), the simulator's step included "
-                  "(about 0.1 ms), MUSEUM:", "", "| method | " + " | ".join(f"N={n}" for n in range(1, 6)) + " |",
-                  "| --- |" + " --- |" * 5]  # fmt: skip
+        lines += [
+            "",
+            "## Fig. 8: decision time per team step",
+            "",
+            "Milliseconds per team step, one episode at a time (batch 1), the simulator's step included "
+            "(about 0.1 ms), MUSEUM:",
+            "",
+            "| method | " + " | ".join(f"N={n}" for n in range(1, 6)) + " |",
+            "| --- |" + " --- |" * 5,
+        ]
         for m in methods:
             cells = []
             for n in range(1, 6):
@@ -573,28 +740,58 @@ def report(root: Path, out: Path) -> Path:
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
         r4 = {r["method"]: r for r in rows if r["map"] == "museum" and r["robots"] == 4}
         if "cepg" in r4:
-            ratios = [f"{m} / cepg = {r4[m]['decision_ms'] / r4['cepg']['decision_ms']:.0f}x"
-                      for m in ("fhpe-sa", "milp", "d-milp") if m in r4]  # fmt: skip
-            lines += ["", f"Decision-time ratios at N = 4 on MUSEUM: {', '.join(ratios)}. HiGHS stops each MILP "
-                      f"solve at {d['milp_time_limit_s']} s (d-milp solves once per robot), so the MILPs' times "
-                      "here are bounded by that limit, not by what an optimal solve would take."]  # fmt: skip
+            ratios = [
+                f"{m} / cepg = {r4[m]['decision_ms'] / r4['cepg']['decision_ms']:.0f}x"
+                for m in ("fhpe-sa", "milp", "d-milp")
+                if m in r4
+            ]
+            lines += [
+                "",
+                f"Decision-time ratios at N = 4 on MUSEUM: {', '.join(ratios)}. HiGHS stops each MILP "
+                f"solve at {d['milp_time_limit_s']} s (d-milp solves once per robot), so the MILPs' times "
+                "here are bounded by that limit, not by what an optimal solve would take.",
+            ]
         lines += ["", f"![fig8]({rel}/fig8/fig8.png)", ""]
     ct, fa = ("mean_capture_time", "ci95_halfwidth"), ("false_alarms_per_episode", "false_alarms_ci95_halfwidth")
     tables = (  # figure, title, table rows by, columns by, value, a note on the setup
         ("fig5", "Fig. 5: beta of Eq. 9 (N = 4; beta = 1 is PG)", "method", "beta", ct, ""),
-        ("fig6", "Fig. 6: CE-PG vs CE-PG+ vs C-CE-PG", "method", "robots", ct,
-         "CE-PG+ robots sense N[p] (their own, broader field of view); C-CE-PG robots share every observation "
-         "(collective belief); CE-PG robots sense their node and use their own observations."),
-        ("fig9", "Fig. 9: eta_fn and CE-PG's capture time (eta_fp = 0)", "robots", "eta_fn", ct,
-         "Each team is trained and flown with that sensor."),
-        ("fig10", "Fig. 10: eta_fp and CE-PG's false alarms per episode (eta_fn = 0)", "robots", "eta_fp", fa,
-         "False alarms: the team's total number of z = 1 readings with the target outside D(p), per episode."),
-        ("fig11", "Fig. 11: all methods under eta_fn (N = 4)", "method", "eta_fn", ct,
-         "Planners know eta_fn (their capture probability is (1 - eta_fn) per detection) and see all robots' "
-         "observations; fhpe is not run at N = 4; cepg+ senses N[p]."),
+        (
+            "fig6",
+            "Fig. 6: CE-PG vs CE-PG+ vs C-CE-PG",
+            "method",
+            "robots",
+            ct,
+            "CE-PG+ robots sense N[p] (their own, broader field of view); C-CE-PG robots share every observation "
+            "(collective belief); CE-PG robots sense their node and use their own observations.",
+        ),
+        (
+            "fig9",
+            "Fig. 9: eta_fn and CE-PG's capture time (eta_fp = 0)",
+            "robots",
+            "eta_fn",
+            ct,
+            "Each team is trained and flown with that sensor.",
+        ),
+        (
+            "fig10",
+            "Fig. 10: eta_fp and CE-PG's false alarms per episode (eta_fn = 0)",
+            "robots",
+            "eta_fp",
+            fa,
+            "False alarms: the team's total number of z = 1 readings with the target outside D(p), per episode.",
+        ),
+        (
+            "fig11",
+            "Fig. 11: all methods under eta_fn (N = 4)",
+            "method",
+            "eta_fn",
+            ct,
+            "Planners know eta_fn (their capture probability is (1 - eta_fn) per detection) and see all robots' "
+            "observations; fhpe is not run at N = 4; cepg+ senses N[p].",
+        ),
         ("fig12", "Fig. 12: one robot withdrawn during execution (N = 4)", "method", "withdrawn", ct, ""),
         ("fig13", "Fig. 13: a team trained for 5 robots, flown by k of them", "method", "robots", ct, ""),
-    )  # fmt: skip
+    )
     for fig, title, row_key, key, (value, half), note in tables:
         f = root / fig / f"{fig}.json"
         if not f.exists():
@@ -606,19 +803,26 @@ def report(root: Path, out: Path) -> Path:
             "",
             f"Setup: {d['episodes']} episodes per cell, seed {d['seed']}; learned teams "
             f"trained for {d['training_episodes']:,} episodes; quick={d['quick']}; {d['machine']['date']}. "
-            + (f"Planners: {d['planner_episodes']} episodes (fhpe-sa {d['fhpe_sa_episodes']}), MILP time limit "
-               f"{d['milp_time_limit_s']} s per solve. " if "planner_episodes" in d else "")
+            + (
+                f"Planners: {d['planner_episodes']} episodes (fhpe-sa {d['fhpe_sa_episodes']}), MILP time limit "
+                f"{d['milp_time_limit_s']} s per solve. "
+                if "planner_episodes" in d
+                else ""
+            )
             + note,
             "",
-        ]  # fmt: skip
+        ]
         for env in ("office", "museum"):
             sel = [r for r in rows if r["map"] == env]
             groups = list(dict.fromkeys(r[key] for r in sel))
             labels = list(dict.fromkeys(r[row_key] for r in sel))
             head = "N" if row_key == "robots" else row_key
-            lines += [f"{env.upper()} ({value.replace('_', ' ')} ± 95% CI half-width):", "",
-                      f"| {head} | " + " | ".join(f"{key} {gk}" for gk in groups) + " |",
-                      "| --- |" + " --- |" * len(groups)]  # fmt: skip
+            lines += [
+                f"{env.upper()} ({value.replace('_', ' ')} ± 95% CI half-width):",
+                "",
+                f"| {head} | " + " | ".join(f"{key} {gk}" for gk in groups) + " |",
+                "| --- |" + " --- |" * len(groups),
+            ]
             for lab in labels:
                 cells = []
                 for gk in groups:

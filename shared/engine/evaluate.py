@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from shared.graph import Graph
-from shared.models import Sensor, TargetModel
-from shared.records import make_record
-from shared.searchers import Searcher
-from shared.sim import SearchSim
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+from shared.core.records import make_record
+from shared.engine.searchers import Searcher
+from shared.engine.sim import SearchSim
 
 Z95 = 1.959963984540054
 
@@ -53,7 +53,7 @@ class EvalResult:
     trajectories: list[Trajectories] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
-        """The fields SPEC section 7 names for `mures evaluate`."""
+        """The fields docs/SPEC.md section 7 names for `mures evaluate`."""
         ct = self.capture_time.astype(np.float64)
         B = len(ct)
         mean, half = mean_ci95(ct)
@@ -95,9 +95,16 @@ def evaluate(
         B = min(chunk, episodes - start)
         chunk_seed = seed * 1_000_003 + c
         sim = SearchSim(
-            graph, target, sensor, n_robots, B, seed=chunk_seed, device=device,
-            auto_reset=False, withdraw_at=withdraw_at,
-        )  # fmt: skip
+            graph,
+            target,
+            sensor,
+            n_robots,
+            B,
+            seed=chunk_seed,
+            device=device,
+            auto_reset=False,
+            withdraw_at=withdraw_at,
+        )
         searcher = make_searcher(chunk_seed + 7919)
         obs = sim.reset()
         ct = torch.zeros(B, dtype=torch.long)
@@ -142,7 +149,7 @@ def evaluate(
 def episode_records(
     graph: Graph, result: EvalResult, sensor: Sensor, fleet: str = "default", mission_prefix: str = "sim"
 ) -> Iterator[dict[str, Any]]:
-    """Episode records (SPEC section 5), one per robot per mission, from a ``record=True`` run.
+    """Episode records (docs/SPEC.md section 5), one per robot per mission, from a ``record=True`` run.
 
     Robots are named r0..r{N-1}; missions ``{mission_prefix}-{k:06d}`` in episode order.
     """

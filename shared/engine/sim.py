@@ -1,7 +1,7 @@
-"""Batched simulator of the paper setup (SPEC section 1), in torch.
+"""Batched simulator of the paper setup (docs/SPEC.md section 1), in torch.
 
 B episodes run side by side, each with N robots on a graph of n nodes. One call of ``step``
-advances every running episode by one time step, in the order of SPEC section 1:
+advances every running episode by one time step, in the order of docs/SPEC.md section 1:
 
     robots move (a_t in N[p_t])  ->  target moves (e_{t+1} ~ Gamma(e_t, .))  ->  robots observe z_{t+1}
 
@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from shared.graph import Graph
-from shared.models import Sensor, TargetModel
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
 
 NEVER = 2**62
 
@@ -132,7 +132,7 @@ class SearchSim:
         return torch.rand(*shape, generator=self.gen, device=self.device, dtype=torch.float64)
 
     def _observe(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """z (B, N) and in_D (B, N) for the current positions and target (sensor of SPEC 1)."""
+        """z (B, N) and in_D (B, N) for the current positions and target (sensor of docs/SPEC.md section 1)."""
         in_d = self.detect[self.pos, self.target.unsqueeze(1)] & self.active
         u = self._rand(self.B, self.N)
         z = torch.where(in_d, u >= self.eta_fn, u < self.eta_fp) & self.active
@@ -184,7 +184,7 @@ class SearchSim:
                 f"episode slot {b}, robot {i}: action to node {self.graph.labels[int(act[b, i])]} "
                 f"is not in N[{self.graph.labels[int(self.pos[b, i])]}]"
             )
-        # robots move, then the target moves (SPEC section 1 order)
+        # robots move, then the target moves (docs/SPEC.md section 1 order)
         self.pos = act
         u = self._rand(self.B, 1)
         k = (u > self.t_cum[self.target]).sum(1)

@@ -1,10 +1,10 @@
 """CE-PG training, Algorithm 2 of the paper (centralised training in simulation).
 
 Each update simulates a batch of B complete episodes with the team's current stochastic policies
-(shared/cepg.py ``rollout``), takes one Adam step on the CE-PG loss (Eq. 9-13), and logs the
+(shared/learning/cepg.py ``rollout``), takes one Adam step on the CE-PG loss (Eq. 9-13), and logs the
 batch's capture times. The simulator moves the target with the *true* model; the robots' beliefs
 use Gamma_hat and b0, which start at the paper's Gamma_hat_0 = I and uniform b0 (or a given
-model) and are re-estimated during training by the engine's EM (shared/estimate.py) from
+model) and are re-estimated during training by the engine's EM (shared/engine/estimate.py) from
 episode records of missions flown with the current policies: robots' positions and
 observations only, exactly what a real fleet reports. ``belief="true"`` lets the robots use the
 true model instead (for comparison).
@@ -23,76 +23,22 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import torch
 import torch.distributed as dist
 
-from shared.belief import BatchedBelief
-from shared.cepg import cepg_loss, rollout
-from shared.estimate import collect_missions, em, mean_row_tv
-from shared.evaluate import episode_records, evaluate
-from shared.graph import Graph
-from shared.models import Sensor, TargetModel, from_matrix
-from shared.policy import TeamPolicy
-from shared.sim import SearchSim
-from shared.snapshot import VARIANTS, PolicySearcher, Snapshot
-
-
-@dataclass
-class TrainConfig:
-    """Everything that defines a training run (stored in the snapshot's metadata)."""
-
-    robots: int
-    episodes: int = 400_000
-    beta: list[float] = field(default_factory=lambda: [0.5])  # one value for all robots, or one per robot
-    lr: list[float] = field(default_factory=lambda: [1e-2])  # Adam learning rate alpha_i, same convention
-    lr_final: float = 0.1  # the learning rate decays linearly to this fraction of itself over the run
-    variant: str = "cepg"
-    batch: int = 256  # episodes per update (B), over all processes
-    eps: float = 0.1  # smoothing of the cross entropy (shared/cepg.py)
-    ce_fraction: float = 0.25  # share of decisions the cross entropy is estimated on (shared/cepg.py)
-    j_unit: float = 1.0  # J's unit in steps (shared/cepg.py)
-    ce_states: str = "shared"  # states H is evaluated on: "shared" or "all" (shared/cepg.py)
-    belief: str = "em"  # "em": Gamma_hat_0 then EM re-estimates; "true": robots use the true model
-    em_first: int = 8192  # episodes before the first EM update
-    em_every: int = 100_000  # episodes between later EM updates
-    em_missions: int = 512  # missions recorded for each EM update
-    em_max_iter: int = 300
-    seed: int = 0
-    device: str = "cpu"
-    hidden: int | None = None  # 2n (the paper's) unless given
-
-    def per_robot(self, values: list[float], name: str) -> list[float]:
-        if len(values) == 1:
-            return values * self.robots
-        if len(values) != self.robots:
-            raise ValueError(f"{name}: give one value or one per robot ({self.robots}), got {len(values)}")
-        return list(values)
-
-    def check(self) -> None:
-        if self.variant not in VARIANTS:
-            raise ValueError(f"unknown variant {self.variant!r} (expected one of {', '.join(VARIANTS)})")
-        if self.ce_states not in ("shared", "all"):
-            raise ValueError(f"ce_states must be 'shared' or 'all', got {self.ce_states!r}")
-        if self.belief not in ("em", "true"):
-            raise ValueError(f"belief must be 'em' or 'true', got {self.belief!r}")
-        for b in self.per_robot(self.beta, "beta"):
-            if not 0.0 <= b <= 1.0:
-                raise ValueError(f"beta must be in [0, 1], got {b}")
-        for a in self.per_robot(self.lr, "lr"):
-            if not 0.0 < a < 1.0:
-                raise ValueError(f"learning rate must be in (0, 1), got {a}")
-        if not 0.0 < self.ce_fraction <= 1.0:
-            raise ValueError(f"ce_fraction must be in (0, 1], got {self.ce_fraction}")
-        if not 0.0 < self.lr_final <= 1.0:
-            raise ValueError(f"lr_final must be in (0, 1], got {self.lr_final}")
-        if not 0.0 < self.eps <= 1.0:
-            raise ValueError(f"eps must be in (0, 1], got {self.eps}")
-        if self.batch < 1 or self.episodes < 1:
-            raise ValueError("batch and episodes must be positive")
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel, from_matrix, identity_model
+from shared.engine.belief import BatchedBelief
+from shared.engine.estimate import collect_missions, em, mean_row_tv
+from shared.engine.evaluate import episode_records, evaluate
+from shared.engine.sim import SearchSim
+from shared.learning.cepg import cepg_loss, rollout
+from shared.learning.config import TrainConfig
+from shared.learning.policy import TeamPolicy
+from shared.learning.snapshot import PolicySearcher, Snapshot
 
 
 @dataclass
@@ -101,11 +47,6 @@ class TrainResult:
     model: TargetModel  # the robots' belief model at the end
     summary: dict[str, Any]
     interrupted: bool
-
-
-def identity_model(graph: Graph) -> TargetModel:
-    """Gamma_hat_0 = I with uniform b0 (paper Table II)."""
-    return from_matrix(graph, np.eye(graph.n), kind="identity")
 
 
 def _world() -> tuple[int, int]:
@@ -162,8 +103,9 @@ def train(
     model = target if cfg.belief == "true" else (init_model or identity_model(graph))
     belief = BatchedBelief(graph, model, sensor, device)
     local_batch = math.ceil(cfg.batch / world)
-    sim = SearchSim(graph, target, sensor, N, local_batch, seed=cfg.seed * 7_919 + rank, device=device,
-                    auto_reset=False)  # fmt: skip
+    sim = SearchSim(
+        graph, target, sensor, N, local_batch, seed=cfg.seed * 7_919 + rank, device=device, auto_reset=False
+    )
     gen = torch.Generator(device=device)
     gen.manual_seed(cfg.seed * 104_729 + rank)
 
@@ -182,9 +124,15 @@ def train(
         opt.zero_grad(set_to_none=False)
         (terms.loss / world).backward()
         stats = torch.tensor(
-            [float(ro.length.numel()), float(ro.capture_time.sum()), float(ro.censored.sum()),
-             float(ro.length.sum()), float(terms.ce.mean())], dtype=torch.float64,
-        )  # fmt: skip
+            [
+                float(ro.length.numel()),
+                float(ro.capture_time.sum()),
+                float(ro.censored.sum()),
+                float(ro.length.sum()),
+                float(terms.ce.mean()),
+            ],
+            dtype=torch.float64,
+        )
         if world > 1:
             for p in policy.parameters():
                 dist.all_reduce(p.grad)
@@ -222,8 +170,15 @@ def train(
             next_curve = episodes + curve_every
             if progress:
                 elapsed = time.perf_counter() - t0
-                progress({**point, "total": cfg.episodes, "updates": updates, "env_steps": env_steps,
-                          "episodes_per_second": episodes / max(elapsed, 1e-9)})  # fmt: skip
+                progress(
+                    {
+                        **point,
+                        "total": cfg.episodes,
+                        "updates": updates,
+                        "env_steps": env_steps,
+                        "episodes_per_second": episodes / max(elapsed, 1e-9),
+                    }
+                )
         if stop:
             interrupted = episodes < cfg.episodes
             break
@@ -282,13 +237,20 @@ def _em_update(
     b0 = torch.empty(graph.n, dtype=torch.float64)
     if rank == 0:
         current = belief_model(graph, belief, "current")
-        snap = Snapshot(meta={"variant": cfg.variant, "robots": cfg.robots}, policy=policy, model=current,
-                        sensor=sensor)  # fmt: skip
+        snap = Snapshot(
+            meta={"variant": cfg.variant, "robots": cfg.robots}, policy=policy, model=current, sensor=sensor
+        )
         res = evaluate(
-            graph, target, sensor, cfg.robots,
+            graph,
+            target,
+            sensor,
+            cfg.robots,
             lambda s: PolicySearcher(snap, graph, sensor, cfg.robots, seed=s, device=device),
-            episodes=cfg.em_missions, seed=cfg.seed * 31 + episodes, device=device, record=True,
-        )  # fmt: skip
+            episodes=cfg.em_missions,
+            seed=cfg.seed * 31 + episodes,
+            device=device,
+            record=True,
+        )
         recs = episode_records(graph, res, sensor, mission_prefix=f"train-{episodes}")
         data = collect_missions(((0, r) for r in recs), graph)
         est = em(graph, data, max_iter=cfg.em_max_iter, tol=1e-5)
@@ -309,7 +271,3 @@ def _em_update(
     info["seconds"] = round(time.perf_counter() - t0, 3)
     info.setdefault("kind", "em")
     return info
-
-
-def config_dict(cfg: TrainConfig) -> dict[str, Any]:
-    return asdict(cfg)

@@ -1,4 +1,4 @@
-"""Target motion models and the sensor model (SPEC sections 1 and 2).
+"""Target motion models and the sensor model (docs/SPEC.md sections 1 and 2).
 
 Gamma is row-stochastic: ``Gamma(u, v) = P(e_{t+1} = v | e_t = u)``, supported on the
 closed neighbourhoods N[u]. It is stored sparsely (COO over the support, sorted by row) so
@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from shared.graph import Graph
+from shared.core.choices import DETECTIONS
+from shared.core.graph import Graph
 
 ROW_SUM_TOL = 1e-6
-DETECTIONS = ("node", "neighbourhood", "custom")
 
 
 class ModelError(ValueError):
@@ -48,11 +48,8 @@ class TargetModel:
         g[self.src, self.dst] = self.prob
         return g
 
-    def with_b0(self, b0: np.ndarray) -> TargetModel:
-        return TargetModel(self.n, self.src, self.dst, self.prob, _check_b0(b0, self.n), self.kind)
-
     def to_json(self, graph: Graph) -> dict[str, Any]:
-        """The model.json layout of SPEC section 7 (labels in row order)."""
+        """The model.json layout of docs/SPEC.md section 7 (labels in row order)."""
         return {
             "nodes": [int(x) for x in graph.labels],
             "gamma": self.dense().tolist(),
@@ -92,6 +89,11 @@ def uniform_walk(graph: Graph, b0: np.ndarray | None = None) -> TargetModel:
     """The paper's target: uniform over the closed neighbourhood, Gamma(u, v) = 1/|N[u]|."""
     prob = np.repeat(1.0 / graph.deg_closed, graph.deg_closed)
     return _from_rows(graph, prob, "uniform-walk", b0)
+
+
+def identity_model(graph: Graph) -> TargetModel:
+    """Gamma_hat_0 = I with uniform b0 (paper Table II): the robots' belief model before any EM."""
+    return from_matrix(graph, np.eye(graph.n), kind="identity")
 
 
 def lazy_walk(graph: Graph, stay: float, b0: np.ndarray | None = None) -> TargetModel:

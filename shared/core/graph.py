@@ -1,4 +1,4 @@
-"""Search maps: undirected, connected graphs of rooms (SPEC section 1 and 7).
+"""Search maps: undirected, connected graphs of rooms (docs/SPEC.md section 1 and 7).
 
 Vocabulary used across the project: ``n`` nodes, ``m`` undirected edges, ``N`` robots,
 ``B`` episodes in a batch. Nodes carry the *labels* of the published maps (non-negative
@@ -19,9 +19,10 @@ from typing import Any
 
 import numpy as np
 
+from shared.core.choices import BUILTIN_MAPS
+
 MAX_NODES = 100_000
 MAX_EDGES = 1_000_000
-BUILTIN_MAPS = ("office", "museum")
 
 
 class GraphError(ValueError):
@@ -33,7 +34,7 @@ def _is_label(x: Any) -> bool:
 
 
 def graph_id_of(labels: list[int], edges: list[tuple[int, int]]) -> str:
-    """graph_id exactly as SPEC section 5 defines it, from labels and label-pair edges."""
+    """graph_id exactly as docs/SPEC.md section 5 defines it, from labels and label-pair edges."""
     canon = {
         "nodes": sorted(labels),
         "edges": sorted([min(u, v), max(u, v)] for u, v in edges),
@@ -128,7 +129,7 @@ class Graph:
         return a
 
     def detection_sets(self, detection: str) -> tuple[np.ndarray, np.ndarray]:
-        """CSR (ptr, idx) of the detection sets D(p) (SPEC section 1).
+        """CSR (ptr, idx) of the detection sets D(p) (docs/SPEC.md section 1).
 
         ``node``: D(p) = {p}; ``neighbourhood``: D(p) = N[p]; ``custom``: the graph file's
         "sensing" table, N[p] for nodes it does not list.
@@ -170,7 +171,7 @@ class Graph:
 
 
 def graph_from_dict(data: Any, source: str = "graph") -> Graph:
-    """Validate a graph description (SPEC section 7) and build a Graph.
+    """Validate a graph description (docs/SPEC.md section 7) and build a Graph.
 
     Raises GraphError with one line that names the offending node or edge.
     """
@@ -281,7 +282,7 @@ def _parse_label_key(key: str, index: dict[int, int], source: str, table: str) -
 
 
 def load_graph_file(path: str | Path) -> Graph:
-    """Read and validate a JSON graph file (SPEC section 7)."""
+    """Read and validate a JSON graph file (docs/SPEC.md section 7)."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -299,7 +300,7 @@ def builtin_graph(name: str) -> Graph:
     key = name.lower()
     if key not in BUILTIN_MAPS:
         raise GraphError(f"unknown built-in map {name!r} (expected one of {', '.join(BUILTIN_MAPS)})")
-    text = resources.files("shared.maps").joinpath(f"{key}.json").read_text(encoding="utf-8")
+    text = resources.files("shared.core.maps").joinpath(f"{key}.json").read_text(encoding="utf-8")
     return graph_from_dict(json.loads(text), source=key)
 
 

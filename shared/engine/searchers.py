@@ -2,7 +2,7 @@
 
 A searcher sees ``Obs`` (positions, z, t, the ``new`` mask of fresh episodes) and returns
 actions (B, N) in N[p]. Robots never share information unless a searcher says so (the
-reference searchers do not). Exact definitions of the reference searchers: SPEC section 4.
+reference searchers do not). Exact definitions of the reference searchers: docs/SPEC.md section 4.
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from typing import Protocol
 
 import torch
 
-from shared.belief import BatchedBelief
-from shared.graph import Graph
-from shared.models import Sensor, TargetModel
-from shared.sim import Obs
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+from shared.engine.belief import BatchedBelief, BeliefTracker
+from shared.engine.sim import Obs
 
 
 class Searcher(Protocol):
@@ -35,30 +35,8 @@ class _Neighbourhoods:
         self.valid = torch.arange(d, device=device).unsqueeze(0) < self.deg.unsqueeze(1)  # (n, d)
 
 
-class BeliefTracker:
-    """Each robot's belief across a batch of episodes (Eq. 1, or Eq. 6 with a collective lik):
-    b_t ∝ Lambda_t Gamma^T b_{t-1}, restarting from b0 in slots whose episode just began.
-    Reuses the prediction Gamma^T b made at the previous decision."""
-
-    def __init__(self, belief: BatchedBelief) -> None:
-        self.belief = belief
-        self._pred: torch.Tensor | None = None  # Gamma^T b_t from the last update, (B, N, n)
-
-    def update(self, lik: torch.Tensor, new: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """lik (B, N, n), new (B,) -> (b_t, Gamma^T b_t), both (B, N, n)."""
-        bel = self.belief
-        b0 = bel.b0.expand_as(lik)
-        if self._pred is None or self._pred.shape != lik.shape:
-            prior = b0
-        else:
-            prior = torch.where(new.view(-1, 1, 1), b0, self._pred)
-        b = bel.normalise(lik * prior, lik)
-        self._pred = bel.predict(b)
-        return b, self._pred
-
-
 class RandomSearcher:
-    """`random`: every robot picks uniformly from N[p] (SPEC section 4)."""
+    """`random`: every robot picks uniformly from N[p] (docs/SPEC.md section 4)."""
 
     name = "random"
 
@@ -111,24 +89,3 @@ class GreedySearcher:
 
 
 REFERENCE_SEARCHERS = ("random", "greedy")
-
-
-def make_searcher(
-    name: str,
-    graph: Graph,
-    model: TargetModel,
-    sensor: Sensor,
-    seed: int = 0,
-    device: torch.device | str = "cpu",
-    n_robots: int = 1,
-) -> Searcher:
-    """Build a searcher by name: the reference searchers and the baselines (shared/baselines.py)."""
-    from shared.baselines import BASELINES, make_baseline
-
-    if name in BASELINES:
-        return make_baseline(name, graph, model, sensor, n_robots, seed=seed)  # type: ignore[return-value]
-    if name == "random":
-        return RandomSearcher(graph, seed=seed, device=device)
-    if name == "greedy":
-        return GreedySearcher(graph, model, sensor, seed=seed, device=device)
-    raise ValueError(f"unknown searcher {name!r} (expected one of {', '.join(REFERENCE_SEARCHERS + BASELINES)})")

@@ -1,0 +1,290 @@
+"""Policy snapshots in numpy (docs/SPEC.md section 8): the format, reading and writing, and one
+robot's decision step. No torch here: this is what a robot agent loads and runs.
+
+A snapshot is a directory:
+
+    weights.safetensors    the N networks' parameters as float32 tensors (w_pos, w_bel, b1, w2, b2;
+                           shapes in ``param_shapes``), safetensors format
+    policy.json            metadata (``format`` "mures.policy/1"): graph_id, node labels in row
+                           order, n, robots, hidden, variant, beta, the belief model the robots use
+                           (Gamma_hat, b0, as model.json), the sensor, the training config and seed,
+                           the weights file with its sha256, and the training summary
+    training_summary.json  the training summary alone
+
+Reading checks the format, the graph_id against the map in use, the node order, every tensor's
+shape and the weights' sha256, and fails with a ``SnapshotError`` naming the mismatch. Writing
+goes to a temporary directory beside the target, renamed into place, so a reader (or a crash
+half-way) never sees a half-written snapshot.
+
+Snapshots written before this format hold ``weights.pt`` (torch's format). ``read_snapshot``
+takes a ``legacy`` reader for those (shared/learning/snapshot.py passes torch's); without one it
+says how to convert the snapshot.
+
+Running a team of k robots on a snapshot trained for N: robot i runs network i for k <= N (the
+others dropped out); for k > N robot i runs network i mod N, and ``team_note`` says so.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from safetensors.numpy import load as load_safetensors
+from safetensors.numpy import save as save_safetensors
+
+from shared.core.belief import BeliefFilter
+from shared.core.choices import VARIANTS
+from shared.core.files import atomic_write
+from shared.core.graph import Graph
+from shared.core.models import ModelError, Sensor, TargetModel, from_matrix
+
+FORMAT = "mures.policy/1"
+WEIGHTS = "weights.safetensors"
+LEGACY_WEIGHTS = "weights.pt"
+META = "policy.json"
+SUMMARY = "training_summary.json"
+PARAMS = ("w_pos", "w_bel", "b1", "w2", "b2")
+
+Weights = dict[str, np.ndarray]
+
+
+class SnapshotError(ValueError):
+    """A snapshot cannot be loaded or does not fit the map in use; the message says why."""
+
+
+def param_shapes(n: int, robots: int, hidden: int) -> dict[str, tuple[int, ...]]:
+    """The parameter shapes of N = ``robots`` networks 2n -> H -> n (docs/SPEC.md section 8)."""
+    N, H = robots, hidden
+    return {"w_pos": (N, n, H), "w_bel": (N, n, H), "b1": (N, H), "w2": (N, H, n), "b2": (N, n)}
+
+
+def sha256_hex(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+class TeamInfo:
+    """What a snapshot's metadata says about the team (shared by the numpy and torch views)."""
+
+    meta: dict[str, Any]
+
+    @property
+    def variant(self) -> str:
+        return str(self.meta["variant"])
+
+    @property
+    def robots(self) -> int:
+        return int(self.meta["robots"])
+
+    def network_for(self, robot: int) -> int:
+        """The network robot ``robot`` runs (module docstring)."""
+        return robot % self.robots
+
+    def team_note(self, k: int) -> str | None:
+        if k > self.robots:
+            return (
+                f"snapshot trained for {self.robots} robots, running {k}: robot i runs network i mod {self.robots}, "
+                "so some robots share a policy"
+            )
+        return None
+
+
+@dataclass
+class SnapshotData(TeamInfo):
+    """A checked snapshot: metadata, float32 weights, the robots' belief model and sensor."""
+
+    meta: dict[str, Any]
+    weights: Weights
+    model: TargetModel  # the robots' belief model (Gamma_hat, b0)
+    sensor: Sensor
+
+
+def write_snapshot(
+    path: str | Path,
+    graph: Graph,
+    weights: Weights,
+    model: TargetModel,
+    sensor: Sensor,
+    variant: str,
+    beta: list[float],
+    config: dict[str, Any],
+    summary: dict[str, Any],
+) -> Path:
+    """Write a snapshot directory atomically (an existing one at ``path`` is replaced)."""
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown variant {variant!r}")
+    robots, n, hidden = weights["w_pos"].shape
+    _check_shapes(weights, param_shapes(n, robots, hidden), str(path))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    blob = save_safetensors({k: np.ascontiguousarray(weights[k], dtype=np.float32) for k in PARAMS})
+    meta = {
+        "format": FORMAT,
+        "graph_id": graph.graph_id,
+        "map": graph.name,
+        "nodes": [int(x) for x in graph.labels],
+        "n": graph.n,
+        "robots": int(robots),
+        "hidden": int(hidden),
+        "variant": variant,
+        "beta": [float(b) for b in beta],
+        "model": {**model.to_json(graph), "kind": model.kind},
+        "sensor": sensor.to_json(),
+        "training": config,
+        "seed": config.get("seed"),
+        "weights": {"file": WEIGHTS, "sha256": sha256_hex(blob), "bytes": len(blob)},
+        "summary": summary,
+    }
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        atomic_write(tmp / WEIGHTS, blob)
+        atomic_write(tmp / META, json.dumps(meta, indent=1) + "\n")
+        atomic_write(tmp / SUMMARY, json.dumps(summary, indent=1) + "\n")
+        if path.exists():
+            old = path.with_name(f".{path.name}.old")
+            shutil.rmtree(old, ignore_errors=True)
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def read_meta(path: str | Path) -> dict[str, Any]:
+    """policy.json of a snapshot directory, with its format and required fields checked."""
+    path = Path(path)
+    where = str(path)
+    if not path.is_dir():
+        raise SnapshotError(f"{where}: not a snapshot directory")
+    try:
+        meta = json.loads((path / META).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise SnapshotError(f"{where}: no {META}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SnapshotError(f"{where}/{META}: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise SnapshotError(f"{where}/{META}: format is {got!r}, expected {FORMAT!r}")
+    for key in ("graph_id", "n", "robots", "hidden", "variant", "model", "sensor", "weights"):
+        if key not in meta:
+            raise SnapshotError(f"{where}/{META}: missing field {key!r}")
+    if meta["variant"] not in VARIANTS:
+        raise SnapshotError(f"{where}: unknown variant {meta['variant']!r}")
+    w = meta["weights"]
+    if not isinstance(w, dict) or w.get("file", LEGACY_WEIGHTS) not in (WEIGHTS, LEGACY_WEIGHTS):
+        raise SnapshotError(f"{where}/{META}: weights must name {WEIGHTS} (or the older {LEGACY_WEIGHTS})")
+    return meta
+
+
+def read_weights_blob(path: str | Path, meta: dict[str, Any]) -> tuple[str, bytes]:
+    """(file name, bytes) of the weights file, its sha256 checked against the metadata."""
+    path = Path(path)
+    name = meta["weights"].get("file", LEGACY_WEIGHTS)
+    try:
+        raw = (path / name).read_bytes()
+    except FileNotFoundError:
+        raise SnapshotError(f"{path}: no {name}") from None
+    if sha256_hex(raw) != meta["weights"].get("sha256"):
+        raise SnapshotError(f"{path}/{name}: sha256 does not match {META} (corrupt or replaced file)")
+    return name, raw
+
+
+def read_snapshot(path: str | Path, graph: Graph, legacy: Callable[[bytes], Weights] | None = None) -> SnapshotData:
+    """Load and check a snapshot for ``graph`` (module docstring)."""
+    path = Path(path)
+    where = str(path)
+    meta = read_meta(path)
+    if meta["graph_id"] != graph.graph_id:
+        raise SnapshotError(
+            f"{where}: trained on map {meta.get('map')!r} ({meta['graph_id']}), "
+            f"not on {graph.name!r} ({graph.graph_id})"
+        )
+    if meta["n"] != graph.n or meta.get("nodes") != [int(x) for x in graph.labels]:
+        raise SnapshotError(f"{where}: node list does not match map {graph.name!r} in row order")
+    name, raw = read_weights_blob(path, meta)
+    try:
+        if name == WEIGHTS:
+            weights = dict(load_safetensors(raw))
+        elif legacy is not None:
+            weights = legacy(raw)
+        else:
+            raise SnapshotError(
+                f"{where}: weights are in the older torch format ({LEGACY_WEIGHTS}); "
+                f"convert it with `mures snapshot convert {where}` (the training server converts its own)"
+            )
+    except SnapshotError:
+        raise
+    except Exception as exc:  # safetensors and torch raise several types for a bad file
+        raise SnapshotError(f"{where}/{name}: cannot be read as weights ({exc})") from None
+    _check_shapes(weights, param_shapes(graph.n, int(meta["robots"]), int(meta["hidden"])), f"{where}/{name}")
+    try:
+        m = meta["model"]
+        model = from_matrix(graph, np.asarray(m["gamma"], dtype=np.float64), m["b0"], kind=m.get("kind", "matrix"))
+        s = meta["sensor"]
+        sensor = Sensor(float(s["eta_fn"]), float(s["eta_fp"]), str(s["detection"]))
+    except (ModelError, KeyError, TypeError, ValueError) as exc:
+        raise SnapshotError(f"{where}/{META}: bad belief model or sensor ({exc})") from None
+    return SnapshotData(meta=meta, weights={k: weights[k] for k in PARAMS}, model=model, sensor=sensor)
+
+
+def _check_shapes(weights: Any, expected: dict[str, tuple[int, ...]], where: str) -> None:
+    if not isinstance(weights, dict) or set(weights) != set(expected):
+        got = sorted(weights) if isinstance(weights, dict) else type(weights).__name__
+        raise SnapshotError(f"{where}: expected tensors {sorted(expected)}, got {got}")
+    for k, shape in expected.items():
+        if tuple(weights[k].shape) != shape:
+            raise SnapshotError(f"{where}: {k} has shape {tuple(weights[k].shape)}, expected {shape}")
+
+
+class PolicyAgent:
+    """One robot's decision loop in numpy (Algorithm 1), what the robot agent runs: its own belief
+    filter (Eq. 1) and its own network, nothing from other robots. ``reset(p0, z0)`` at a mission's
+    start, ``observe(p, z)`` for each later observation, then ``act(p)`` -> next node row.
+
+    C-CE-PG needs the other robots' observations, so it is refused here.
+    """
+
+    def __init__(
+        self, snap: SnapshotData, graph: Graph, robot: int, seed: int = 0, greedy_actions: bool = False
+    ) -> None:
+        if snap.variant == "c-cepg":
+            raise SnapshotError("a c-cepg policy needs every robot's observations; a lone agent cannot run it")
+        k = snap.network_for(robot)
+        W = {name: np.asarray(w[k], dtype=np.float64) for name, w in snap.weights.items()}
+        self.w_pos, self.w_bel, self.b1 = W["w_pos"], W["w_bel"], W["b1"]  # (n, H), (n, H), (H,)
+        self.w2, self.b2 = W["w2"], W["b2"]  # (H, n), (n,)
+        self.graph = graph
+        self.filter = BeliefFilter(graph, snap.model, snap.sensor)
+        self.rng = np.random.default_rng(seed)
+        self.greedy_actions = greedy_actions
+        self.belief: np.ndarray | None = None
+
+    def reset(self, p0: int, z0: int) -> None:
+        """b_0 ∝ Lambda(p_0, z_0) b0 (Theorem 1 at t = 0)."""
+        self.belief = self.filter.reset(p0, z0)
+
+    def observe(self, p: int, z: int) -> None:
+        """Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}."""
+        self.belief = self.filter.update(p, z)
+
+    def act(self, p: int) -> int:
+        """Next node row from N[p] for the current belief: a ~ pi_i(. | onehot(p), b) (Algorithm 1, line 3)."""
+        assert self.belief is not None, "reset() first"
+        nbrs = self.graph.closed(p)
+        h = np.maximum(self.w_pos[p] + self.belief @ self.w_bel + self.b1, 0.0)
+        logits = h @ self.w2[:, nbrs] + self.b2[nbrs]
+        if self.greedy_actions:
+            return int(nbrs[int(np.argmax(logits))])
+        w = np.exp(logits - logits.max())
+        c = np.cumsum(w)
+        return int(nbrs[min(int(np.searchsorted(c, self.rng.random() * c[-1], side="right")), len(nbrs) - 1)])

@@ -1,0 +1,101 @@
+"""Batched beliefs in torch (docs/SPEC.md section 2), for the simulator, evaluator and trainer.
+
+Beliefs are row vectors of shape (..., n) (B episodes, N robots, n nodes); the prediction
+Gamma_hat^T b is ``b @ Gamma``. The same algebra as the agent's numpy ``BeliefFilter``
+(shared/core/belief.py), with the same vanishing-mass rule; tests/test_belief.py checks that the
+two agree with each other and with brute-force Bayes.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from shared.core.belief import TINY
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+
+
+class BatchedBelief:
+    """Batched belief algebra in torch; beliefs are row vectors of shape (..., n)."""
+
+    def __init__(
+        self,
+        graph: Graph,
+        model: TargetModel,
+        sensor: Sensor,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        self.n = graph.n
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.gamma = torch.as_tensor(model.dense(), dtype=dtype, device=self.device)  # (n, n)
+        self.b0 = torch.as_tensor(model.b0, dtype=dtype, device=self.device)  # (n,)
+        self.detect = torch.as_tensor(graph.detection_matrix(sensor.detection), device=self.device)  # [p, j]: j in D(p)
+        (in0, in1), (out0, out1) = sensor.likelihoods()
+        self.lik_in = torch.tensor([in0, in1], dtype=dtype, device=self.device)  # indexed by z
+        self.lik_out = torch.tensor([out0, out1], dtype=dtype, device=self.device)
+
+    def likelihood(self, pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Diagonal of Lambda (Eq. 2) for robots at ``pos`` seeing ``z``: (...,) -> (..., n)."""
+        z = z.long()
+        return torch.where(self.detect[pos], self.lik_in[z].unsqueeze(-1), self.lik_out[z].unsqueeze(-1))
+
+    def collective_likelihood(
+        self, pos: torch.Tensor, z: torch.Tensor, active: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Diagonal of Lambda_c (Eq. 7): product over robots. (B, N) -> (B, n).
+
+        Robots with ``active`` False (withdrawn) contribute no observation.
+        """
+        lik = self.likelihood(pos, z)  # (B, N, n)
+        if active is not None:
+            lik = torch.where(active.unsqueeze(-1), lik, torch.ones_like(lik))
+        return lik.prod(dim=-2)
+
+    def predict(self, b: torch.Tensor) -> torch.Tensor:
+        """Gamma_hat^T b for each belief row: (..., n) -> (..., n)."""
+        return b @ self.gamma
+
+    @staticmethod
+    def normalise(x: torch.Tensor, lik: torch.Tensor) -> torch.Tensor:
+        """x / sum(x), restarting from ``lik`` (then uniform) where the mass vanished."""
+        total = x.sum(-1, keepdim=True)
+        ok = total > TINY
+        if bool(ok.all()):
+            return x / total
+        fallback_total = lik.sum(-1, keepdim=True)
+        fallback = torch.where(
+            fallback_total > TINY, lik / fallback_total.clamp_min(TINY), torch.full_like(lik, 1.0 / lik.shape[-1])
+        )
+        return torch.where(ok, x / total.clamp_min(TINY), fallback)
+
+    def initial(self, lik: torch.Tensor) -> torch.Tensor:
+        """b_0 ∝ Lambda_0 b0 (Theorem 1 at t = 0; Theorem 2 / Eq. 4 with a collective lik)."""
+        return self.normalise(lik * self.b0, lik)
+
+    def update(self, b: torch.Tensor, lik: torch.Tensor) -> torch.Tensor:
+        """Eq. 1 / Eq. 6: b_t ∝ Lambda Gamma_hat^T b_{t-1}; lik is Lambda's diagonal (..., n)."""
+        return self.normalise(lik * self.predict(b), lik)
+
+
+class BeliefTracker:
+    """Each robot's belief across a batch of episodes (Eq. 1, or Eq. 6 with a collective lik):
+    b_t ∝ Lambda_t Gamma^T b_{t-1}, restarting from b0 in slots whose episode just began.
+    Reuses the prediction Gamma^T b made at the previous decision."""
+
+    def __init__(self, belief: BatchedBelief) -> None:
+        self.belief = belief
+        self._pred: torch.Tensor | None = None  # Gamma^T b_t from the last update, (B, N, n)
+
+    def update(self, lik: torch.Tensor, new: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """lik (B, N, n), new (B,) -> (b_t, Gamma^T b_t), both (B, N, n)."""
+        bel = self.belief
+        b0 = bel.b0.expand_as(lik)
+        if self._pred is None or self._pred.shape != lik.shape:
+            prior = b0
+        else:
+            prior = torch.where(new.view(-1, 1, 1), b0, self._pred)
+        b = bel.normalise(lik * prior, lik)
+        self._pred = bel.predict(b)
+        return b, self._pred

@@ -1,0 +1,154 @@
+"""The trainer's configuration, the one source of truth for its defaults (no torch here).
+
+Every field of ``TrainConfig`` is a `mures train` flag (``add_flags`` builds them from the fields:
+name, default, type, choices and help), the retraining API's parameters take their defaults from
+it (training_server/api/schemas.py), and a snapshot stores it whole (policy.json "training").
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+from dataclasses import MISSING, asdict, dataclass, field, fields
+from typing import Any
+
+from shared.core.choices import BELIEFS, CE_STATES, VARIANTS
+
+
+def _opt(help: str, **kw: Any) -> Any:
+    """Field metadata: the flag's help, and optionally ``choices``, ``parse`` (text -> value),
+    ``metavar``, ``flag`` (False: not a `mures train` flag, set elsewhere)."""
+    return {"help": help, **kw}
+
+
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
+    return v
+
+
+def floats(text: str) -> list[float]:
+    """One number or comma-separated numbers (one per robot)."""
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or comma-separated numbers, got {text!r}") from None
+    if not vals or any(math.isnan(v) for v in vals):
+        raise argparse.ArgumentTypeError(f"expected a number or comma-separated numbers, got {text!r}")
+    return vals
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a training run (stored in the snapshot's metadata)."""
+
+    robots: int = field(metadata=_opt("number of robots N", flag=False))
+    episodes: int = field(default=400_000, metadata=_opt("training episodes", parse=positive_int))
+    beta: list[float] = field(
+        default_factory=lambda: [0.5],
+        metadata=_opt("Eq. 9's beta, one value or one per robot (1 = PG)", parse=floats),
+    )
+    lr: list[float] = field(
+        default_factory=lambda: [1e-2],
+        metadata=_opt("Adam learning rate alpha_i, one value or one per robot", parse=floats),
+    )
+    lr_final: float = field(
+        default=0.1, metadata=_opt("the learning rate decays linearly to this fraction of itself over the run")
+    )
+    variant: str = field(
+        default="cepg", metadata=_opt("own belief, sensing range, or collective belief", choices=VARIANTS)
+    )
+    batch: int = field(default=256, metadata=_opt("episodes per update (B), over all processes", parse=positive_int))
+    eps: float = field(default=0.1, metadata=_opt("smoothing of the cross entropy, pi~ = (1-eps) pi + eps U"))
+    ce_fraction: float = field(default=0.25, metadata=_opt("share of decisions the cross entropy is estimated on"))
+    j_unit: float = field(default=1.0, metadata=_opt("J's unit in steps (1: Eq. 9's natural units)"))
+    ce_states: str = field(
+        default="shared",
+        metadata=_opt(
+            "where the cross entropy counts: states two robots share (node, belief), or all", choices=CE_STATES
+        ),
+    )
+    belief: str = field(
+        default="em",
+        metadata=_opt("robots' belief model: Gamma_hat_0 re-estimated by EM, or the true model", choices=BELIEFS),
+    )
+    em_first: int = field(default=8192, metadata=_opt("episodes before the first EM update", parse=positive_int))
+    em_every: int = field(default=100_000, metadata=_opt("episodes between later EM updates", parse=positive_int))
+    em_missions: int = field(default=512, metadata=_opt("missions recorded for each EM update", parse=positive_int))
+    em_max_iter: int = field(default=300, metadata=_opt("EM forward-backward passes at most", parse=positive_int))
+    seed: int = field(default=0, metadata=_opt("random seed", flag=False))
+    device: str = field(default="cpu", metadata=_opt("torch device", flag=False))
+    hidden: int | None = field(
+        default=None, metadata=_opt("hidden units (default 2n, the paper's)", parse=positive_int, metavar="H")
+    )
+
+    def per_robot(self, values: list[float], name: str) -> list[float]:
+        if len(values) == 1:
+            return values * self.robots
+        if len(values) != self.robots:
+            raise ValueError(f"{name}: give one value or one per robot ({self.robots}), got {len(values)}")
+        return list(values)
+
+    def check(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown variant {self.variant!r} (expected one of {', '.join(VARIANTS)})")
+        if self.ce_states not in CE_STATES:
+            raise ValueError(f"ce_states must be one of {', '.join(CE_STATES)}, got {self.ce_states!r}")
+        if self.belief not in BELIEFS:
+            raise ValueError(f"belief must be one of {', '.join(BELIEFS)}, got {self.belief!r}")
+        for b in self.per_robot(self.beta, "beta"):
+            if not 0.0 <= b <= 1.0:
+                raise ValueError(f"beta must be in [0, 1], got {b}")
+        for a in self.per_robot(self.lr, "lr"):
+            if not 0.0 < a < 1.0:
+                raise ValueError(f"learning rate must be in (0, 1), got {a}")
+        if not 0.0 < self.ce_fraction <= 1.0:
+            raise ValueError(f"ce_fraction must be in (0, 1], got {self.ce_fraction}")
+        if not 0.0 < self.lr_final <= 1.0:
+            raise ValueError(f"lr_final must be in (0, 1], got {self.lr_final}")
+        if not 0.0 < self.eps <= 1.0:
+            raise ValueError(f"eps must be in (0, 1], got {self.eps}")
+        if self.batch < 1 or self.episodes < 1:
+            raise ValueError("batch and episodes must be positive")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def default(name: str) -> Any:
+    """A field's default value (the one source of the trainer's defaults)."""
+    f = next(f for f in fields(TrainConfig) if f.name == name)
+    if f.default is not MISSING:
+        return f.default
+    factory: Callable[[], Any] = f.default_factory  # type: ignore[assignment]
+    return factory()
+
+
+def add_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per TrainConfig field (``--em-first`` for ``em_first``), defaults from the fields."""
+    for f in fields(TrainConfig):
+        meta = f.metadata
+        if not meta.get("flag", True):
+            continue
+        dflt = default(f.name)
+        parse = meta.get("parse") or (float if f.type in ("float", float) else str)
+        shown = ",".join(f"{x:g}" for x in dflt) if isinstance(dflt, list) else dflt
+        kw: dict[str, Any] = {"default": dflt, "help": f"{meta['help']} (default {shown})", "dest": f.name}
+        if "choices" in meta:
+            kw["choices"] = meta["choices"]
+        else:
+            kw["type"] = parse
+        if "metavar" in meta:
+            kw["metavar"] = meta["metavar"]
+        parser.add_argument("--" + f.name.replace("_", "-"), **kw)
+
+
+def from_flags(args: argparse.Namespace, **given: Any) -> TrainConfig:
+    """A TrainConfig from the parsed flags of ``add_flags``; ``given`` sets the other fields."""
+    values = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if f.metadata.get("flag", True)}
+    return TrainConfig(**values, **given)
