@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo demo-train test lint format bench clean
+.PHONY: install demo demo-train test test-fast lint format bench clean
 
 install: $(STAMP)
 
@@ -36,6 +36,11 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
+
+# The suite without the multi-process tests (servers, agents, fleets, subprocess training): minutes less.
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
 
 format: $(STAMP)
 	$(VENV)/bin/ruff format .
@@ -51,4 +56,4 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_fleet.py
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache build *.egg-info
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache build *.egg-info

@@ -1,5 +1,5 @@
 """The fleet's speed on loopback: the lockstep mission step of a simulated fleet and each agent's
-decision step inside the running agent process.
+decision step inside the running agent process, and the agents' resident memory.
 
     python benchmarks/bench_fleet.py [--robots 5] [--missions 100] [--env museum]
 
@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
 from shared.core.wire import telemetry_key, zenoh_config
-from shared.tools.fleetsim import launch
+from shared.tools.fleetsim import agent_rss_mb, launch
 
 
 def main() -> None:
@@ -61,6 +61,8 @@ def main() -> None:
                 wall = time.perf_counter() - t1
                 time.sleep(0.5)
                 sub.undeclare()
+            rss = {r: agent_rss_mb(p.pid) for r, p in fleet.agents.items()}
+            torch_mapped = [r for r, p in fleet.agents.items() if "libtorch" in Path(f"/proc/{p.pid}/maps").read_text()]
             period = np.asarray(fleet.world.step_intervals) * 1e3
             wait = np.asarray(fleet.world.step_seconds) * 1e3
         finally:
@@ -77,6 +79,10 @@ def main() -> None:
     print(
         f"agent decision step inside the agent ({len(d)} decisions, n={graph.n}): median {np.median(d):.1f} us, "
         f"p99 {np.percentile(d, 99):.1f} us"
+    )
+    print(
+        f"agent resident memory after the missions: {', '.join(f'{r} {v:.1f} MB' for r, v in rss.items())}; "
+        f"libtorch mapped in: {torch_mapped or 'none'}"
     )
 
 

@@ -116,7 +116,8 @@ class Journal:
         """The header and steps of a mission cut short by a crash, if any."""
         if not self.path.exists():
             return None
-        header, steps = None, []
+        header: dict[str, Any] | None = None
+        steps: list[dict[str, int]] = []
         for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
             try:
                 obj = json.loads(line)
@@ -215,7 +216,7 @@ class Agent:
 
     def sync_policy(self, reason: str) -> None:
         """Between missions only: take the server's current version if it differs from ours."""
-        assert self.policies is not None
+        assert self.policies is not None and self.graph is not None
         try:
             meta = self.api.get("/api/v1/policies/current")
             version, sha = int(meta["version"]), str(meta["sha256"])
@@ -317,8 +318,11 @@ class Agent:
             len(steps),
         )
 
-    def _record(self, header: dict[str, Any], steps: list[dict[str, int]], end: dict[str, Any] | None) -> dict:
+    def _record(
+        self, header: dict[str, Any], steps: list[dict[str, int]], end: dict[str, Any] | None
+    ) -> dict[str, Any]:
         graph = self.graph
+        assert graph is not None, "the map is fetched before any mission"
         captured, ct, by = False, None, None
         # a robot whose own steps end before the capture (withdrawn, restarted) did not witness it
         if end and end.get("type") == "captured" and isinstance(end.get("t"), int) and end["t"] <= steps[-1]["t"]:
@@ -348,6 +352,7 @@ class Agent:
         if msg.get("policy_version") is not None and msg["policy_version"] != self.policies.version:
             self.sync_policy(f"before mission {mid}")  # still between missions
         snap = self.policies.snapshot
+        assert snap is not None, "run() waits for a policy before taking missions"
         agent = PolicyAgent(snap, graph, index, seed=mission_seed(msg.get("seed", 0), index))
         max_steps = int(msg.get("max_steps") or 3 * graph.n)
         header = {

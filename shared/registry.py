@@ -27,7 +27,7 @@ def make_searcher(
 ) -> Searcher:
     """Build a named searcher (not ``policy:DIR``: see ``searcher_factory``)."""
     if name in BASELINES:
-        return make_baseline(name, graph, model, sensor, n_robots, seed=seed)  # type: ignore[no-any-return]
+        return make_baseline(name, graph, model, sensor, n_robots, seed=seed)
     if name == "random":
         return RandomSearcher(graph, seed=seed, device=device)
     if name == "greedy":

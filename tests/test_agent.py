@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import tarfile
 
+import numpy as np
 import pytest
 import torch
 
@@ -14,8 +16,10 @@ from robot_agent.backend import BackendError, load_backend
 from robot_agent.examples.nav_goal import NavGoalBackend
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, identity_model
+from shared.core.snapshot import PolicyAgent, SnapshotError, read_snapshot
 from shared.learning.policy import TeamPolicy
-from shared.learning.snapshot import save_snapshot
+from shared.learning.snapshot import convert_snapshot, load_snapshot, save_snapshot
+from shared.tools.cli import main as cli_main
 
 
 def test_journal_recovers_the_steps_of_a_killed_mission(tmp_path):
@@ -48,8 +52,6 @@ def _artifact(tmp_path, graph, name="snap"):
     with tarfile.open(tar_path, "w") as tar:
         for f in snap.iterdir():
             tar.add(f, arcname=f.name)
-    import hashlib
-
     return tar_path, hashlib.sha256(tar_path.read_bytes()).hexdigest()
 
 
@@ -119,3 +121,47 @@ def test_load_backend_errors_are_clear():
         load_backend("no.such.module:Thing")
     with pytest.raises(ValueError, match="no begin"):
         load_backend("json:JSONDecoder")
+
+
+def _legacy_snapshot(tmp_path, graph):
+    """A snapshot as releases before safetensors wrote it: weights.pt (torch.save of the tensors)."""
+    torch.manual_seed(1)
+    pol = TeamPolicy(graph.n, 2, torch.as_tensor(graph.adjacency()))
+    d = save_snapshot(tmp_path / "old", pol, graph, identity_model(graph), Sensor(), "cepg", [0.5, 0.5], {}, {})
+    buf = io.BytesIO()
+    torch.save({k: v.detach().clone() for k, v in pol.named_parameters()}, buf)
+    (d / "weights.pt").write_bytes(buf.getvalue())
+    (d / "weights.safetensors").unlink()
+    meta = json.loads((d / "policy.json").read_text())
+    meta["weights"] = {"file": "weights.pt", "sha256": hashlib.sha256(buf.getvalue()).hexdigest()}
+    (d / "policy.json").write_text(json.dumps(meta))
+    return d, pol
+
+
+def test_older_torch_snapshots_are_read_and_converted_with_the_same_values(tmp_path):
+    graph = builtin_graph("office")
+    d, pol = _legacy_snapshot(tmp_path, graph)
+    with pytest.raises(SnapshotError, match="mures snapshot convert"):  # the agent's reader names the fix
+        read_snapshot(d, graph)
+    team = load_snapshot(d, graph)  # the trainer's reader takes it as it is
+    assert all(torch.equal(p, q) for p, q in zip(pol.parameters(), team.policy.parameters(), strict=True))
+    assert convert_snapshot(d) is True and not (d / "weights.pt").exists()
+    assert convert_snapshot(d) is False  # already converted
+    data = read_snapshot(d, graph)
+    for k, p in pol.named_parameters():
+        assert np.array_equal(data.weights[k], p.detach().numpy()), k
+    # the numpy decision step on the converted snapshot is the torch policy's, draw for draw
+    agent = PolicyAgent(data, graph, robot=1, greedy_actions=True)
+    agent.reset(graph.start, 0)
+    logits = team.policy.logits_for(
+        torch.tensor([1]), torch.tensor([[graph.start]]), torch.as_tensor(agent.belief, dtype=torch.float32)[None, None]
+    )
+    assert agent.act(graph.start) == int(logits.argmax())
+
+
+def test_snapshot_convert_command(tmp_path):
+    graph = builtin_graph("office")
+    d, _pol = _legacy_snapshot(tmp_path, graph)
+    assert cli_main(["snapshot", "convert", str(d)]) == 0 and (d / "weights.safetensors").exists()
+    assert cli_main(["snapshot", "convert", str(d)]) == 0  # nothing to do, says so
+    assert cli_main(["snapshot", "convert", str(tmp_path / "missing")]) == 2

@@ -26,7 +26,9 @@ from shared.core.snapshot import PolicyAgent, read_snapshot
 from shared.core.wire import episode_key, zenoh_config
 from shared.engine.evaluate import evaluate, mean_ci95
 from shared.learning.snapshot import PolicySearcher, load_snapshot
-from shared.tools.fleetsim import launch, start_server, wait_until
+from shared.tools.fleetsim import agent_rss_mb, launch, start_server, wait_until
+
+pytestmark = pytest.mark.slow  # every test here starts server and agent processes
 
 ROBOTS = ["r1", "r2", "r3"]
 
@@ -102,6 +104,13 @@ def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
     mission = fleet.api.get(f"/api/v1/missions/{items[0]['mission_id']}")
     for robot in ROBOTS:
         _replay(fleet, robot, mission)
+    # the agents have pulled a policy and flown 301 missions: torch was never loaded, and they stay small
+    for robot, proc in fleet.agents.items():
+        maps = Path(f"/proc/{proc.pid}/maps").read_text()
+        assert "libtorch" not in maps and "scipy" not in maps, robot
+        rss_mb = agent_rss_mb(proc.pid)
+        print(f"agent {robot}: {rss_mb:.1f} MB resident")
+        assert rss_mb < 120, (robot, rss_mb)
 
 
 def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):

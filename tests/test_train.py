@@ -195,6 +195,7 @@ def mures(*args, **kw):
     )
 
 
+@pytest.mark.slow
 def test_cli_train_then_evaluate_policy(tmp_path):
     out = tmp_path / "team"
     r = mures(
@@ -247,6 +248,7 @@ def test_cli_train_bad_arguments(tmp_path, args, fragment):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow
 def test_ctrl_c_leaves_a_valid_snapshot(tmp_path):
     out = tmp_path / "team"
     p = subprocess.Popen(
@@ -279,6 +281,7 @@ def test_ctrl_c_leaves_a_valid_snapshot(tmp_path):
     assert snap.meta["summary"]["interrupted"] and 0 < snap.meta["summary"]["episodes"] < 10000000
 
 
+@pytest.mark.slow
 def test_two_process_data_parallel_training_ends_with_identical_weights(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     r = subprocess.run(

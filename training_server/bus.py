@@ -122,7 +122,9 @@ class Bus:
 
     def _ingest(self, batch: list[zenoh.Query]) -> None:
         graph, fleet, store = self.server.graph, self.fleet, self.server.store
-        rows, accepted, rejected = [], [], []
+        rows: list[tuple[Any, ...]] = []
+        accepted: list[tuple[zenoh.Query, int | None]] = []
+        rejected: list[tuple[zenoh.Query, str, str]] = []
         seen: set[tuple[str, str]] = set()
         for q in batch:
             key = str(q.key_expr)

@@ -22,46 +22,39 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.learning import config as train_config
+
 log = logging.getLogger("mures.server.training")
 
-DEFAULTS: dict[str, Any] = {
-    "episodes": 20_000,  # CE-PG episodes in simulation, warm-started from the current policy
-    "beta": 0.5,
-    "lr": 0.01,
-    "seed": 0,
-    "max_records": 20_000,  # newest episode records used by EM
-    "em_max_iter": 300,
-    "gate_episodes": 1000,  # evaluation episodes for the gate (same seeds for both policies)
-    "gate": True,  # False: promote whatever the run produced
-    "promote": True,  # False: create the version but keep the current one
-    "threads": 0,  # torch threads in the training process (0: torch's default)
-}
 
+class TrainingParams(BaseModel):
+    """A retrain's parameters: the body of POST /api/v1/training-runs (every field optional) and what
+    the training process runs. The trainer's own settings default to TrainConfig's (one source)."""
 
-def check_params(params: dict[str, Any]) -> dict[str, Any]:
-    """Merge ``params`` into the defaults; raise ValueError naming the first bad one."""
-    out = dict(DEFAULTS)
-    for k, v in params.items():
-        if k not in DEFAULTS:
-            raise ValueError(f"unknown parameter {k!r} (expected one of {', '.join(DEFAULTS)})")
-        want = type(DEFAULTS[k])
-        if want is float and isinstance(v, int) and not isinstance(v, bool):
-            v = float(v)
-        if not isinstance(v, want) or (want is int and isinstance(v, bool)):
-            raise ValueError(f"parameter {k!r} must be {want.__name__}, got {v!r}")
-        out[k] = v
-    if not 256 <= out["episodes"] <= 10_000_000:
-        raise ValueError("episodes must be between 256 and 10,000,000")
-    if not 0.0 <= out["beta"] <= 1.0:
-        raise ValueError("beta must be in [0, 1]")
-    if not 0.0 < out["lr"] < 1.0:
-        raise ValueError("lr must be in (0, 1)")
-    for k in ("max_records", "em_max_iter", "gate_episodes"):
-        if out[k] < 1:
-            raise ValueError(f"{k} must be at least 1")
-    if out["threads"] < 0:
-        raise ValueError("threads must be >= 0")
-    return out
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    episodes: int = Field(
+        20_000, ge=256, le=10_000_000, description="CE-PG episodes in simulation, warm-started from the current policy"
+    )
+    beta: float = Field(
+        train_config.default("beta")[0], ge=0.0, le=1.0, allow_inf_nan=False, description="Eq. 9's beta (1 = PG)"
+    )
+    lr: float = Field(
+        train_config.default("lr")[0], gt=0.0, lt=1.0, allow_inf_nan=False, description="Adam learning rate"
+    )
+    seed: int = Field(train_config.default("seed"), ge=0, le=2**63 - 1, description="training and gate seed")
+    max_records: int = Field(20_000, ge=1, le=10_000_000, description="newest episode records used by EM")
+    em_max_iter: int = Field(
+        train_config.default("em_max_iter"), ge=1, le=100_000, description="EM forward-backward passes at most"
+    )
+    gate_episodes: int = Field(
+        1000, ge=1, le=1_000_000, description="evaluation episodes of the gate (the same seeds for both policies)"
+    )
+    gate: bool = Field(True, description="publish only if the new policy is not worse than the current one")
+    promote: bool = Field(True, description="make the new version current")
+    threads: int = Field(0, ge=0, le=1024, description="torch threads in the training process (0: torch's default)")
 
 
 def run_training(job: dict[str, Any], events: Any, cancel: Any) -> None:
@@ -89,9 +82,9 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     from shared.learning.snapshot import PolicySearcher, load_snapshot, save_snapshot
     from shared.learning.train import train
 
-    p = job["params"]
-    if p["threads"]:
-        torch.set_num_threads(p["threads"])
+    p = TrainingParams.model_validate(job["params"])
+    if p.threads:
+        torch.set_num_threads(p.threads)
     graph = graph_from_dict(job["graph"], "server map")
     current = load_snapshot(job["current_path"], graph)
     sensor = current.sensor
@@ -105,7 +98,7 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     db = sqlite3.connect(f"file:{job['db']}?mode=ro", uri=True)
     try:
         rows = db.execute(
-            "SELECT record FROM episodes WHERE fleet=? ORDER BY id DESC LIMIT ?", (job["fleet"], p["max_records"])
+            "SELECT record FROM episodes WHERE fleet=? ORDER BY id DESC LIMIT ?", (job["fleet"], p.max_records)
         ).fetchall()
     finally:
         db.close()
@@ -113,7 +106,7 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     if len(data.length) == 0:
         raise ValueError("no usable episode records: fly some missions before training")
     say("em", message=f"EM on {len(data.length)} missions ({data.used_records} records)")
-    est = em(graph, data, init=uniform_walk(graph), max_iter=p["em_max_iter"], tol=1e-5)
+    est = em(graph, data, init=uniform_walk(graph), max_iter=p.em_max_iter, tol=1e-5)
     model = est.model
     em_info = {
         "missions": len(data.length),
@@ -126,14 +119,14 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
         raise _Cancelled
 
     # 2. CE-PG in simulation under the estimated model, from the current policy
-    cfg = TrainConfig(
+    cfg = TrainConfig(  # the other fields keep TrainConfig's defaults
         robots=current.robots,
-        episodes=p["episodes"],
-        beta=[p["beta"]],
-        lr=[p["lr"]],
+        episodes=p.episodes,
+        beta=[p.beta],
+        lr=[p.lr],
         variant=current.variant,
         belief="true",
-        seed=p["seed"],
+        seed=p.seed,
         hidden=current.policy.H,
     )
     last = [0.0]
@@ -154,7 +147,7 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
         raise _Cancelled
 
     # 3. the evaluation gate: both policies on the same seeds under the estimated model
-    say("gate", message=f"evaluating new and current policy on {p['gate_episodes']} episodes")
+    say("gate", message=f"evaluating new and current policy on {p.gate_episodes} episodes")
     from shared.learning.snapshot import Snapshot
 
     new = Snapshot(
@@ -162,14 +155,18 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     )
     figures = {}
     for name, snap in (("current", current), ("new", new)):
+
+        def team(seed: int, snap: Snapshot = snap) -> PolicySearcher:
+            return PolicySearcher(snap, graph, sensor, current.robots, seed=seed)
+
         r = evaluate(
             graph,
             model,
             sensor,
             current.robots,
-            lambda s, snap=snap: PolicySearcher(snap, graph, sensor, current.robots, seed=s),
-            episodes=p["gate_episodes"],
-            seed=p["seed"] + 1,
+            team,
+            episodes=p.gate_episodes,
+            seed=p.seed + 1,
         ).summary()
         figures[name] = {k: r[k] for k in ("mean_capture_time", "ci95", "censored_fraction", "episodes")}
     passed = figures["new"]["mean_capture_time"] <= figures["current"]["mean_capture_time"]
@@ -183,10 +180,10 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
         "metrics": {
             "em": em_info,
             "train": {k: res.summary[k] for k in ("episodes", "env_steps", "wall_seconds", "episodes_per_second")},
-            "gate": {**figures, "passed": passed, "enforced": p["gate"]},
+            "gate": {**figures, "passed": passed, "enforced": p.gate},
             "wall_seconds": round(time.perf_counter() - t0, 2),
         },
-        "passed": passed or not p["gate"],
+        "passed": passed or not p.gate,
     }
 
 

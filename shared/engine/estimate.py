@@ -91,7 +91,7 @@ def collect_missions(
             if capture_aware:
                 t = np.arange(Tr)
                 final = ep.captured and ep.capture_time is not None
-                before_capture = t < ep.capture_time if final else np.ones(Tr, dtype=bool)
+                before_capture = t < ep.capture_time if ep.capture_time is not None else np.ones(Tr, dtype=bool)
                 false_alarm = (ep.z == 1) & before_capture
                 l_in = np.where(false_alarm, 0.0, l_in)
                 if final and ep.captured_by == ep.robot_id and ep.capture_time == Tr - 1:

@@ -105,9 +105,78 @@ def rollout(
 
 @dataclass
 class LossTerms:
-    loss: torch.Tensor
-    pg: torch.Tensor  # (N,) surrogate of J per robot
-    ce: torch.Tensor  # (N,) mean over j != i of H(pi_j, pi~_i)
+    loss: torch.Tensor  # scalar: -sum_i J~(theta_i), minimised
+    pg: torch.Tensor  # (N,) J's surrogate per robot (its gradient is Eq. 11)
+    ce: torch.Tensor  # (N,) mean over j != i of H(pi_j, pi~_i), Eq. 12
+
+
+def advantages(ro: Rollout, j_unit: float = 1.0) -> torch.Tensor:
+    """Eq. 11's weights: the return G_t (in units of ``j_unit`` steps) minus the baseline b_t, the
+    batch mean return of the episodes still running at step t (unbiased: it does not depend on the
+    action taken at t). (S, 1) for the team's return, (S, N) for per-robot returns."""
+    G = (ro.ret / j_unit).reshape(ro.t.shape[0], -1)  # (S, 1) team return, or (S, N) per robot
+    T1 = int(ro.t.max()) + 1
+    sums = torch.zeros(T1, G.shape[1], device=G.device).index_add_(0, ro.t, G)
+    cnts = torch.zeros(T1, device=G.device).index_add_(0, ro.t, torch.ones_like(G[:, 0]))
+    return G - (sums / cnts.unsqueeze(1))[ro.t]
+
+
+def policy_gradient_term(log_pi: torch.Tensor, ro: Rollout, adv: torch.Tensor) -> torch.Tensor:
+    """J(pi_i)'s surrogate per robot, (N,): sum over an episode's steps of log pi_i(a_t | s_t) times
+    the advantage, averaged over the B episodes; its gradient is Eq. 11 (REINFORCE with a baseline).
+
+    log_pi (S, N, n): each robot's own network on its own states, with gradient."""
+    B = ro.length.shape[0]
+    logp_a = log_pi.gather(2, ro.action.unsqueeze(2)).squeeze(2)  # (S, N): log pi_i(a_t | s_t)
+    return (logp_a * adv).sum(0) / B
+
+
+def cross_entropy_term(
+    policy: TeamPolicy,
+    ro: Rollout,
+    log_pi: torch.Tensor,
+    eps: float,
+    ce_fraction: float = 1.0,
+    gen: torch.Generator | None = None,
+    ce_states: str = "shared",
+    same_tol: float = 0.05,
+) -> torch.Tensor:
+    """Eq. 12 per robot, (N,): (1/(N-1)) sum_{j != i} H(pi_j, pi~_i), where
+    H(pi_j, pi~_i) = -(1/T_i) sum_t sum_{a in N[p_t]} pi_j(a | s_t^i) log pi~_i(a | s_t^i),
+    averaged over the B episodes.
+
+    Where this departs from the letter of Eq. 12 (each choice measured: module docstring):
+    - pi~_i = (1 - eps) pi_i + eps U(N[p]) replaces pi_i inside the log, which bounds H;
+    - with ``ce_states="shared"`` the pair (i, j) counts only at states where robot j stands on
+      robot i's node with the same belief (total variation < ``same_tol``) at the same step;
+    - the expectation over a in N[p_t] is computed exactly, over every allowed action, rather
+      than estimated from the action taken;
+    - with ``ce_fraction`` < 1 it is estimated on that random share of the decisions, weighted by
+      its inverse (unbiased): the N x N cross evaluation is most of the loss's cost.
+    pi_j is a constant for theta_i (Eq. 10), so the cross evaluation runs without gradient.
+    """
+    N, B, S = policy.N, ro.length.shape[0], ro.t.shape[0]
+    device = log_pi.device
+    if ce_fraction < 1.0:
+        k = max(1, round(ce_fraction * S))
+        sub = torch.randperm(S, generator=gen, device=device)[:k]  # the decisions H is estimated on
+        weight = S / k
+    else:
+        sub, weight = torch.arange(S, device=device), 1.0
+    pos, own_s = ro.pos[sub], log_pi[sub]
+    pi_j = policy.cross_probs(pos, ro.belief[sub])  # (K, N_i, N_j, n): network j on robot i's states
+    mask = policy.mask[pos]  # (K, N, n): a in N[p]
+    uniform = mask / mask.sum(-1, keepdim=True)
+    smooth = torch.where(mask, (1 - eps) * own_s.exp() + eps * uniform, 1.0)  # pi~_i; 1 outside N[p]: log 0
+    h = -(pi_j * torch.log(smooth).unsqueeze(2)).sum(-1)  # (K, N_i, N_j): H(pi_j, pi~_i) at each state
+    pairs = ~torch.eye(N, dtype=torch.bool, device=device)  # j != i
+    if ce_states == "shared":  # only where robot j is in robot i's situation: same node, same belief
+        b_sub = ro.belief[sub]
+        tv = 0.5 * (b_sub.unsqueeze(2) - b_sub.unsqueeze(1)).abs().sum(-1)  # (K, N, N)
+        pairs = pairs & (pos.unsqueeze(2) == pos.unsqueeze(1)) & (tv < same_tol)
+    h_i = (h * pairs).sum(-1) / max(N - 1, 1)  # (K, N): (1/(N-1)) sum_{j != i}; 0 for a single robot
+    T_i = ro.length[ro.episode[sub]].clamp_min(1).to(torch.float32)  # (K,): each decision's episode length
+    return weight * (h_i / T_i.unsqueeze(1)).sum(0) / B  # the 1/T_i of Eq. 12, then the mean over episodes
 
 
 def cepg_loss(
@@ -121,50 +190,16 @@ def cepg_loss(
     ce_states: str = "shared",
     same_tol: float = 0.05,
 ) -> LossTerms:
-    """-J~ summed over robots (each theta_i gets only its own gradient, Eq. 10).
+    """The CE-PG loss: -sum_i J~(theta_i) with Eq. 9 per robot,
+    J~(theta_i) = beta_i J(pi_i) + (1 - beta_i) (1/(N-1)) sum_{j != i} H(pi_j, pi~_i).
+    Each theta_i gets only its own gradient (Eq. 10): robot i's terms use its own network alone.
 
-    Both terms of Eq. 9 keep their natural units, estimated over the rollout's B episodes: J in
-    steps (the return is -t_cap), its gradient by Eq. 11 summed over each episode's steps; H in
-    nats, averaged over each episode's own steps (the 1/T_i of Eq. 12).
-
-    ``ce_fraction`` < 1 estimates H on that random fraction of the decisions, weighted by its
-    inverse (unbiased); the N x N cross evaluation is most of the loss's cost.
+    Both terms keep their natural units over the rollout's B episodes: J in steps (the return is
+    -t_cap), H in nats averaged over each episode's own steps (module docstring, "Units").
+    beta (N,) holds beta_i.
     """
-    N = policy.N
-    B = ro.length.shape[0]
-    # Eq. 11: returns G_t and the baseline b_t, the batch mean return of the episodes still
-    # running at step t (unbiased: it does not depend on the action taken at t)
-    G = (ro.ret / j_unit).reshape(ro.t.shape[0], -1)  # (S, 1) team return, or (S, N) per robot
-    T1 = int(ro.t.max()) + 1
-    sums = torch.zeros(T1, G.shape[1], device=G.device).index_add_(0, ro.t, G)
-    cnts = torch.zeros(T1, device=G.device).index_add_(0, ro.t, torch.ones_like(G[:, 0]))
-    adv = G - (sums / cnts.unsqueeze(1))[ro.t]  # (S, 1) or (S, N)
-    # robot i's own network on its own states, with gradient: (S, N, n)
-    own = torch.log_softmax(policy.logits(ro.pos, ro.belief), dim=-1)
-    logp_a = own.gather(2, ro.action.unsqueeze(2)).squeeze(2)  # (S, N): log pi_i(a_t | s_t)
-    pg = (logp_a * adv).sum(0) / B  # (N,): surrogate whose gradient is Eq. 11
-    # Eq. 12 with the eps-smoothed pi~_i (module docstring). pi_j is a constant for theta_i
-    # (Eq. 10), so the N x N cross evaluation needs no gradient.
-    S = ro.t.shape[0]
-    if ce_fraction < 1.0:
-        k = max(1, round(ce_fraction * S))
-        sub = torch.randperm(S, generator=gen, device=G.device)[:k]  # the decisions H is estimated on
-        weight = S / k
-    else:
-        sub, weight = torch.arange(S, device=G.device), 1.0
-    pos, own_s = ro.pos[sub], own[sub]
-    pi_j = policy.cross_probs(pos, ro.belief[sub])  # (K, N_i, N_j, n)
-    mask = policy.mask[pos]  # (K, N, n)
-    uniform = mask / mask.sum(-1, keepdim=True)
-    smooth = torch.where(mask, (1 - eps) * own_s.exp() + eps * uniform, 1.0)  # 1 outside N[p]: log = 0, no NaN
-    h = -(pi_j * torch.log(smooth).unsqueeze(2)).sum(-1)  # (K, N_i, N_j): H(pi_j, pi~_i) per state
-    off = ~torch.eye(N, dtype=torch.bool, device=G.device)
-    if ce_states == "shared":  # only where robot j is in robot i's situation: same node, same belief
-        b_sub = ro.belief[sub]
-        tv = 0.5 * (b_sub.unsqueeze(2) - b_sub.unsqueeze(1)).abs().sum(-1)  # (K, N, N)
-        off = off & (pos.unsqueeze(2) == pos.unsqueeze(1)) & (tv < same_tol)
-    h_i = (h * off).sum(-1) / max(N - 1, 1)  # (K, N): mean over j != i; 0 for a single robot
-    T_i = ro.length[ro.episode[sub]].clamp_min(1).to(torch.float32)  # (K,): each decision's episode length
-    ce = weight * (h_i / T_i.unsqueeze(1)).sum(0) / B  # (N,): Eq. 12's per-episode mean, averaged over episodes
+    log_pi = torch.log_softmax(policy.logits(ro.pos, ro.belief), dim=-1)  # (S, N, n), with gradient
+    pg = policy_gradient_term(log_pi, ro, advantages(ro, j_unit))  # J, Eq. 11
+    ce = cross_entropy_term(policy, ro, log_pi, eps, ce_fraction, gen, ce_states, same_tol)  # H, Eq. 12
     objective = beta * pg + (1 - beta) * ce  # Eq. 9 per robot
     return LossTerms(loss=-objective.sum(), pg=pg.detach(), ce=ce.detach())

@@ -24,6 +24,8 @@ NEG_INF = -1e9
 class TeamPolicy(nn.Module):
     """N independent MLPs 2n -> 2n -> n with masked softmax, stacked for batched evaluation."""
 
+    mask: torch.Tensor  # (n, n) bool buffer: mask[p, a] = a in N[p]
+
     def __init__(self, n: int, n_robots: int, nbr_mask: torch.Tensor, hidden: int | None = None) -> None:
         super().__init__()
         H = hidden or 2 * n

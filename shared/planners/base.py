@@ -60,8 +60,8 @@ class Planner:
 
     def act(self, obs: Obs) -> torch.Tensor:
         lik = self.belief.collective_likelihood(obs.pos, obs.z, obs.active).unsqueeze(1)  # (B, 1, n)
-        b, _ = self.tracker.update(lik, obs.new)  # Eq. 6 with the true Gamma, (B, 1, n)
-        b = b[:, 0].numpy()
+        b_t, _ = self.tracker.update(lik, obs.new)  # Eq. 6 with the true Gamma, (B, 1, n)
+        b = b_t[:, 0].numpy()
         pos = obs.pos.numpy()
         act = pos.copy()
         for e in np.nonzero(obs.alive.numpy())[0]:

@@ -100,9 +100,8 @@ class Milp(Planner):
         for r in range(R):
             for t in range(h):
                 add([X(r, t)], [np.ones((1, n))], np.ones(1), np.ones(1))  # one node per time
-                prev = self.adj[starts[r]] if t == 0 else None
                 if t == 0:  # x[r, v, 1] <= [v in N[p_r]]
-                    add([X(r, 0)], [eye], -np.inf * one, prev)
+                    add([X(r, 0)], [eye], -np.inf * one, self.adj[starts[r]])
                 else:  # x[r, v, t] <= sum_{u in N[v]} x[r, u, t-1]
                     add([X(r, t), X(r, t - 1)], [eye, -self.adj], -np.inf * one, zero)
         for t in range(h):

@@ -285,7 +285,6 @@ def _init_distributed(device: torch.device) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from shared.learning import config
     from shared.learning.train import train
 
     detection = "neighbourhood" if args.variant == "cepg+" else "node"
@@ -302,7 +301,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
         init_model = load_model_file(graph, args.model)
     init_policy = load_snapshot(args.init, graph) if args.init else None
-    cfg = config.from_flags(args, robots=args.robots, seed=args.seed, device=str(device))
+    cfg = train_config.from_flags(args, robots=args.robots, seed=args.seed, device=str(device))
     try:
         cfg.check()
         cfg.per_robot(cfg.beta, "--beta")
@@ -363,6 +362,16 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"last capture time {s['final_mean_capture_time']:.2f}; wrote {out}"
         )
     return 130 if res.interrupted else 0
+
+
+# ---------------------------------------------------------------------- snapshot convert
+def cmd_snapshot_convert(args: argparse.Namespace) -> int:
+    from shared.learning.snapshot import convert_snapshot
+
+    for d in args.dirs:
+        done = convert_snapshot(d)
+        print(f"{d}: {'converted to weights.safetensors' if done else 'already in the numpy-readable format'}")
+    return 0
 
 
 # ---------------------------------------------------------------------- map
@@ -553,6 +562,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("map", help="print a map's size and graph_id")
     _add_map_args(p)
     p.set_defaults(func=cmd_map)
+
+    p = sub.add_parser("snapshot", help="policy snapshot tools")
+    snap_sub = p.add_subparsers(dest="snapshot_command", required=True, metavar="ACTION")
+    c = snap_sub.add_parser(
+        "convert", help="rewrite an older snapshot's weights.pt as weights.safetensors (the same values)"
+    )
+    c.add_argument("dirs", nargs="+", metavar="DIR", help="snapshot directories")
+    c.set_defaults(func=cmd_snapshot_convert)
     return parser
 
 

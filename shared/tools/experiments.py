@@ -854,7 +854,10 @@ def _reading(rows: list[dict[str, Any]]) -> list[str]:
             if "cepg" not in cell:
                 continue
             c = cell["cepg"]
-            better, worse, tied, few = [], [], [], []
+            better: list[str] = []
+            worse: list[str] = []
+            tied: list[str] = []
+            few: list[str] = []
             for m, r in cell.items():
                 if m in ("cepg", "oracle"):
                     continue

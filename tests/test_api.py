@@ -1,0 +1,262 @@
+"""The REST API in-process (FastAPI's TestClient): a real Server (SQLite, policy versions) with the
+Zenoh bus and the training supervisor replaced by recorders. Every response is checked against
+the served OpenAPI document: its status must be one the route documents, and an error body must
+be the one Error schema."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from prometheus_client.parser import text_string_to_metric_families
+
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor
+from shared.core.records import make_record
+from shared.learning.config import default
+from training_server.api import create_app
+from training_server.server import Server
+
+OP, AG = "op-token", "agent-token"
+
+
+class FakeBus:
+    """What the API needs of training_server.bus.Bus, recorded."""
+
+    def __init__(self) -> None:
+        self.online: dict[str, float] = {}
+        self.published: list[dict[str, Any]] = []
+        self.stats = {"ingest_batches": 3, "ingest_seconds": 0.25}
+
+    def agents_online(self) -> dict[str, float]:
+        return dict(self.online)
+
+    def publish_mission(self, msg: dict[str, Any]) -> None:
+        self.published.append(msg)
+
+
+class FakeSupervisor:
+    def __init__(self) -> None:
+        self.submitted: list[str] = []
+        self.cancelled: list[str] = []
+
+    def submit(self, run_id: str) -> None:
+        self.submitted.append(run_id)
+
+    def cancel(self, run_id: str) -> bool:
+        self.cancelled.append(run_id)
+        return True
+
+
+class CheckedClient(TestClient):
+    """A TestClient that fails the test when a response's status is not documented for its route."""
+
+    def request(self, method: str, url: Any, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+        resp = super().request(method, url, *args, **kwargs)
+        op, template = _operation(self.app.openapi(), method, str(url).split("?")[0])  # type: ignore[attr-defined]
+        if op is not None:
+            assert str(resp.status_code) in op["responses"], (
+                f"{method} {template} answered {resp.status_code}, documented: {sorted(op['responses'])}"
+            )
+            if resp.status_code >= 400:
+                schema = op["responses"][str(resp.status_code)]["content"]["application/json"]["schema"]
+                assert schema == {"$ref": "#/components/schemas/Error"}, (method, template, schema)
+                assert set(resp.json()) == {"error"} and resp.json()["error"], resp.text
+        return resp
+
+
+def _operation(spec: dict[str, Any], method: str, path: str) -> tuple[dict[str, Any] | None, str | None]:
+    """The OpenAPI operation serving ``method path`` (a literal segment beats a parameter)."""
+    hits = []
+    for template, ops in spec["paths"].items():
+        if method.lower() in ops and re.fullmatch(re.sub(r"\{[^/]+\}", "[^/]+", template), path):
+            hits.append((template.count("{"), template))
+    if not hits:
+        return None, None
+    template = min(hits)[1]
+    return spec["paths"][template][method.lower()], template
+
+
+@pytest.fixture
+def api(tmp_path: Path):
+    graph = builtin_graph("office")
+    srv = Server(tmp_path / "data", graph, "default", OP, AG)
+    srv.ensure_initial_policy(2, None, Sensor(), seed=0)
+    srv.bus = FakeBus()
+    srv.supervisor = FakeSupervisor()
+    with CheckedClient(create_app(srv)) as client:
+        yield srv, client
+    srv.store.close()
+
+
+def auth(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def _store_episode(srv: Server, robot: str = "r1", mission: str = "m1") -> None:
+    g = srv.graph
+    rec = make_record(
+        g, fleet="default", mission_id=mission, robot_id=robot, nodes=[g.start, g.start], z=[0, 1], sensor=Sensor(),
+        captured=True, capture_time=1, captured_by=robot, policy_version=1,
+    )  # fmt: skip
+    import json
+
+    srv.store.add_episodes([("default", robot, mission, 1, 2, True, 1, json.dumps(rec))])
+
+
+def test_tokens_and_roles(api):
+    _srv, c = api
+    assert c.get("/api/v1/health").json()["status"] == "ok"  # no token needed
+    r = c.get("/api/v1/map")
+    assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+    assert c.get("/api/v1/map", headers=auth("nope")).status_code == 401
+    assert c.get("/api/v1/map", headers=auth(AG)).json()["graph_id"].startswith("sha256:")
+    r = c.post("/api/v1/missions", json={}, headers=auth(AG))
+    assert r.status_code == 403 and "operator" in r.json()["error"]
+
+
+def test_missions_start_follow_stop(api):
+    srv, c = api
+    r = c.post("/api/v1/missions", json={}, headers=auth(OP))
+    assert r.status_code == 409 and "no agents online" in r.json()["error"]
+    srv.bus.online = {"r1": 1.0, "r2": 2.0}
+    r = c.post("/api/v1/missions", json={"seed": 7, "mission_id": "m-a"}, headers=auth(OP))
+    assert r.status_code == 201 and r.headers["location"] == "/api/v1/missions/m-a"
+    m = r.json()
+    assert m["robots"] == ["r1", "r2"] and m["params"]["seed"] == 7 and m["params"]["max_steps"] == 180
+    assert srv.bus.published[-1]["type"] == "start" and srv.bus.published[-1]["policy_version"] == 1
+    assert c.post("/api/v1/missions", json={"mission_id": "m-a"}, headers=auth(OP)).status_code == 409
+    assert c.post("/api/v1/missions", json={"robots": ["r1", "r1"]}, headers=auth(OP)).status_code == 422
+    r = c.post("/api/v1/missions", json={"robots": ["r9"]}, headers=auth(OP))
+    assert r.status_code == 409 and "r9" in r.json()["error"]
+    assert c.get("/api/v1/missions/m-a", headers=auth(AG)).json()["status"] == "running"
+    assert c.post("/api/v1/missions/m-a/stop", headers=auth(OP)).json()["status"] == "stopped"
+    assert srv.bus.published[-1] == {"type": "stop", "mission_id": "m-a", "reason": "operator"}
+    assert c.get("/api/v1/missions/nope", headers=auth(AG)).status_code == 404
+
+
+@pytest.mark.parametrize(
+    ("path", "body", "field"),
+    [
+        ("/api/v1/policies/current", {"version": True}, "version"),  # a bool is not a version
+        ("/api/v1/policies/current", {"version": "1"}, "version"),
+        ("/api/v1/missions", {"seed": "5000"}, "seed"),  # no strings for integers
+        ("/api/v1/missions", '{"seed": 1e400}', "seed"),  # JSON's 1e400 is infinity
+        ("/api/v1/missions", {"seed": 2**63}, "seed"),  # does not fit the database
+        ("/api/v1/missions", {"robots": ["bad id!"]}, "robots"),
+        ("/api/v1/missions", {"colour": "red"}, "colour"),
+        ("/api/v1/training-runs", '{"lr": NaN}', "lr"),
+        ("/api/v1/training-runs", {"episodes": 5.0}, "episodes"),
+        ("/api/v1/training-runs", {"gate": "yes"}, "gate"),
+        ("/api/v1/training-runs", {"unknown": 1}, "unknown"),
+    ],
+)
+def test_bad_requests_are_422_naming_the_field_and_change_nothing(api, path, body, field):
+    srv, c = api
+    srv.bus.online = {"r1": 1.0}
+    _store_episode(srv)
+    before = (srv.current_version(), srv.store.get_mission("m1"), srv.store.runs(), list(srv.bus.published))
+    if isinstance(body, str):  # raw JSON text (the client itself refuses to encode NaN and infinity)
+        r = c.post(path, content=body, headers={**auth(OP), "Content-Type": "application/json"})
+    else:
+        r = c.post(path, json=body, headers=auth(OP))
+    assert r.status_code == 422 and field in r.json()["error"], r.text
+    assert (srv.current_version(), srv.store.get_mission("m1"), srv.store.runs(), srv.bus.published) == before
+
+
+def test_bad_queries(api):
+    _srv, c = api
+    for q in ("after=9223372036854775808", "after=-1", "limit=0", "limit=abc"):
+        r = c.get(f"/api/v1/episodes?{q}", headers=auth(AG))
+        assert r.status_code == 422, q
+    assert c.get("/api/v1/policies/0", headers=auth(AG)).status_code == 422
+    assert c.get("/api/v1/policies/x", headers=auth(AG)).status_code == 422
+
+
+def test_episodes_paged_and_one_record(api):
+    srv, c = api
+    for k in range(3):
+        _store_episode(srv, robot=f"r{k}")
+    page = c.get("/api/v1/episodes?limit=2", headers=auth(AG)).json()
+    assert [i["robot_id"] for i in page["items"]] == ["r0", "r1"] and page["next_after"] == page["items"][-1]["id"]
+    rest = c.get(f"/api/v1/episodes?limit=2&after={page['next_after']}", headers=auth(AG)).json()
+    assert [i["robot_id"] for i in rest["items"]] == ["r2"] and rest["next_after"] is None
+    rec = c.get("/api/v1/episodes/r1/m1", headers=auth(AG)).json()
+    assert rec["schema"] == "mures.episode/1" and rec["steps"][1] == {"t": 1, "node": 43, "z": 1}
+    assert c.get("/api/v1/episodes/r9/m1", headers=auth(AG)).status_code == 404
+    stats = c.get("/api/v1/episodes/stats", headers=auth(AG)).json()
+    assert stats["stored"] == 3 and stats["missions"] == 1 and stats["by_policy_version"] == {"1": 3}
+
+
+def test_policies_promote_and_artifact_etag(api):
+    _srv, c = api
+    listed = c.get("/api/v1/policies", headers=auth(AG)).json()
+    assert listed["current"] == 1 and [p["version"] for p in listed["items"]] == [1]
+    assert c.post("/api/v1/policies/current", json={"version": 5}, headers=auth(OP)).status_code == 404
+    r = c.get("/api/v1/policies/1/artifact", headers=auth(AG))
+    assert r.status_code == 200 and r.headers["etag"] == f'"{listed["items"][0]["sha256"]}"'
+    assert r.headers["content-type"] == "application/x-tar"
+    r2 = c.get("/api/v1/policies/1/artifact", headers={**auth(AG), "If-None-Match": r.headers["etag"]})
+    assert r2.status_code == 304 and r2.content == b""
+    assert c.get("/api/v1/policies/2/artifact", headers=auth(AG)).status_code == 404
+    assert c.post("/api/v1/policies/current", json={"version": 1}, headers=auth(OP)).json()["current"] is True
+
+
+def test_training_runs(api):
+    srv, c = api
+    r = c.post("/api/v1/training-runs", headers=auth(OP))
+    assert r.status_code == 409 and "no episodes" in r.json()["error"]
+    _store_episode(srv)
+    r = c.post("/api/v1/training-runs", json={"episodes": 512, "beta": 1}, headers=auth(OP))
+    assert r.status_code == 202 and r.headers["location"].endswith(r.json()["id"])
+    run = r.json()
+    # the defaults of the trainer's own settings are TrainConfig's
+    assert run["params"]["lr"] == default("lr")[0] and run["params"]["em_max_iter"] == default("em_max_iter")
+    assert run["params"]["beta"] == 1.0 and run["status"] == "queued" and srv.supervisor.submitted == [run["id"]]
+    assert c.post(f"/api/v1/training-runs/{run['id']}/cancel", headers=auth(OP)).status_code == 202
+    srv.store.update_run(run["id"], status="cancelled")
+    assert c.post(f"/api/v1/training-runs/{run['id']}/cancel", headers=auth(OP)).status_code == 409
+    assert c.get("/api/v1/training-runs/none", headers=auth(AG)).status_code == 404
+    assert [x["id"] for x in c.get("/api/v1/training-runs", headers=auth(AG)).json()["items"]] == [run["id"]]
+
+
+def test_metrics_from_prometheus_client(api):
+    srv, c = api
+    _store_episode(srv)
+    srv.store.reject(["move", "move", "json"])
+    r = c.get("/metrics")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
+    samples = {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for fam in text_string_to_metric_families(r.text)
+        for s in fam.samples
+    }
+    assert samples[("mures_episodes_stored", ())] == 1
+    assert samples[("mures_episodes_rejected_total", (("reason", "move"),))] == 2
+    assert samples[("mures_policy_current_version", ())] == 1
+    assert samples[("mures_training_runs", (("status", "queued"),))] == 0
+    assert samples[("mures_ingest_batches_total", ())] == 3
+
+
+def test_unknown_routes_and_methods_get_the_error_schema(api):
+    _srv, c = api
+    r = c.get("/api/v1/nothing-here")
+    assert r.status_code == 404 and r.json() == {"error": "Not Found"}
+    r = c.delete("/api/v1/health")
+    assert r.status_code == 405 and "GET" in r.headers["allow"] and set(r.json()) == {"error"}
+
+
+def test_openapi_documents_auth_errors_on_every_protected_route(api):
+    _srv, c = api
+    spec = c.get("/openapi.json").json()
+    for path, ops in spec["paths"].items():
+        for method, op in ops.items():
+            if path in ("/api/v1/health", "/metrics"):
+                assert "401" not in op["responses"], (method, path)
+                continue
+            assert "401" in op["responses"], (method, path)
+            assert ("403" in op["responses"]) == (method == "post"), (method, path)
+            assert "HTTPValidationError" not in str(op["responses"]), (method, path)

@@ -1,0 +1,79 @@
+"""The REST API (FastAPI): one router per resource under /api/v1, /metrics beside them.
+
+OpenAPI at /openapi.json (docs at /docs) lists every route's request and response models and the
+error statuses it really returns, all with one schema ``{"error": "..."}`` (docs/SPEC.md
+section 9). Handlers are plain ``def`` so FastAPI runs them in its thread pool: SQLite and Zenoh
+calls never block the event loop.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from training_server.api import episodes, fleet, health, maps, metrics, missions, policies, training_runs
+from training_server.api.deps import DESCRIPTIONS
+
+log = logging.getLogger("mures.server.api")
+
+API_PREFIX = "/api/v1"
+
+
+def _validation_message(exc: RequestValidationError) -> str:
+    """One line naming the fields that failed, e.g. 'body.seed: Input should be a valid integer'."""
+    parts = []
+    for e in exc.errors()[:3]:
+        where = ".".join(str(x) for x in e.get("loc", ()))
+        parts.append(f"{where}: {e.get('msg', 'invalid')}" if where else str(e.get("msg", "invalid")))
+    more = len(exc.errors()) - 3
+    return "; ".join(parts) + (f" (and {more} more)" if more > 0 else "")
+
+
+def create_app(srv: Any) -> FastAPI:
+    """The API of ``srv`` (a training_server.server.Server, or a test double with its attributes)."""
+    app = FastAPI(title="MuRES fleet training server", version="1", description=__doc__)
+    app.state.server = srv
+    app.state.metrics = metrics.registry_for(srv)
+    for module in (health, maps, fleet, missions, episodes, policies, training_runs):
+        app.include_router(module.router, prefix=API_PREFIX)
+    app.include_router(metrics.router)
+
+    @app.exception_handler(StarletteHTTPException)
+    def _http_error(_req: Request, exc: StarletteHTTPException) -> JSONResponse:
+        return JSONResponse({"error": str(exc.detail)}, status_code=exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    def _invalid(_req: Request, exc: RequestValidationError) -> JSONResponse:
+        return JSONResponse({"error": _validation_message(exc)}, status_code=422)
+
+    @app.exception_handler(Exception)
+    def _server_error(req: Request, exc: Exception) -> JSONResponse:
+        log.exception("%s %s failed", req.method, req.url.path)
+        return JSONResponse({"error": "internal server error (logged)"}, status_code=500)
+
+    def openapi() -> dict[str, Any]:
+        """FastAPI's document, with its default 422 (HTTPValidationError) replaced by our Error:
+        validation failures are answered by ``_invalid`` above."""
+        if app.openapi_schema is None:
+            spec = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            for ops in spec.get("paths", {}).values():
+                for op in ops.values():
+                    if "422" in op.get("responses", {}):
+                        op["responses"]["422"] = {
+                            "description": DESCRIPTIONS[422],
+                            "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}},
+                        }
+            schemas = spec.get("components", {}).get("schemas", {})
+            for name in ("HTTPValidationError", "ValidationError"):
+                schemas.pop(name, None)
+            app.openapi_schema = spec
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+    return app

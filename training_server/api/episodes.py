@@ -1,0 +1,41 @@
+"""/api/v1/episodes: the stored episode records, paged; counts; one record."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Query
+
+from training_server.api.deps import READ, Srv, errors
+from training_server.api.schemas import MAX_ID, EpisodePage, EpisodeRecord, EpisodeStats, EpisodeSummary
+
+router = APIRouter(prefix="/episodes", tags=["episodes"], dependencies=READ)
+
+
+@router.get("", responses=errors(401, 422))
+def episodes(
+    srv: Srv,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    after: Annotated[
+        int, Query(ge=0, le=MAX_ID, description="return episodes with id > after (use next_after to page)")
+    ] = 0,
+    mission_id: str | None = None,
+    robot_id: str | None = None,
+) -> EpisodePage:
+    items = srv.store.list_episodes(srv.fleet, limit, after, mission_id, robot_id)
+    return EpisodePage(
+        items=[EpisodeSummary(**i) for i in items], next_after=items[-1]["id"] if len(items) == limit else None
+    )
+
+
+@router.get("/stats", responses=errors(401))
+def episode_stats(srv: Srv) -> EpisodeStats:
+    return EpisodeStats(**srv.store.episode_stats(srv.fleet))
+
+
+@router.get("/{robot_id}/{mission_id}", responses=errors(401, 404), response_model_by_alias=True)
+def episode(robot_id: str, mission_id: str, srv: Srv) -> EpisodeRecord:
+    rec = srv.store.get_record(srv.fleet, robot_id, mission_id)
+    if rec is None:
+        raise HTTPException(404, f"no episode of robot {robot_id!r} in mission {mission_id!r}")
+    return EpisodeRecord.model_validate(rec)

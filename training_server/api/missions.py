@@ -1,0 +1,92 @@
+"""/api/v1/missions: start a mission, follow it, stop it."""
+
+from __future__ import annotations
+
+import random
+import time
+import uuid
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Response
+
+from training_server.api.deps import READ, WRITE, Srv, errors
+from training_server.api.schemas import Mission, MissionParams, MissionRequest
+
+router = APIRouter(prefix="/missions", tags=["missions"])
+
+
+def mission_view(srv: Any, mid: str) -> Mission:
+    m = srv.store.get_mission(mid)
+    if m is None:
+        raise HTTPException(404, f"no mission {mid!r}")
+    recs = srv.store.mission_records(srv.fleet, mid)
+    got = sorted(r for r, *_ in recs)
+    status = m["status"]
+    if set(m["robots"]) <= set(got):
+        status = "completed"
+    outcome = None
+    if recs:
+        caps = [ct for _r, c, ct, _pv in recs if c and ct is not None]
+        outcome = {
+            "captured": bool(caps),
+            "capture_time": min(caps) if caps else None,
+            "steps": max((ct or 0) for *_x, ct, _pv in recs) if caps else None,
+            "policy_versions": sorted({pv for *_x, pv in recs if pv is not None}),
+        }
+        if m["event"] and m["event"].get("type") == "captured":
+            outcome["captured_by"] = m["event"].get("captured_by")
+    return Mission(
+        id=m["id"],
+        status=status,
+        robots=m["robots"],
+        params=MissionParams(**m["params"]),
+        policy_version=m["policy_version"],
+        created=m["created"],
+        ended=m["ended"],
+        event=m["event"],
+        episodes_received=got,
+        outcome=outcome,
+    )
+
+
+@router.post("", status_code=201, dependencies=WRITE, responses=errors(401, 403, 409, 422))
+def start_mission(req: MissionRequest, response: Response, srv: Srv) -> Mission:
+    """Start a mission for the agents online (or the ones named); the Location header names it."""
+    online = srv.bus.agents_online()
+    robots = req.robots if req.robots is not None else sorted(online)
+    if not robots:
+        raise HTTPException(409, "no agents online to fly a mission")
+    if len(set(robots)) != len(robots):
+        raise HTTPException(422, "robots lists a robot twice")
+    missing = [r for r in robots if r not in online]
+    if missing:
+        raise HTTPException(409, f"robots not online: {', '.join(missing)}")
+    mid = req.mission_id or f"m-{time.strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:8]}"
+    if srv.store.get_mission(mid) is not None:
+        raise HTTPException(409, f"mission {mid!r} exists")
+    params = {
+        "seed": req.seed if req.seed is not None else random.SystemRandom().randrange(2**31),
+        "max_steps": req.max_steps or 3 * srv.graph.n,
+        "start_node": int(srv.graph.labels[srv.graph.start]),
+    }
+    pv = srv.current_version()
+    srv.store.add_mission(mid, srv.fleet, robots, params, pv)
+    srv.bus.publish_mission({"type": "start", "mission_id": mid, "robots": robots, "policy_version": pv, **params})
+    response.headers["Location"] = f"/api/v1/missions/{mid}"
+    return mission_view(srv, mid)
+
+
+@router.get("/{mission_id}", dependencies=READ, responses=errors(401, 404))
+def get_mission(mission_id: str, srv: Srv) -> Mission:
+    return mission_view(srv, mission_id)
+
+
+@router.post("/{mission_id}/stop", dependencies=WRITE, responses=errors(401, 403, 404))
+def stop_mission(mission_id: str, srv: Srv) -> Mission:
+    """Stop a running mission (a finished one is returned as it is)."""
+    m = mission_view(srv, mission_id)
+    if m.status == "running":
+        msg = {"type": "stop", "mission_id": mission_id, "reason": "operator"}
+        srv.bus.publish_mission(msg)
+        srv.store.mission_event(mission_id, msg, "stopped")
+    return mission_view(srv, mission_id)

@@ -1,0 +1,184 @@
+"""The REST API's models (docs/SPEC.md section 9): requests, responses and the one error schema.
+
+Requests are strict (no "5000" for an integer, no true for a number, no NaN or infinity) and refuse
+unknown fields. Responses are the models below, so the OpenAPI document describes exactly what
+the server sends.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.core.records import ID_RE
+from training_server.jobs import TrainingParams
+
+RobotId = Annotated[str, Field(pattern=ID_RE.pattern, description="1-128 characters of A-Z a-z 0-9 _ . -")]
+MAX_ID = 2**63 - 1  # the largest integer the database stores
+
+
+class Error(BaseModel):
+    """Every 4xx and 5xx body."""
+
+    error: str = Field(description="what is wrong, in one line")
+
+
+class _Request(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+# ---------------------------------------------------------------------- health, map, fleet
+class Health(BaseModel):
+    status: Literal["ok"]
+    version: str
+    fleet: str
+    graph_id: str
+    current_policy: int
+    uptime_s: float
+
+
+class MapOut(BaseModel):
+    """The map in the graph-file format (docs/SPEC.md section 7) with its graph_id."""
+
+    name: str
+    start_node: int
+    nodes: list[int]
+    edges: list[list[int]]
+    positions: dict[str, list[float]] | None = None
+    sensing: dict[str, list[int]] | None = None
+    graph_id: str
+
+
+class Agent(BaseModel):
+    robot_id: str
+    since: float = Field(description="when its liveliness token appeared (Unix time)")
+
+
+class FleetOut(BaseModel):
+    fleet: str
+    online: int
+    agents: list[Agent]
+
+
+# ---------------------------------------------------------------------- missions
+class MissionRequest(_Request):
+    robots: list[RobotId] | None = Field(
+        default=None, description="robot ids to fly (default: every agent online)", min_length=1, max_length=256
+    )
+    seed: int | None = Field(
+        default=None, ge=0, le=MAX_ID, description="mission seed (agents' and simulated world's randomness)"
+    )
+    max_steps: int | None = Field(default=None, ge=1, le=100_000, description="step limit (default 3n)")
+    mission_id: str | None = Field(default=None, pattern=ID_RE.pattern, description="default: generated")
+
+
+class MissionParams(BaseModel):
+    seed: int
+    max_steps: int
+    start_node: int
+
+
+class Mission(BaseModel):
+    id: str
+    status: Literal["running", "captured", "stopped", "completed"]
+    robots: list[str]
+    params: MissionParams
+    policy_version: int | None
+    created: float
+    ended: float | None
+    event: dict[str, Any] | None = Field(description="the captured or stop message that ended it")
+    episodes_received: list[str]
+    outcome: dict[str, Any] | None = Field(
+        description="from the records received: captured, capture_time, steps, policy_versions, captured_by"
+    )
+
+
+# ---------------------------------------------------------------------- episodes
+class EpisodeSummary(BaseModel):
+    id: int
+    robot_id: str
+    mission_id: str
+    policy_version: int | None
+    steps: int
+    captured: bool
+    capture_time: int | None
+    received: float
+
+
+class EpisodePage(BaseModel):
+    items: list[EpisodeSummary]
+    next_after: int | None = Field(description="pass as ?after= for the next page; null on the last page")
+
+
+class EpisodeStats(BaseModel):
+    stored: int
+    rejected: dict[str, int] = Field(description="rejected records by reason")
+    missions: int
+    by_policy_version: dict[str, int]
+
+
+class Step(BaseModel):
+    t: int
+    node: int
+    z: int
+
+
+class Outcome(BaseModel):
+    captured: bool
+    capture_time: int | None = None
+    captured_by: str | None = None
+
+
+class EpisodeRecord(BaseModel):
+    """The episode record as stored (docs/SPEC.md section 5)."""
+
+    schema_: str = Field(alias="schema", serialization_alias="schema")
+    fleet: str
+    mission_id: str
+    robot_id: str
+    graph_id: str
+    policy_version: int | None
+    sensor: dict[str, Any]
+    steps: list[Step]
+    outcome: Outcome
+
+
+# ---------------------------------------------------------------------- policies
+class PromoteRequest(_Request):
+    version: int = Field(ge=1, le=MAX_ID)
+
+
+class PolicyVersion(BaseModel):
+    version: int
+    created: float
+    sha256: str = Field(description="of the artifact (the tar agents download); also its ETag")
+    bytes: int
+    parent: int | None
+    run_id: str | None
+    meta: dict[str, Any] = Field(description="graph_id, robots, variant, beta, sensor, training, metrics")
+    current: bool
+    artifact: str
+
+
+class PolicyList(BaseModel):
+    current: int
+    items: list[PolicyVersion]
+
+
+# ---------------------------------------------------------------------- training runs
+class TrainingRun(BaseModel):
+    id: str
+    created: float
+    started: float | None
+    finished: float | None
+    status: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    params: TrainingParams
+    progress: dict[str, Any] | None
+    metrics: dict[str, Any] | None
+    version: int | None = Field(description="the policy version it published")
+    error: str | None = Field(description="why it failed or was gated out")
+
+
+class TrainingRunList(BaseModel):
+    items: list[TrainingRun]
