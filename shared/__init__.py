@@ -1,3 +1,4 @@
-"""Code shared by the robot agent and the training server: maps, models, beliefs, simulator."""
+"""The MuRES fleet library, in rooms by who uses them (docs/architecture.md): core (agent and
+server, numpy only), engine, learning, planners, the searcher registry, and the CLI's tools."""
 
 __version__ = "0.1.0"

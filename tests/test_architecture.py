@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("shared", "robot_agent", "training_server")
 
@@ -120,3 +122,52 @@ def test_the_agent_process_imports_no_heavy_library():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+@pytest.mark.slow
+def test_the_core_install_runs_an_agent_decision_without_torch(tmp_path):
+    """`pip install .` (no extras) into a fresh venv: no torch, scipy, matplotlib or fastapi; the
+    agent starts, the trainer's command says which extra it needs, and a snapshot written by the
+    trainer is read and decided on with numpy alone, the same moves as in this environment."""
+    import torch
+
+    from shared.core.graph import builtin_graph
+    from shared.core.models import Sensor, identity_model
+    from shared.core.snapshot import PolicyAgent, read_snapshot
+    from shared.learning.policy import TeamPolicy
+    from shared.learning.snapshot import save_snapshot
+
+    venv = tmp_path / "core"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    pip = [str(py), "-m", "pip", "install", "-q", "-c", str(ROOT / "constraints.txt"), str(ROOT)]
+    subprocess.run(pip, check=True, capture_output=True, text=True)
+    listed = subprocess.run([str(py), "-m", "pip", "list"], capture_output=True, text=True, check=True).stdout
+    assert not [m for m in HEAVY if m in listed.lower()], listed
+    assert subprocess.run([str(venv / "bin" / "robot-agent"), "--help"], capture_output=True).returncode == 0
+    r = subprocess.run([str(venv / "bin" / "mures"), "map", "--env", "office"], capture_output=True, text=True)
+    assert r.returncode == 2 and "mures-fleet[all]" in r.stderr
+    g = builtin_graph("office")
+    torch.manual_seed(3)
+    pol = TeamPolicy(g.n, 2, torch.as_tensor(g.adjacency()))
+    snap = save_snapshot(tmp_path / "snap", pol, g, identity_model(g), Sensor(), "cepg", [0.5, 0.5], {}, {})
+    code = (
+        "import sys\n"
+        "from shared.core.graph import builtin_graph\n"
+        "from shared.core.snapshot import PolicyAgent, read_snapshot\n"
+        "g = builtin_graph('office'); a = PolicyAgent(read_snapshot(sys.argv[1], g), g, 1, seed=7)\n"
+        "p = g.start; a.reset(p, 0); moves = []\n"
+        "for t in range(30):\n"
+        "    p = a.act(p); moves.append(p); a.observe(p, 0)\n"
+        "print(moves)"
+    )
+    out = subprocess.run([str(py), "-c", code, str(snap)], capture_output=True, text=True, check=True, cwd=tmp_path)
+    here = PolicyAgent(read_snapshot(snap, g), g, 1, seed=7)
+    p = g.start
+    here.reset(p, 0)
+    moves = []
+    for _ in range(30):
+        p = here.act(p)
+        moves.append(p)
+        here.observe(p, 0)
+    assert out.stdout.strip() == str(moves)

@@ -70,10 +70,14 @@ def sha256_hex(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
+@dataclass
 class TeamInfo:
-    """What a snapshot's metadata says about the team (shared by the numpy and torch views)."""
+    """What every view of a snapshot holds (numpy here, torch in shared/learning/snapshot.py): its
+    metadata, the robots' belief model (Gamma_hat, b0) and their sensor."""
 
     meta: dict[str, Any]
+    model: TargetModel
+    sensor: Sensor
 
     @property
     def variant(self) -> str:
@@ -98,12 +102,9 @@ class TeamInfo:
 
 @dataclass
 class SnapshotData(TeamInfo):
-    """A checked snapshot: metadata, float32 weights, the robots' belief model and sensor."""
+    """A checked snapshot with its float32 weights (``param_shapes``)."""
 
-    meta: dict[str, Any]
     weights: Weights
-    model: TargetModel  # the robots' belief model (Gamma_hat, b0)
-    sensor: Sensor
 
 
 def write_snapshot(

@@ -44,12 +44,9 @@ __all__ = ["PolicySearcher", "Snapshot", "SnapshotError", "convert_snapshot", "l
 
 @dataclass
 class Snapshot(TeamInfo):
-    """A team of networks as a torch module, with the robots' belief model and sensor."""
+    """A snapshot's team of networks as a torch module."""
 
-    meta: dict[str, Any]
     policy: TeamPolicy
-    model: TargetModel  # the robots' belief model (Gamma_hat, b0)
-    sensor: Sensor
 
     def to_data(self) -> SnapshotData:
         """The numpy view the robot agent runs (float32 weights, as a snapshot stores them)."""

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from shared.core.choices import BUILTIN_MAPS, DETECTIONS, ESTIMATORS
+from shared.core.files import atomic_write
 from shared.core.graph import Graph, GraphError, builtin_graph, load_graph_file
 from shared.core.models import ModelError, Sensor, TargetModel, parse_target
 from shared.core.records import read_jsonl
@@ -176,15 +177,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         graph, target, sensor, args.robots, factory, episodes=args.missions, seed=args.seed, device=device, record=True
     )
     out = Path(args.out)
-    tmp = out.with_name(out.name + ".tmp")
-    written = 0
-    with open(tmp, "w", encoding="utf-8") as fh:
-        for rec in episode_records(graph, res, sensor, fleet=args.fleet, mission_prefix=f"sim-{args.seed}"):
-            fh.write(json.dumps(rec, separators=(",", ":")) + "\n")
-            written += 1
-    os.replace(tmp, out)
+    lines = [
+        json.dumps(rec, separators=(",", ":")) + "\n"
+        for rec in episode_records(graph, res, sensor, fleet=args.fleet, mission_prefix=f"sim-{args.seed}")
+    ]
+    atomic_write(out, "".join(lines))
+    written = len(lines)
     if args.truth:
-        Path(args.truth).write_text(json.dumps({**target.to_json(graph), "kind": target.kind}) + "\n")
+        atomic_write(args.truth, json.dumps({**target.to_json(graph), "kind": target.kind}) + "\n")
     s = res.summary()
     print(
         f"wrote {written} records of {args.missions} missions to {out} "
@@ -224,10 +224,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     if args.truth:
         truth = parse_target(graph, args.truth)
         out["mean_row_tv_to_truth"] = mean_row_tv(est.model, truth)
-    path = Path(args.out)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(out) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    path = atomic_write(args.out, json.dumps(out) + "\n")
     msg = (
         f"{args.method}: {est.iterations} passes, converged={est.converged}, "
         f"{time.perf_counter() - t0:.1f} s; wrote {path}"

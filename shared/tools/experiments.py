@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from shared.core.files import atomic_write
+
 EXPERIMENTS = ("fig4", "fig5", "fig6", "fig7", "fig8", "fig9", "fig10", "fig11", "fig12", "fig13")
 PLANNERS = ("fhpe", "fhpe-sa", "milp", "d-milp")
 
@@ -43,7 +45,7 @@ def machine() -> dict[str, Any]:
 
 def _write(out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]]) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps({**data, "rows": rows}, indent=1) + "\n", encoding="utf-8")
+    atomic_write(out / f"{name}.json", json.dumps({**data, "rows": rows}, indent=1) + "\n")
     if rows:
         with open(out / f"{name}.csv", "w", newline="", encoding="utf-8") as fh:
             w = csv.DictWriter(fh, fieldnames=list(rows[0]))
@@ -835,7 +837,7 @@ def report(root: Path, out: Path) -> Path:
     if missing:
         lines += ["## Not recorded", "", ", ".join(missing) + ": run `mures experiment NAME` to record them.", ""]
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines), encoding="utf-8")
+    atomic_write(out, "\n".join(lines))
     return out
 
 
