@@ -182,7 +182,8 @@ class Agent:
         self.args = args
         self.robot_id = check_id("robot id", args.robot_id)
         self.fleet = check_id("fleet", args.fleet)
-        self.api = ApiClient(args.server, read_token(args.token_file) if args.token_file else None, timeout=10.0)
+        token = read_token(args.token_file) if args.token_file else None
+        self.api = ApiClient(args.server, token, timeout=10.0, ca_file=args.ca_file)
         self.state = Path(args.state_dir or f"mures-agent-{self.robot_id}")
         self.state.mkdir(parents=True, exist_ok=True)
         self.stop = threading.Event()
@@ -514,6 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file (TLS, credentials)")
     p.add_argument("--fleet", default=DEFAULT_FLEET)
     p.add_argument("--token-file", help="the agent bearer token for the REST API")
+    p.add_argument("--ca-file", metavar="PEM", help="CA certificate to verify an https --server with")
     p.add_argument("--state-dir", help="outbox, journal and policies (default ./mures-agent-<robot_id>)")
     p.add_argument("--backend", default="sim", help="sim (fleet simulator) or MODULE:CLASS (robot_agent/backend.py)")
     p.add_argument("--telemetry", action="store_true", help="publish per-step state on mures/<fleet>/telemetry/<id>")

@@ -18,7 +18,8 @@ from shared.core.models import Sensor
 from shared.core.records import make_record
 from shared.learning.config import default
 from training_server.api import create_app
-from training_server.server import Server
+from training_server.server import Server, build_parser, check_exposure
+from training_server.server import main as server_main
 
 OP, AG = "op-token", "agent-token"
 
@@ -83,13 +84,15 @@ def _operation(spec: dict[str, Any], method: str, path: str) -> tuple[dict[str, 
 @pytest.fixture
 def api(tmp_path: Path):
     graph = builtin_graph("office")
-    srv = Server(tmp_path / "data", graph, "default", OP, AG)
+    (tmp_path / "op.token").write_text(OP + "\n")
+    (tmp_path / "agent.token").write_text(AG + "\n")
+    srv = Server(tmp_path / "data", graph, "default", tmp_path / "op.token", tmp_path / "agent.token")
     srv.ensure_initial_policy(2, None, Sensor(), seed=0)
     srv.bus = FakeBus()
     srv.supervisor = FakeSupervisor()
     with CheckedClient(create_app(srv)) as client:
         yield srv, client
-    srv.store.close()
+    srv.close()
 
 
 def auth(token: str) -> dict[str, str]:
@@ -99,9 +102,18 @@ def auth(token: str) -> dict[str, str]:
 def _store_episode(srv: Server, robot: str = "r1", mission: str = "m1") -> None:
     g = srv.graph
     rec = make_record(
-        g, fleet="default", mission_id=mission, robot_id=robot, nodes=[g.start, g.start], z=[0, 1], sensor=Sensor(),
-        captured=True, capture_time=1, captured_by=robot, policy_version=1,
-    )  # fmt: skip
+        g,
+        fleet="default",
+        mission_id=mission,
+        robot_id=robot,
+        nodes=[g.start, g.start],
+        z=[0, 1],
+        sensor=Sensor(),
+        captured=True,
+        capture_time=1,
+        captured_by=robot,
+        policy_version=1,
+    )
     import json
 
     srv.store.add_episodes([("default", robot, mission, 1, 2, True, 1, json.dumps(rec))])
@@ -260,3 +272,80 @@ def test_openapi_documents_auth_errors_on_every_protected_route(api):
             assert "401" in op["responses"], (method, path)
             assert ("403" in op["responses"]) == (method == "post"), (method, path)
             assert "HTTPValidationError" not in str(op["responses"]), (method, path)
+
+
+def test_a_large_body_is_413_unread_and_not_echoed(api):
+    srv, c = api
+    srv.bus.online = {"r1": 1.0}
+    _store_episode(srv)  # so that a training run would be accepted if its handler ran
+    big = b'{"robots": ["' + b"r" * (2 << 20) + b'"]}'
+    r = c.post("/api/v1/missions", content=big, headers={**auth(OP), "Content-Type": "application/json"})
+    assert r.status_code == 413 and len(r.content) < 200 and "larger than" in r.json()["error"]
+
+    def chunks():  # no Content-Length: the limit counts the bytes as they come; the first MiB is valid JSON
+        yield b"{}"
+        for _ in range(40):
+            yield b" " * (64 << 10)
+
+    r = c.post("/api/v1/training-runs", content=chunks(), headers={**auth(OP), "Content-Type": "application/json"})
+    assert r.status_code == 413 and srv.store.runs() == [] and srv.bus.published == []
+
+
+def test_one_server_per_data_directory_and_private_files(api, tmp_path):
+    srv, _c = api
+    with pytest.raises(ValueError, match="in use by another training-server"):
+        Server(srv.data_dir, srv.graph, "default", tmp_path / "op.token", tmp_path / "agent.token")
+    assert srv.data_dir.stat().st_mode & 0o777 == 0o700
+    assert (srv.data_dir / "mures.db").stat().st_mode & 0o777 == 0o600
+
+
+def test_failed_sign_ins_are_logged_and_rate_limited(api, caplog):
+    _srv, c = api
+    for _ in range(10):
+        assert c.get("/api/v1/fleet", headers=auth("guess")).status_code == 401
+    assert "failed sign-in from testclient" in caplog.text
+    r = c.get("/api/v1/fleet", headers=auth(AG))  # even the right token, from this address, for a while
+    assert r.status_code == 429 and int(r.headers["retry-after"]) > 0
+    assert c.get("/api/v1/health").status_code == 200  # no token, no limit
+
+
+def test_rotated_tokens_take_effect_at_the_next_request(api, tmp_path):
+    _srv, c = api
+    assert c.get("/api/v1/fleet", headers=auth(AG)).status_code == 200
+    assert server_main(["rotate-token", "agent", "--token-file", str(tmp_path / "agent.token")]) == 0
+    new = (tmp_path / "agent.token").read_text().strip()
+    assert new != AG and (tmp_path / "agent.token").stat().st_mode & 0o777 == 0o600
+    assert c.get("/api/v1/fleet", headers=auth(AG)).status_code == 401
+    assert c.get("/api/v1/fleet", headers=auth(new)).status_code == 200
+    assert server_main(["rotate-token", "agent", "--data-dir", str(tmp_path / "nowhere")]) == 2
+
+
+def test_operator_actions_are_audited(api):
+    srv, c = api
+    srv.bus.online = {"r1": 1.0}
+    c.post("/api/v1/missions", json={"mission_id": "m-audit"}, headers=auth(OP))
+    c.post("/api/v1/missions/m-audit/stop", headers=auth(AG))  # refused, and recorded as an attempt
+    c.get("/api/v1/missions/m-audit", headers=auth(OP))  # reading is not an action
+    log = srv.audit.read()
+    assert [(e["who"], e["action"], e["status"]) for e in log] == [
+        ("operator", "POST /api/v1/missions", 201),
+        ("agent", "POST /api/v1/missions/m-audit/stop", 403),
+    ]
+    assert all(e["client"] == "testclient" and e["ts"] > 0 for e in log)
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--http", "0.0.0.0:8000"], "--http 0.0.0.0 is reachable from the network"),
+        (["--zenoh-listen", "tcp/0.0.0.0:7447"], "--zenoh-listen tcp/0.0.0.0:7447 is reachable"),
+        (["--tls-cert", "c.pem"], "--tls-cert and --tls-key go together"),
+    ],
+)
+def test_the_server_refuses_to_listen_beyond_loopback_unprotected(args, fragment):
+    with pytest.raises(ValueError, match=None) as exc:
+        check_exposure(build_parser().parse_args(["--env", "office", *args]))
+    assert fragment in str(exc.value)
+    if "--tls-cert" not in args:
+        check_exposure(build_parser().parse_args(["--env", "office", *args, "--insecure"]))  # said explicitly
+    check_exposure(build_parser().parse_args(["--env", "office", "--http", "127.0.0.1:8000"]))

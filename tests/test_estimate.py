@@ -6,7 +6,7 @@ import pytest
 
 from shared.core.graph import grid_graph
 from shared.core.models import Sensor, lazy_walk, uniform_walk
-from shared.core.records import RecordError, parse_record, read_jsonl
+from shared.core.records import RecordError, canonical_record, parse_record, read_jsonl
 from shared.engine.estimate import collect_missions, em, eq8, mean_row_tv
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import RandomSearcher
@@ -92,3 +92,18 @@ def test_bad_records_are_rejected_with_a_reason_and_skipped(grid_data, tmp_path)
     assert data.used_records == 30
     assert data.skipped["duplicate"] == 1 and data.skipped["json"] == 1
     assert sum(data.skipped.values()) == 2 + len(bad)
+
+
+def test_records_bound_integers_quote_little_and_store_only_the_contract(grid_data):
+    g, _truth, recs = grid_data
+    good = next(r for r in recs if r["outcome"]["captured"])
+    with pytest.raises(RecordError) as exc:  # would overflow the database's 64-bit integers
+        parse_record({**good, "policy_version": 2**64}, g)
+    assert exc.value.reason == "bad-field"
+    huge = "x" * 5_000_000
+    for rec in ({**good, "schema": huge}, {**good, "fleet": huge}, {**good, "steps": [{"t": 0, "node": huge, "z": 0}]}):
+        with pytest.raises(RecordError) as exc:
+            parse_record(rec, g)
+        assert len(str(exc.value)) < 300  # the value is quoted cut short, never echoed whole
+    padded = {**good, "note": huge, "steps": [{**s, "extra": 1} for s in good["steps"]]}
+    assert canonical_record(parse_record(padded, g), g) == good

@@ -60,6 +60,7 @@ def test_closed_neighbourhoods(small_graph):
         ({"nodes": [1, 2], "edges": [[1, 2, 3]]}, "edge #0"),
         ({"nodes": [1, 2], "edges": [[1, 2]], "sensing": {"1": [7]}}, "sensing[1] names node 7"),
         ([1, 2], "expected a JSON object"),
+        ({"nodes": [1, 2**64], "edges": [[1, 2**64]]}, "not an integer label in [0, 9223372036854775807]"),
     ],
 )
 def test_bad_graphs_name_the_problem(data, fragment):
@@ -92,3 +93,31 @@ def test_grid_and_custom_sensing():
     ptr, idx = h.detection_sets("custom")
     assert list(idx[ptr[0] : ptr[1]]) == [0, 1, 2]
     assert sorted(idx[ptr[2] : ptr[3]]) == [1, 2]  # unlisted nodes default to N[p]
+
+
+def test_a_map_too_large_for_dense_arrays_is_refused_by_the_engine_with_the_limit(tmp_path):
+    big = {"name": "corridor", "nodes": list(range(6000)), "edges": [[i, i + 1] for i in range(5999)]}
+    g = graph_from_dict(big)  # the agent's sparse filter takes it
+    with pytest.raises(GraphError, match=r"6000 nodes: the engine holds dense n x n arrays .* at most 5000"):
+        g.closed_adjacency  # noqa: B018
+    path = tmp_path / "corridor.json"
+    path.write_text(json.dumps(big))
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "shared.tools.cli",
+            "evaluate",
+            "--graph",
+            str(path),
+            "--robots",
+            "1",
+            "--searcher",
+            "random",
+            "--episodes",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and "at most 5000" in r.stderr and "Traceback" not in r.stderr

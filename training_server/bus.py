@@ -17,7 +17,7 @@ from typing import Any
 
 import zenoh
 
-from shared.core.records import MAX_RECORD_BYTES, RecordError, parse_record
+from shared.core.records import MAX_RECORD_BYTES, RecordError, canonical_record, parse_record
 from shared.core.wire import agent_key, episode_key, mission_key, parse_message
 
 log = logging.getLogger("mures.server.bus")
@@ -162,7 +162,7 @@ class Bus:
                     len(ep.nodes),
                     ep.captured,
                     ep.capture_time,
-                    json.dumps(rec, separators=(",", ":")),
+                    json.dumps(canonical_record(ep, graph), separators=(",", ":")),  # unknown fields dropped
                 )
             )
             accepted.append((q, len(rows) - 1))

@@ -12,11 +12,11 @@ tcp/127.0.0.1:7447; HTTP (the REST API under /api/v1, OpenAPI at /docs) on 127.0
 from __future__ import annotations
 
 import argparse
+import fcntl
 import hashlib
 import json
 import logging
 import os
-import secrets
 import shutil
 import signal
 import sys
@@ -27,10 +27,11 @@ from pathlib import Path
 from typing import Any
 
 from shared.core.choices import BUILTIN_MAPS, DETECTIONS
-from shared.core.files import read_token, write_private
+from shared.core.files import read_token
 from shared.core.graph import Graph, GraphError, builtin_graph, load_graph_file
 from shared.core.snapshot import WEIGHTS, SnapshotData, read_meta, read_snapshot
 from shared.core.wire import DEFAULT_FLEET, DEFAULT_HTTP, DEFAULT_ZENOH_ENDPOINT, check_id
+from training_server.security import ROLES, AuditLog, SignInGuard, TokenFile, endpoint_host, is_loopback, rotate
 from training_server.store import Store
 
 log = logging.getLogger("mures.server")
@@ -72,15 +73,24 @@ def sha256_file(path: Path) -> str:
 class Server:
     """State shared by the REST API, the Zenoh bus and the training supervisor."""
 
-    def __init__(self, data_dir: Path, graph: Graph, fleet: str, operator_token: str, agent_token: str) -> None:
+    def __init__(
+        self, data_dir: Path, graph: Graph, fleet: str, operator_token_file: Path, agent_token_file: Path
+    ) -> None:
         self.data_dir = data_dir
         self.graph = graph
         self.fleet = fleet
-        self.operator_token = operator_token
-        self.agent_token = agent_token
-        (data_dir / "policies").mkdir(parents=True, exist_ok=True)
-        (data_dir / "staging").mkdir(parents=True, exist_ok=True)
+        # re-read when rotated (training-server rotate-token); compared in constant time
+        self.tokens = {"operator": TokenFile(operator_token_file), "agent": TokenFile(agent_token_file)}
+        self.sign_ins = SignInGuard()
+        self.audit = AuditLog(data_dir / "audit.jsonl")
+        data_dir.mkdir(parents=True, exist_ok=True)
+        data_dir.chmod(0o700)  # private: the database, tokens and policies are the fleet's
+        self._lock = _lock_data_dir(data_dir)
+        (data_dir / "policies").mkdir(exist_ok=True)
+        (data_dir / "staging").mkdir(exist_ok=True)
         self.store = Store(data_dir / "mures.db")
+        for f in data_dir.glob("mures.db*"):  # the database and its WAL files, also when created earlier
+            f.chmod(0o600)
         self.version_lock = threading.Lock()
         self.bus: Any = None
         self.supervisor: Any = None
@@ -93,6 +103,11 @@ class Server:
                 f"data directory {data_dir} belongs to another map ({map_id[:20]}...); "
                 f"this one is {graph.name!r} ({graph.graph_id[:20]}...). Use another --data-dir."
             )
+
+    def close(self) -> None:
+        """Close the database and release the data directory's lock."""
+        self.store.close()
+        self._lock.close()
 
     # ------------------------------------------------------------------ policy versions
     def policy_dir(self, version: int) -> Path:
@@ -213,6 +228,27 @@ class Server:
         shutil.rmtree(staging, ignore_errors=True)
 
 
+def _lock_data_dir(data_dir: Path) -> Any:
+    """Hold an exclusive lock on ``data_dir/server.lock`` for the process's life: a second server on
+    the same data directory would interleave writes to its database and policy versions."""
+    fh = open(data_dir / "server.lock", "a+", encoding="utf-8")  # noqa: SIM115 - held until close()
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        fh.seek(0)
+        holder = fh.read().strip() or "?"
+        fh.close()
+        raise ValueError(
+            f"data directory {data_dir} is in use by another training-server (pid {holder}); "
+            "stop it or use another --data-dir"
+        ) from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"{os.getpid()}\n")
+    fh.flush()
+    return fh
+
+
 def _write_artifact(version_dir: Path) -> None:
     """(Re)build the tar agents download from ``version_dir/snapshot``, atomically."""
     tmp = version_dir / f".{ARTIFACT}"
@@ -222,14 +258,38 @@ def _write_artifact(version_dir: Path) -> None:
     os.replace(tmp, version_dir / ARTIFACT)
 
 
-def _load_or_create_token(path: Path, given: str | None, kind: str) -> str:
+def check_exposure(args: argparse.Namespace) -> None:
+    """Safe by default: beyond loopback, HTTP needs TLS and Zenoh needs a config file (TLS, user
+    and password, access control: deploy/zenoh/), unless the operator says --insecure."""
+    if bool(args.tls_cert) != bool(args.tls_key):
+        raise ValueError("--tls-cert and --tls-key go together")
+    if args.insecure:
+        return
+    host, _port = args.http
+    if not is_loopback(host) and not args.tls_cert:
+        raise ValueError(
+            f"--http {host} is reachable from the network: serve it with --tls-cert and --tls-key "
+            "(or say --insecure to accept plaintext)"
+        )
+    for ep in args.zenoh_listen or []:
+        _proto, zhost = endpoint_host(ep)
+        if not is_loopback(zhost):
+            raise ValueError(
+                f"--zenoh-listen {ep} is reachable from the network without TLS or authentication: use "
+                "--zenoh-config with a deploy/zenoh/ configuration (or say --insecure)"
+            )
+
+
+def _token_file(path: Path, given: str | None, kind: str) -> Path:
+    """The token file to use: ``given``, or ``path`` in the data directory (created if missing)."""
     if given:
-        return read_token(given)
-    if path.exists():
-        return read_token(path)
-    write_private(path, secrets.token_urlsafe(32) + "\n")
-    print(f"training-server: created {kind} token in {path} (mode 0600)", file=sys.stderr)
-    return read_token(path)
+        read_token(given)  # a clear error now when it is missing or empty
+        return Path(given)
+    if not path.exists():
+        rotate(path)
+        print(f"training-server: created {kind} token in {path} (mode 0600)", file=sys.stderr)
+    read_token(path)
+    return path
 
 
 def parse_hostport(text: str) -> tuple[str, int]:
@@ -263,6 +323,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="connect to these routers (e.g. zenohd) instead of being the router",
     )
     p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file (overrides the two above)")
+    p.add_argument("--tls-cert", metavar="PEM", help="serve HTTPS with this certificate (chain) ...")
+    p.add_argument("--tls-key", metavar="PEM", help="... and this private key")
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow listening beyond loopback without TLS (HTTP) or without a --zenoh-config (Zenoh): "
+        "anyone on the network could then command the robots",
+    )
     p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet name (default 'default')")
     p.add_argument("--operator-token-file", help="operator bearer token (default: created in the data dir)")
     p.add_argument("--agent-token-file", help="agent bearer token (default: created in the data dir)")
@@ -277,7 +345,27 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def rotate_token_main(argv: list[str]) -> int:
+    """`training-server rotate-token ROLE [--data-dir DIR | --token-file F]`: a new token now; the
+    running server refuses the old one from its next request on."""
+    p = argparse.ArgumentParser(prog="training-server rotate-token", description=rotate_token_main.__doc__)
+    p.add_argument("role", choices=ROLES)
+    p.add_argument("--data-dir", default="mures-data", help="the server's data directory (default ./mures-data)")
+    p.add_argument("--token-file", help="the token file the server was started with, if not the data directory's")
+    args = p.parse_args(argv)
+    path = Path(args.token_file) if args.token_file else Path(args.data_dir) / f"{args.role}.token"
+    if not path.exists():
+        print(f"training-server: error: no token file {path} to rotate", file=sys.stderr)
+        return 2
+    rotate(path)
+    print(f"rotated the {args.role} token in {path}: give the new one to its users; the old one is refused now")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["rotate-token"]:
+        return rotate_token_main(argv[1:])
     args = build_parser().parse_args(argv)
     setup_logging(args.log_json, args.log_level.upper())
     try:
@@ -297,14 +385,16 @@ def _run(args: argparse.Namespace) -> int:
     from training_server.jobs import Supervisor
 
     check_id("fleet", args.fleet)
+    check_exposure(args)
     if args.robots < 1:
         raise ValueError("--robots must be at least 1")
     graph = builtin_graph(args.env) if args.env else load_graph_file(args.graph)
     sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection)
     data_dir = Path(args.data_dir)
+    os.umask(0o077)  # everything the server writes (database, policies, logs of runs) is private
     data_dir.mkdir(parents=True, exist_ok=True)
-    op = _load_or_create_token(data_dir / "operator.token", args.operator_token_file, "operator")
-    ag = _load_or_create_token(data_dir / "agent.token", args.agent_token_file, "agent")
+    op = _token_file(data_dir / "operator.token", args.operator_token_file, "operator")
+    ag = _token_file(data_dir / "agent.token", args.agent_token_file, "agent")
     srv = Server(data_dir, graph, args.fleet, op, ag)
     srv.migrate_versions()
     srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)
@@ -321,13 +411,15 @@ def _run(args: argparse.Namespace) -> int:
     srv.supervisor.start()
     host, port = args.http
     app = create_app(srv)
-    config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)
+    tls = {"ssl_certfile": args.tls_cert, "ssl_keyfile": args.tls_key} if args.tls_cert else {}
+    config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False, **tls)
     http = uvicorn.Server(config)
     log.info(
-        "serving fleet %r on map %s (n=%d): http://%s:%d/api/v1, zenoh %s, data in %s, policy version %d",
+        "serving fleet %r on map %s (n=%d): %s://%s:%d/api/v1, zenoh %s, data in %s, policy version %d",
         args.fleet,
         graph.name,
         graph.n,
+        "https" if tls else "http",
         host,
         port,
         args.zenoh_config or args.zenoh_connect or args.zenoh_listen or DEFAULT_ZENOH_ENDPOINT,
@@ -344,7 +436,7 @@ def _run(args: argparse.Namespace) -> int:
         log.info("shutting down")
         srv.supervisor.stop()
         srv.bus.close()
-        srv.store.close()
+        srv.close()
     return 0
 
 

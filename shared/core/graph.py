@@ -21,8 +21,12 @@ import numpy as np
 
 from shared.core.choices import BUILTIN_MAPS
 
-MAX_NODES = 100_000
+MAX_NODES = 100_000  # the agent's filter is sparse, O(n + m) a step: large maps are fine there
 MAX_EDGES = 1_000_000
+# The engine (simulator, trainer, planners, model files) holds dense (n, n) arrays: at n = 5,000
+# one float64 matrix is 200 MB. Asking for one on a larger map is refused with the limit named.
+DENSE_MAX_NODES = 5_000
+MAX_LABEL = 2**63 - 1  # labels are stored as int64
 
 
 class GraphError(ValueError):
@@ -30,7 +34,7 @@ class GraphError(ValueError):
 
 
 def _is_label(x: Any) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+    return isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= MAX_LABEL
 
 
 def graph_id_of(labels: list[int], edges: list[tuple[int, int]]) -> str:
@@ -114,6 +118,14 @@ class Graph:
         except KeyError:
             raise GraphError(f"node {label} is not in graph {self.name!r}") from None
 
+    def require_dense(self, what: str = "the engine") -> None:
+        """Refuse (GraphError, the limit named) a dense (n, n) array on a map above DENSE_MAX_NODES."""
+        if self.n > DENSE_MAX_NODES:
+            raise GraphError(
+                f"map {self.name!r} has {self.n} nodes: {what} holds dense n x n arrays "
+                f"({self.n**2 * 8 / 1e9:.1f} GB for one float64 matrix) and takes at most {DENSE_MAX_NODES} nodes"
+            )
+
     @cached_property
     def closed_adjacency(self) -> np.ndarray:
         """(n, n) bool, computed once: [p, a] is True when a is in N[p]. Do not modify."""
@@ -121,6 +133,7 @@ class Graph:
 
     def adjacency(self, closed: bool = True) -> np.ndarray:
         """(n, n) bool adjacency; with ``closed`` the diagonal is set (N[p])."""
+        self.require_dense()
         a = np.zeros((self.n, self.n), dtype=bool)
         a[self.edges[:, 0], self.edges[:, 1]] = True
         a[self.edges[:, 1], self.edges[:, 0]] = True
@@ -149,6 +162,7 @@ class Graph:
 
     def detection_matrix(self, detection: str) -> np.ndarray:
         """(n, n) bool: [p, v] is True iff v is in D(p) (the CSR of ``detection_sets`` as a matrix)."""
+        self.require_dense()
         ptr, idx = self.detection_sets(detection)
         det = np.zeros((self.n, self.n), dtype=bool)
         det[np.repeat(np.arange(self.n), np.diff(ptr)), idx] = True
@@ -190,7 +204,7 @@ def graph_from_dict(data: Any, source: str = "graph") -> Graph:
     index: dict[int, int] = {}
     for k, lab in enumerate(nodes):
         if not _is_label(lab):
-            raise GraphError(f"{source}: node #{k} ({lab!r}) is not a non-negative integer label")
+            raise GraphError(f"{source}: node #{k} ({str(lab)[:40]}) is not an integer label in [0, {MAX_LABEL}]")
         if lab in index:
             raise GraphError(f"{source}: node {lab} is listed twice")
         index[lab] = k
@@ -198,7 +212,7 @@ def graph_from_dict(data: Any, source: str = "graph") -> Graph:
     rows: list[tuple[int, int]] = []
     for k, e in enumerate(edges):
         if not (isinstance(e, list) and len(e) == 2 and all(_is_label(x) for x in e)):
-            raise GraphError(f"{source}: edge #{k} ({e!r}) is not a pair of node labels")
+            raise GraphError(f"{source}: edge #{k} ({str(e)[:40]}) is not a pair of node labels")
         u, v = e
         for x in (u, v):
             if x not in index:

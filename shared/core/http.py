@@ -6,6 +6,7 @@ computer needs nothing more.
 from __future__ import annotations
 
 import json
+import ssl
 import urllib.error
 import urllib.request
 from typing import Any
@@ -24,10 +25,13 @@ class ApiClient:
     """JSON in and out, a bearer token on every request. Network failures raise OSError
     (urllib's URLError included); error statuses raise ``ApiError``."""
 
-    def __init__(self, base: str, token: str | None, timeout: float = 30.0) -> None:
+    def __init__(self, base: str, token: str | None, timeout: float = 30.0, ca_file: str | None = None) -> None:
+        """``ca_file``: the CA certificate (PEM) to verify an https server with, for a fleet's own
+        CA or a self-signed server certificate; the system's CAs otherwise."""
         self.base = base.rstrip("/")
         self.token = token
         self.timeout = timeout
+        self.context = ssl.create_default_context(cafile=ca_file) if ca_file else None
 
     def request(
         self,
@@ -45,7 +49,7 @@ class ApiClient:
         if self.token:
             req.add_header("Authorization", f"Bearer {self.token}")
         try:
-            with urllib.request.urlopen(req, timeout=timeout or self.timeout) as resp:
+            with urllib.request.urlopen(req, timeout=timeout or self.timeout, context=self.context) as resp:
                 return resp.status, dict(resp.headers.items()), resp.read()
         except urllib.error.HTTPError as exc:
             if exc.code == 304:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from shared.core.choices import DETECTIONS
-from shared.core.graph import Graph
+from shared.core.graph import DENSE_MAX_NODES, Graph
 
 ROW_SUM_TOL = 1e-6
 
@@ -44,6 +44,9 @@ class TargetModel:
     kind: str
 
     def dense(self) -> np.ndarray:
+        """Gamma as an (n, n) matrix (refused above DENSE_MAX_NODES: shared/core/graph.py)."""
+        if self.n > DENSE_MAX_NODES:
+            raise ModelError(f"a dense {self.n} x {self.n} Gamma exceeds the limit of {DENSE_MAX_NODES} nodes")
         g = np.zeros((self.n, self.n), dtype=np.float64)
         g[self.src, self.dst] = self.prob
         return g

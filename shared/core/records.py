@@ -23,8 +23,15 @@ from shared.core.models import ModelError, Sensor
 
 SCHEMA = "mures.episode/1"
 MAX_STEPS = 100_000
+MAX_INT = 2**63 - 1  # integers must fit the database's 64 bits
 MAX_RECORD_BYTES = 16 * 1024 * 1024
 ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,128}$")  # usable as one Zenoh key segment
+
+
+def _show(x: Any) -> str:
+    """A value quoted in an error message, cut to 40 characters (never echo a huge input)."""
+    text = repr(x)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 class RecordError(ValueError):
@@ -63,10 +70,10 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
     if not isinstance(rec, dict):
         raise RecordError("not-object", f"a record must be a JSON object, got {type(rec).__name__}")
     if rec.get("schema") != SCHEMA:
-        raise RecordError("schema", f"schema must be {SCHEMA!r}, got {rec.get('schema')!r}")
+        raise RecordError("schema", f"schema must be {SCHEMA!r}, got {_show(rec.get('schema'))}")
     rec_fleet = _need(rec, "fleet", str)
     if fleet is not None and rec_fleet != fleet:
-        raise RecordError("fleet", f"record is for fleet {rec_fleet!r}, expected {fleet!r}")
+        raise RecordError("fleet", f"record is for fleet {_show(rec_fleet)}, expected {fleet!r}")
     mission_id = _need(rec, "mission_id", str)
     robot_id = _need(rec, "robot_id", str)
     for name, v in (("fleet", rec_fleet), ("mission_id", mission_id), ("robot_id", robot_id)):
@@ -76,8 +83,8 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
     if gid != graph.graph_id:
         raise RecordError("graph_id", f"graph_id {gid[:20]}... does not match this map ({graph.graph_id[:20]}...)")
     pv = rec.get("policy_version")
-    if pv is not None and (not isinstance(pv, int) or isinstance(pv, bool) or pv < 0):
-        raise RecordError("bad-field", f"policy_version must be a non-negative integer or null, got {pv!r}")
+    if pv is not None and (not isinstance(pv, int) or isinstance(pv, bool) or not 0 <= pv <= MAX_INT):
+        raise RecordError("bad-field", f"policy_version must be an integer in [0, 2^63-1] or null, got {str(pv)[:40]}")
     sensor_raw = _need(rec, "sensor", dict)
     try:
         sensor = Sensor(
@@ -102,11 +109,11 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
             raise RecordError("steps", f"step #{k} is not an object")
         t, node, zz = st.get("t"), st.get("node"), st.get("z")
         if t != k or isinstance(t, bool):
-            raise RecordError("t-sequence", f"step #{k} has t = {t!r}; t must run 0, 1, 2, ... without gaps")
+            raise RecordError("t-sequence", f"step #{k} has t = {_show(t)}; t must run 0, 1, 2, ... without gaps")
         if isinstance(node, bool) or not isinstance(node, int) or node not in index:
-            raise RecordError("node", f"step t={k}: node {node!r} is not a node of this map")
+            raise RecordError("node", f"step t={k}: node {_show(node)} is not a node of this map")
         if isinstance(zz, bool) or not isinstance(zz, int) or zz not in (0, 1):
-            raise RecordError("z", f"step t={k}: z must be 0 or 1, got {zz!r}")
+            raise RecordError("z", f"step t={k}: z must be 0 or 1, got {_show(zz)}")
         nodes[k] = index[node]
         z[k] = int(zz)
     adj = graph.closed_adjacency if graph.n <= 4096 else None
@@ -127,10 +134,11 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
     if captured:
         if not isinstance(ct, int) or isinstance(ct, bool) or not (0 <= ct <= len(steps) - 1):
             raise RecordError(
-                "outcome", f"outcome.capture_time {ct!r} must be an integer between 0 and the last t ({len(steps) - 1})"
+                "outcome",
+                f"outcome.capture_time {_show(ct)} must be an integer between 0 and the last t ({len(steps) - 1})",
             )
         if by is not None and (not isinstance(by, str) or not ID_RE.match(by)):
-            raise RecordError("outcome", f"outcome.captured_by {by!r} is not a robot id")
+            raise RecordError("outcome", f"outcome.captured_by {_show(by)} is not a robot id")
     else:
         ct, by = None, None
     return Episode(
@@ -176,6 +184,24 @@ def make_record(
         ],
         "outcome": {"captured": captured, "capture_time": capture_time, "captured_by": captured_by},
     }
+
+
+def canonical_record(ep: Episode, graph: Graph) -> dict[str, Any]:
+    """The record of a parsed episode with the contract's fields only (what the server stores:
+    fields this schema version does not know are dropped, not kept verbatim)."""
+    return make_record(
+        graph,
+        fleet=ep.fleet,
+        mission_id=ep.mission_id,
+        robot_id=ep.robot_id,
+        nodes=ep.nodes,
+        z=ep.z,
+        sensor=ep.sensor,
+        captured=ep.captured,
+        capture_time=ep.capture_time,
+        captured_by=ep.captured_by,
+        policy_version=ep.policy_version,
+    )
 
 
 def read_jsonl(path: str | Path) -> Iterator[tuple[int, Any]]:

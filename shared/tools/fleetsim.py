@@ -155,8 +155,10 @@ def start_server(
     sensor: Sensor,
     log_dir: Path,
     extra: list[str] | None = None,
+    ca_file: str | None = None,
 ) -> tuple[subprocess.Popen, str, str]:
-    """A training-server process on free loopback ports: (process, base URL, zenoh endpoint)."""
+    """A training-server process on free loopback ports: (process, base URL, zenoh endpoint).
+    With ``ca_file`` the server is expected to serve https (``extra`` holds --tls-cert/--tls-key)."""
     http_port, z_port = free_port(), free_port()
     endpoint = f"tcp/127.0.0.1:{z_port}"
     cmd = [
@@ -182,8 +184,8 @@ def start_server(
     ]
     log = open(log_dir / "server.log", "ab")  # noqa: SIM115 - owned by the process
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_child_env())
-    base = f"http://127.0.0.1:{http_port}"
-    probe = ApiClient(base, None)
+    base = f"{'https' if ca_file else 'http'}://127.0.0.1:{http_port}"
+    probe = ApiClient(base, None, ca_file=ca_file)
 
     def up() -> bool:
         if proc.poll() is not None:

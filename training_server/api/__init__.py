@@ -19,6 +19,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from training_server.api import episodes, fleet, health, maps, metrics, missions, policies, training_runs
 from training_server.api.deps import DESCRIPTIONS
+from training_server.api.limits import BodyLimit
 
 log = logging.getLogger("mures.server.api")
 
@@ -43,6 +44,21 @@ def create_app(srv: Any) -> FastAPI:
     for module in (health, maps, fleet, missions, episodes, policies, training_runs):
         app.include_router(module.router, prefix=API_PREFIX)
     app.include_router(metrics.router)
+    app.add_middleware(BodyLimit)
+
+    @app.middleware("http")
+    async def audit_operator_actions(request: Request, call_next: Any) -> Any:
+        """Every operator action (and every attempt at one) in the audit log: who, what, when, answer."""
+        response = await call_next(request)
+        if getattr(request.state, "audit", False):
+            srv.audit.write(
+                who=getattr(request.state, "who", "unknown"),
+                client=request.client.host if request.client else "unknown",
+                action=f"{request.method} {request.url.path}",
+                query=str(request.url.query) or None,
+                status=response.status_code,
+            )
+        return response
 
     @app.exception_handler(StarletteHTTPException)
     def _http_error(_req: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -58,17 +74,18 @@ def create_app(srv: Any) -> FastAPI:
         return JSONResponse({"error": "internal server error (logged)"}, status_code=500)
 
     def openapi() -> dict[str, Any]:
-        """FastAPI's document, with its default 422 (HTTPValidationError) replaced by our Error:
-        validation failures are answered by ``_invalid`` above."""
+        """FastAPI's document, with its default 422 (HTTPValidationError) replaced by our Error
+        (validation failures are answered by ``_invalid`` above), and the 413 of ``BodyLimit``,
+        which any request can meet, on every operation."""
         if app.openapi_schema is None:
             spec = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            error = {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}
             for ops in spec.get("paths", {}).values():
                 for op in ops.values():
-                    if "422" in op.get("responses", {}):
-                        op["responses"]["422"] = {
-                            "description": DESCRIPTIONS[422],
-                            "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}},
-                        }
+                    responses = op.setdefault("responses", {})
+                    if "422" in responses:
+                        responses["422"] = {"description": DESCRIPTIONS[422], "content": error}
+                    responses["413"] = {"description": DESCRIPTIONS[413], "content": error}
             schemas = spec.get("components", {}).get("schemas", {})
             for name in ("HTTPValidationError", "ValidationError"):
                 schemas.pop(name, None)

@@ -7,7 +7,7 @@ Bearer tokens (compared in constant time): the operator token may do everything,
 
 from __future__ import annotations
 
-import hmac
+import math
 from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request
@@ -26,12 +26,17 @@ DESCRIPTIONS = {
     403: "The agent token on an operator action",
     404: "No such resource",
     409: "Conflicts with the current state",
+    413: "The request body is larger than the limit (1 MiB); it was not read",
     422: "The request does not validate; the message names the field",
+    429: "Too many failed sign-ins from this address; see Retry-After",
 }
 
 
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI ``responses`` for the error statuses a route really returns, all with the Error schema."""
+    """OpenAPI ``responses`` for the error statuses a route really returns, all with the Error schema
+    (a route that checks tokens can also answer 429)."""
+    if 401 in codes:
+        codes = (*codes, 429)
     return {code: {"model": Error, "description": DESCRIPTIONS[code]} for code in codes}
 
 
@@ -44,19 +49,39 @@ def get_server(request: Request) -> Any:
 Srv = Annotated[Any, Depends(get_server)]
 
 
+def _client(request: Request) -> str:
+    return request.client.host if request.client else "unknown"
+
+
 def role(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> int:
+    """The caller's role from its bearer token; failed sign-ins are logged and, past a limit per
+    address (training_server/security.py), refused with 429 for a while."""
     srv = get_server(request)
+    client = _client(request)
+    wait = srv.sign_ins.blocked_for(client)
+    if wait > 0:
+        raise HTTPException(
+            429,
+            f"too many failed sign-ins from {client}; try again in {math.ceil(wait)} s",
+            headers={"Retry-After": str(math.ceil(wait))},
+        )
     if creds is None or creds.scheme.lower() != "bearer":
+        srv.sign_ins.failed(client, "no bearer token", request.url.path)
         raise HTTPException(401, "missing bearer token", headers={"WWW-Authenticate": "Bearer"})
     tok = creds.credentials.encode()
-    if hmac.compare_digest(tok, srv.operator_token.encode()):
+    if srv.tokens["operator"].matches(tok):
+        request.state.who = "operator"
         return ROLE_OPERATOR
-    if hmac.compare_digest(tok, srv.agent_token.encode()):
+    if srv.tokens["agent"].matches(tok):
+        request.state.who = "agent"
         return ROLE_AGENT
+    srv.sign_ins.failed(client, "wrong bearer token", request.url.path)
     raise HTTPException(401, "wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
 
 
-def operator(r: Annotated[int, Depends(role)]) -> int:
+def operator(request: Request, r: Annotated[int, Depends(role)]) -> int:
+    """The operator token is needed; the action is written to the audit log (create_app)."""
+    request.state.audit = True
     if r != ROLE_OPERATOR:
         raise HTTPException(403, "this action needs the operator token")
     return r
