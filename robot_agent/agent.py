@@ -249,7 +249,15 @@ class Agent:
             self.control.put(msg)
 
     def open_session(self) -> None:
-        conf = zenoh_config("client", connect=self.args.zenoh_connect, config_file=self.args.zenoh_config)
+        password = read_token(self.args.zenoh_password_file) if self.args.zenoh_password_file else None
+        conf = zenoh_config(
+            "client",
+            connect=self.args.zenoh_connect,
+            config_file=self.args.zenoh_config,
+            tls_ca=self.args.zenoh_ca,
+            user=self.robot_id if password else None,  # the robot's Zenoh user is its id
+            password=password,
+        )
         while not self.stop.is_set():
             try:
                 self.session = zenoh.open(conf)
@@ -516,6 +524,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fleet", default=DEFAULT_FLEET)
     p.add_argument("--token-file", help="the agent bearer token for the REST API")
     p.add_argument("--ca-file", metavar="PEM", help="CA certificate to verify an https --server with")
+    p.add_argument("--zenoh-ca", metavar="PEM", help="CA certificate to verify a tls/ Zenoh router with")
+    p.add_argument(
+        "--zenoh-password-file", metavar="F", help="this robot's Zenoh password (training-server robots add)"
+    )
     p.add_argument("--state-dir", help="outbox, journal and policies (default ./mures-agent-<robot_id>)")
     p.add_argument("--backend", default="sim", help="sim (fleet simulator) or MODULE:CLASS (robot_agent/backend.py)")
     p.add_argument("--telemetry", action="store_true", help="publish per-step state on mures/<fleet>/telemetry/<id>")

@@ -1,18 +1,26 @@
-"""The fleet's protections with real processes: HTTPS with a self-signed certificate."""
+"""The fleet's protections with real processes: HTTPS with a self-signed certificate, and the
+server's secured Zenoh router (TLS, per-robot users, access control)."""
 
 from __future__ import annotations
 
+import json
 import signal
 import ssl
 import subprocess
+import time
 import urllib.error
 
 import pytest
+import zenoh
 
 from shared.core.files import read_token
-from shared.core.http import ApiClient
+from shared.core.graph import builtin_graph
+from shared.core.http import ApiClient, ApiError
 from shared.core.models import Sensor
-from shared.tools.fleetsim import start_server
+from shared.core.records import make_record
+from shared.core.wire import agent_key, episode_key, mission_key, zenoh_config
+from shared.tools.fleetsim import start_server, wait_until
+from training_server.server import main as server_main
 
 pytestmark = pytest.mark.slow  # starts a training-server process
 
@@ -42,6 +50,104 @@ def test_rest_api_over_https_with_a_self_signed_certificate(tmp_path):
         assert isinstance(exc.value.reason, ssl.SSLCertVerificationError)
         with pytest.raises(OSError):  # and plaintext gets no answer
             ApiClient(base.replace("https://", "http://"), token, timeout=5).get("/api/v1/health")
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+
+
+def _session(endpoint, ca, user=None, password=None):
+    return zenoh.open(zenoh_config("client", connect=[endpoint], tls_ca=str(ca), user=user, password=password))
+
+
+def _query(session, key, payload):
+    """(ok, body) of the first reply to a query, (None, None) when nobody answers."""
+    for reply in session.get(key, payload=payload, timeout=3, consolidation=zenoh.ConsolidationMode.NONE):
+        if reply.ok is not None:
+            return True, json.loads(reply.ok.payload.to_bytes())
+        return False, reply.err.payload.to_bytes().decode()
+    return None, None
+
+
+def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, certificates):
+    """The server's own session as a TLS router with per-robot users and access control: no
+    session without a robot's credentials; r1 cannot send an episode as r2, declare r2's presence,
+    or publish mission control (forged start, stop, captured reach neither robots nor the server)."""
+    ca, cert, key = certificates
+    data = tmp_path / "data"
+    data.mkdir()
+    creds = {}
+    for r in ("r1", "r2"):
+        assert server_main(["robots", "add", r, "--data-dir", str(data), "--out", str(tmp_path / r)]) == 0
+        creds[r] = (tmp_path / r / "token").read_text().strip(), (tmp_path / r / "zenoh-password").read_text().strip()
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    tls = ["--zenoh-tls-cert", str(cert), "--zenoh-tls-key", str(key)]
+    proc, base, endpoint = start_server(["--env", "office"], data, 2, Sensor(), logs, tls, zenoh_proto="tls")
+    api = ApiClient(base, read_token(data / "operator.token"))
+    g = builtin_graph("office")
+    try:
+        assert endpoint.startswith("tls/")
+        for user, password in ((None, None), ("r1", "wrong"), ("r9", "any")):
+            with pytest.raises(zenoh.ZError):
+                _session(endpoint, ca, user, password).close()
+        r1, r2 = _session(endpoint, ca, "r1", creds["r1"][1]), _session(endpoint, ca, "r2", creds["r2"][1])
+        heard: list[dict] = []
+        sub = r2.declare_subscriber(
+            mission_key("default", "*"), lambda s: heard.append(json.loads(s.payload.to_bytes()))
+        )
+        try:
+            tok = r1.liveliness().declare_token(agent_key("default", "r1"))
+            fake = r1.liveliness().declare_token(agent_key("default", "r2"))  # r1 posing as r2
+            wait_until(lambda: [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"]] == ["r1"], 10, "r1 online")
+            time.sleep(1.0)
+            assert [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"]] == ["r1"]
+
+            def rec(robot, mission):
+                return make_record(
+                    g,
+                    fleet="default",
+                    mission_id=mission,
+                    robot_id=robot,
+                    nodes=[g.start],
+                    z=[0],
+                    sensor=Sensor(),
+                    captured=False,
+                    capture_time=None,
+                    captured_by=None,
+                )
+
+            ok, body = _query(r1, episode_key("default", "r1", "m1"), json.dumps(rec("r1", "m1")).encode())
+            assert ok and body == {"status": "stored"}
+            ok, body = _query(r1, episode_key("default", "r2", "m1"), json.dumps(rec("r2", "m1")).encode())
+            assert ok is None  # refused by the router: the server never sees it
+            assert api.get("/api/v1/episodes/stats")["stored"] == 1
+            # the server's mission control reaches the robots ...
+            m = api.post("/api/v1/missions", {"robots": ["r1"], "mission_id": "m-sec", "seed": 1})
+            wait_until(lambda: any(x.get("mission_id") == "m-sec" for x in heard), 10, "the start message")
+            heard.clear()
+            # ... a robot's forgeries do not
+            for forged in ({"type": "captured", "t": 3, "captured_by": "r1"}, {"type": "stop", "reason": "forged"},
+                           {"type": "start", "robots": ["r2"], "seed": 5}):  # fmt: skip
+                r1.put(mission_key("default", "m-sec"), json.dumps({**forged, "mission_id": "m-sec"}).encode())
+            time.sleep(1.5)
+            assert heard == []
+            assert api.get(f"/api/v1/missions/{m['id']}")["status"] == "running" and m["status"] == "running"
+        finally:
+            sub.undeclare()
+            tok.undeclare()
+            fake.undeclare()
+            r1.close()
+            r2.close()
+        # the robots' HTTP tokens are scoped to themselves
+        robot1 = ApiClient(base, creds["r1"][0])
+        assert [e["robot_id"] for e in robot1.get("/api/v1/episodes")["items"]] == ["r1"]
+        with pytest.raises(ApiError) as exc:
+            robot1.get("/api/v1/episodes/r2/m1")
+        assert exc.value.status == 403
+        assert server_main(["robots", "revoke", "r1", "--data-dir", str(data)]) == 0
+        with pytest.raises(ApiError) as exc:
+            robot1.get("/api/v1/map")
+        assert exc.value.status == 401
     finally:
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(30) == 0

@@ -86,6 +86,12 @@ class Bus:
                 continue
             status = "captured" if msg["type"] == "captured" else "stopped"
             try:
+                mission = self.server.store.get_mission(msg["mission_id"])
+                if mission is None or (status == "captured" and msg.get("captured_by") not in mission["robots"]):
+                    log.warning(
+                        "ignored a %s message for %s: no such mission or robot in it", status, msg["mission_id"]
+                    )
+                    continue
                 self.server.store.mission_event(msg["mission_id"], msg, status)
             except Exception:
                 log.exception("recording mission event %s", msg)

@@ -26,8 +26,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+import training_server.credentials as credentials
 from shared.core.choices import BUILTIN_MAPS, DETECTIONS
-from shared.core.files import read_token
+from shared.core.files import read_token, write_private
 from shared.core.graph import Graph, GraphError, builtin_graph, load_graph_file
 from shared.core.snapshot import WEIGHTS, SnapshotData, read_meta, read_snapshot
 from shared.core.wire import DEFAULT_FLEET, DEFAULT_HTTP, DEFAULT_ZENOH_ENDPOINT, check_id
@@ -263,6 +264,8 @@ def check_exposure(args: argparse.Namespace) -> None:
     and password, access control: deploy/zenoh/), unless the operator says --insecure."""
     if bool(args.tls_cert) != bool(args.tls_key):
         raise ValueError("--tls-cert and --tls-key go together")
+    if bool(args.zenoh_tls_cert) != bool(args.zenoh_tls_key):
+        raise ValueError("--zenoh-tls-cert and --zenoh-tls-key go together")
     if args.insecure:
         return
     host, _port = args.http
@@ -272,11 +275,12 @@ def check_exposure(args: argparse.Namespace) -> None:
             "(or say --insecure to accept plaintext)"
         )
     for ep in args.zenoh_listen or []:
-        _proto, zhost = endpoint_host(ep)
-        if not is_loopback(zhost):
+        proto, zhost = endpoint_host(ep)
+        if not is_loopback(zhost) and not (proto == "tls" and args.zenoh_tls_cert):
             raise ValueError(
                 f"--zenoh-listen {ep} is reachable from the network without TLS or authentication: use "
-                "--zenoh-config with a deploy/zenoh/ configuration (or say --insecure)"
+                "tls/ with --zenoh-tls-cert/--zenoh-tls-key, or --zenoh-config with a deploy/zenoh/ configuration "
+                "(or say --insecure)"
             )
 
 
@@ -323,6 +327,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="connect to these routers (e.g. zenohd) instead of being the router",
     )
     p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file (overrides the two above)")
+    p.add_argument(
+        "--zenoh-tls-cert",
+        metavar="PEM",
+        help="be the fleet's secured Zenoh router: TLS with this certificate on the tls/ --zenoh-listen endpoints, "
+        "only robots with credentials (training-server robots add), each limited to its own keys",
+    )
+    p.add_argument("--zenoh-tls-key", metavar="PEM", help="the private key of --zenoh-tls-cert")
     p.add_argument("--tls-cert", metavar="PEM", help="serve HTTPS with this certificate (chain) ...")
     p.add_argument("--tls-key", metavar="PEM", help="... and this private key")
     p.add_argument(
@@ -362,10 +373,55 @@ def rotate_token_main(argv: list[str]) -> int:
     return 0
 
 
+def robots_main(argv: list[str]) -> int:
+    """`training-server robots add|revoke|list [ID] [--data-dir DIR]`: each robot's own credentials."""
+    p = argparse.ArgumentParser(prog="training-server robots", description=credentials.__doc__.split("\n\n")[0])
+    p.add_argument("action", choices=("add", "revoke", "list"))
+    p.add_argument("robot_id", nargs="?", help="the robot (add, revoke)")
+    p.add_argument("--data-dir", default="mures-data", help="the server's data directory (default ./mures-data)")
+    p.add_argument("--out", metavar="DIR", help="add: where to write the robot's token and Zenoh password files")
+    args = p.parse_args(argv)
+    data_dir = Path(args.data_dir)
+    if not data_dir.is_dir():
+        print(f"training-server: error: no data directory {data_dir}", file=sys.stderr)
+        return 2
+    if args.action == "list":
+        for robot, entry in credentials.robots(data_dir).items():
+            issued = time.strftime("%Y-%m-%d %H:%M", time.gmtime(entry["issued"]))
+            print(f"{robot}\tissued {issued} UTC")
+        return 0
+    try:
+        robot = check_id("robot id", args.robot_id or "")
+    except ValueError as exc:
+        print(f"training-server: error: {exc}", file=sys.stderr)
+        return 2
+    audit = AuditLog(data_dir / "audit.jsonl")
+    if args.action == "revoke":
+        if not credentials.revoke(data_dir, robot):
+            print(f"training-server: error: robot {robot} holds no credentials", file=sys.stderr)
+            return 2
+        audit.write(who="admin", client="local", action=f"robots revoke {robot}", status="done")
+        print(f"revoked {robot}: its HTTP token is refused now, its Zenoh password from the server's next start")
+        return 0
+    token, password = credentials.issue(data_dir, robot)
+    out = Path(args.out) if args.out else data_dir / "robots" / f"{robot}-credentials"
+    out.mkdir(mode=0o700, parents=True, exist_ok=True)
+    write_private(out / "token", token + "\n")
+    write_private(out / "zenoh-password", password + "\n")
+    audit.write(who="admin", client="local", action=f"robots add {robot}", status="done")
+    print(
+        f"issued credentials for {robot} in {out}: copy 'token' (robot-agent --token-file) and 'zenoh-password' "
+        "(--zenoh-password-file) to the robot; the server's router takes the new user at its next start"
+    )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["rotate-token"]:
         return rotate_token_main(argv[1:])
+    if argv[:1] == ["robots"]:
+        return robots_main(argv[1:])
     args = build_parser().parse_args(argv)
     setup_logging(args.log_json, args.log_level.upper())
     try:
@@ -402,6 +458,13 @@ def _run(args: argparse.Namespace) -> int:
         srv.store.update_run(run_id, status="failed", finished=time.time(), error="server restarted during the run")
     if args.zenoh_config:
         conf = zenoh_config("router", config_file=args.zenoh_config)
+    elif args.zenoh_tls_cert:
+        listen = args.zenoh_listen or []
+        if not listen or any(not ep.startswith("tls/") for ep in listen):
+            raise ValueError("--zenoh-tls-cert needs --zenoh-listen tls/HOST:PORT endpoints (and only tls/ ones)")
+        extra = credentials.secured_router(data_dir, args.fleet, args.zenoh_tls_cert, args.zenoh_tls_key)
+        conf = zenoh_config("router", listen=listen, extra=extra)
+        log.info("zenoh: TLS, user/password and access control for %d robots", len(credentials.robots(data_dir)))
     elif args.zenoh_connect:
         conf = zenoh_config("client", connect=args.zenoh_connect)
     else:

@@ -64,9 +64,15 @@ def zenoh_config(
     listen: list[str] | None = None,
     connect: list[str] | None = None,
     config_file: str | None = None,
+    tls_ca: str | None = None,
+    user: str | None = None,
+    password: str | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> Any:
     """A zenoh.Config: from ``config_file`` if given (its own settings win), else built here with
-    multicast scouting off and explicit endpoints (docs/zenoh.md)."""
+    multicast scouting off and explicit endpoints (docs/zenoh.md); ``tls_ca`` verifies a tls/
+    router's certificate, ``user``/``password`` authenticate this session, ``extra`` sets further
+    keys (the server's router: TLS listener, users, access control)."""
     import zenoh
 
     if config_file:
@@ -78,6 +84,13 @@ def zenoh_config(
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
+    if tls_ca:
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls_ca))
+    if user is not None:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password or ""))
+    for key, value in (extra or {}).items():
+        conf.insert_json5(key, json.dumps(value))
     return conf
 
 

@@ -156,11 +156,13 @@ def start_server(
     log_dir: Path,
     extra: list[str] | None = None,
     ca_file: str | None = None,
+    zenoh_proto: str = "tcp",
 ) -> tuple[subprocess.Popen, str, str]:
     """A training-server process on free loopback ports: (process, base URL, zenoh endpoint).
-    With ``ca_file`` the server is expected to serve https (``extra`` holds --tls-cert/--tls-key)."""
+    With ``ca_file`` the server is expected to serve https (``extra`` holds --tls-cert/--tls-key);
+    ``zenoh_proto`` "tls" listens on a tls/ endpoint (``extra`` holds --zenoh-tls-cert/--zenoh-tls-key)."""
     http_port, z_port = free_port(), free_port()
-    endpoint = f"tcp/127.0.0.1:{z_port}"
+    endpoint = f"{zenoh_proto}/127.0.0.1:{z_port}"
     cmd = [
         sys.executable,
         "-m",

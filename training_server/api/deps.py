@@ -13,6 +13,7 @@ from typing import Annotated, Any
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+import training_server.credentials as credentials
 from training_server.api.schemas import Error
 
 ROLE_AGENT, ROLE_OPERATOR = 1, 2
@@ -75,6 +76,11 @@ def role(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None,
     if srv.tokens["agent"].matches(tok):
         request.state.who = "agent"
         return ROLE_AGENT
+    robot = credentials.robot_for_token(srv.data_dir, tok)
+    if robot is not None:  # a robot's own token: the agent's reads, its own records only
+        request.state.who = f"robot:{robot}"
+        request.state.robot = robot
+        return ROLE_AGENT
     srv.sign_ins.failed(client, "wrong bearer token", request.url.path)
     raise HTTPException(401, "wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
 
@@ -85,6 +91,14 @@ def operator(request: Request, r: Annotated[int, Depends(role)]) -> int:
     if r != ROLE_OPERATOR:
         raise HTTPException(403, "this action needs the operator token")
     return r
+
+
+def robot_scope(request: Request, robot_id: str | None) -> str | None:
+    """The robot a robot's own token may read records of: 403 for another's; None for fleet tokens."""
+    own: str | None = getattr(request.state, "robot", None)
+    if own is not None and robot_id is not None and robot_id != own:
+        raise HTTPException(403, f"this token is robot {own}'s; it cannot read robot {robot_id}'s records")
+    return own
 
 
 READ = [Depends(role)]  # route dependencies: any fleet token

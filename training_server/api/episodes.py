@@ -4,16 +4,17 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, HTTPException, Query, Request
 
-from training_server.api.deps import READ, Srv, errors
+from training_server.api.deps import READ, Srv, errors, robot_scope
 from training_server.api.schemas import MAX_ID, EpisodePage, EpisodeRecord, EpisodeStats, EpisodeSummary
 
 router = APIRouter(prefix="/episodes", tags=["episodes"], dependencies=READ)
 
 
-@router.get("", responses=errors(401, 422))
+@router.get("", responses=errors(401, 403, 422))
 def episodes(
+    request: Request,
     srv: Srv,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     after: Annotated[
@@ -22,6 +23,7 @@ def episodes(
     mission_id: str | None = None,
     robot_id: str | None = None,
 ) -> EpisodePage:
+    robot_id = robot_scope(request, robot_id) or robot_id  # a robot's own token lists its own records
     items = srv.store.list_episodes(srv.fleet, limit, after, mission_id, robot_id)
     return EpisodePage(
         items=[EpisodeSummary(**i) for i in items], next_after=items[-1]["id"] if len(items) == limit else None
@@ -33,8 +35,9 @@ def episode_stats(srv: Srv) -> EpisodeStats:
     return EpisodeStats(**srv.store.episode_stats(srv.fleet))
 
 
-@router.get("/{robot_id}/{mission_id}", responses=errors(401, 404), response_model_by_alias=True)
-def episode(robot_id: str, mission_id: str, srv: Srv) -> EpisodeRecord:
+@router.get("/{robot_id}/{mission_id}", responses=errors(401, 403, 404), response_model_by_alias=True)
+def episode(request: Request, robot_id: str, mission_id: str, srv: Srv) -> EpisodeRecord:
+    robot_scope(request, robot_id)
     rec = srv.store.get_record(srv.fleet, robot_id, mission_id)
     if rec is None:
         raise HTTPException(404, f"no episode of robot {robot_id!r} in mission {mission_id!r}")

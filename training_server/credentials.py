@@ -1,0 +1,138 @@
+"""Each robot's own credentials, and the secured Zenoh router built from them.
+
+`training-server robots add ID` issues a robot a Zenoh password (its user name is its robot id)
+and an HTTP token scoped to that robot; `robots revoke ID` takes both away; `robots list` shows
+who holds credentials. They live in ``<data>/robots/<id>.json`` (mode 0600; the HTTP token only as
+its sha256). A revoked robot's HTTP token is refused at its next request; its Zenoh password is
+refused from the server's next start (the router reads its user list when it opens).
+
+With `--zenoh-tls-cert/--zenoh-tls-key` the server's own session is the fleet's router with
+(docs/SPEC.md section 6, deploy/README.md):
+- TLS on its tls/ endpoints;
+- user/password authentication: a session without a valid robot's credentials is refused;
+- access control, deny by default. A robot may declare its own liveliness token, publish its own
+  telemetry, query its own episode keys (and receive the replies), subscribe to mission control
+  and receive it. Nothing else: no robot may publish on missions/*, so start, stop and captured
+  come only from the server (its own local session, which the rules do not filter).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import secrets
+import time
+from pathlib import Path
+from typing import Any
+
+from shared.core.files import atomic_write, write_private
+from shared.core.wire import agent_key, episode_key, mission_key, telemetry_key
+
+
+def _robots_dir(data_dir: Path) -> Path:
+    d = data_dir / "robots"
+    d.mkdir(mode=0o700, parents=True, exist_ok=True)
+    return d
+
+
+def _sha(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def issue(data_dir: Path, robot_id: str) -> tuple[str, str]:
+    """New credentials for ``robot_id`` (replacing any it had): (HTTP token, Zenoh password)."""
+    token, password = secrets.token_urlsafe(32), secrets.token_urlsafe(24)
+    entry = {"robot_id": robot_id, "token_sha256": _sha(token), "zenoh_password": password, "issued": time.time()}
+    write_private(_robots_dir(data_dir) / f"{robot_id}.json", json.dumps(entry) + "\n")
+    return token, password
+
+
+def revoke(data_dir: Path, robot_id: str) -> bool:
+    path = _robots_dir(data_dir) / f"{robot_id}.json"
+    if not path.exists():
+        return False
+    path.unlink()
+    return True
+
+
+def robots(data_dir: Path) -> dict[str, dict[str, Any]]:
+    """robot id -> its credentials entry, for every robot holding credentials."""
+    out = {}
+    for p in sorted(_robots_dir(data_dir).glob("*.json")):
+        entry = json.loads(p.read_text(encoding="utf-8"))
+        out[entry["robot_id"]] = entry
+    return out
+
+
+def robot_for_token(data_dir: Path, token: bytes) -> str | None:
+    """The robot whose HTTP token this is (constant-time comparison of digests), or None."""
+    digest = hashlib.sha256(token).hexdigest().encode()
+    found = None
+    for robot, entry in robots(data_dir).items():
+        if hmac.compare_digest(digest, entry["token_sha256"].encode()):
+            found = robot
+    return found
+
+
+def users_file(data_dir: Path) -> Path:
+    """The router's ``user:password`` dictionary (0600) for the robots holding credentials."""
+    path = data_dir / "zenoh-users.txt"
+    lines = [f"{r}:{e['zenoh_password']}" for r, e in robots(data_dir).items()]
+    atomic_write(path, "".join(line + "\n" for line in lines), mode=0o600)
+    return path
+
+
+def access_control(fleet: str, robot_ids: list[str]) -> dict[str, Any]:
+    """Zenoh ``access_control``: deny by default; each robot only its own keys (module docstring)."""
+    rules: list[dict[str, Any]] = [
+        {
+            "id": "missions-to-robots",
+            "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": ["declare_subscriber"],
+            "key_exprs": [mission_key(fleet, "*")],
+        },
+        {
+            "id": "missions-delivered",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put"],
+            "key_exprs": [mission_key(fleet, "*")],
+        },
+    ]
+    subjects: list[dict[str, Any]] = [{"id": "robots", "usernames": list(robot_ids) or ["-nobody-"]}]
+    policies: list[dict[str, Any]] = [{"rules": ["missions-to-robots", "missions-delivered"], "subjects": ["robots"]}]
+    for r in robot_ids:
+        rules.append(
+            {
+                "id": f"own-keys-{r}",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["liveliness_token", "put", "query"],
+                "key_exprs": [agent_key(fleet, r), telemetry_key(fleet, r), episode_key(fleet, r, "*")],
+            }
+        )
+        rules.append(
+            {
+                "id": f"own-replies-{r}",
+                "permission": "allow",
+                "flows": ["egress"],
+                "messages": ["reply"],
+                "key_exprs": [episode_key(fleet, r, "*")],
+            }
+        )
+        subjects.append({"id": f"robot-{r}", "usernames": [r]})
+        policies.append({"rules": [f"own-keys-{r}", f"own-replies-{r}"], "subjects": [f"robot-{r}"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def secured_router(data_dir: Path, fleet: str, cert: str, key: str) -> dict[str, Any]:
+    """The extra Zenoh settings of the server's secured router (``zenoh_config(..., extra=...)``)."""
+    ids = list(robots(data_dir))
+    return {
+        "transport/link/tls/listen_certificate": cert,
+        "transport/link/tls/listen_private_key": key,
+        "transport/auth/usrpwd/dictionary_file": str(users_file(data_dir)),
+        "access_control": access_control(fleet, ids),
+    }
