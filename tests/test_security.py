@@ -7,6 +7,7 @@ import json
 import signal
 import ssl
 import subprocess
+import sys
 import time
 import urllib.error
 
@@ -138,6 +139,36 @@ def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, 
             fake.undeclare()
             r1.close()
             r2.close()
+        # a real robot-agent with its own credentials joins the secured bus and pulls the policy
+        agent = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "robot_agent.agent",
+                "--robot-id",
+                "r2",
+                "--server",
+                base,
+                "--zenoh-connect",
+                endpoint,
+                "--zenoh-ca",
+                str(ca),
+                "--zenoh-password-file",
+                str(tmp_path / "r2" / "zenoh-password"),
+                "--token-file",
+                str(tmp_path / "r2" / "token"),
+                "--state-dir",
+                str(tmp_path / "agent-r2"),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=open(logs / "agent-r2.log", "wb"),  # noqa: SIM115 - owned by the process
+        )
+        try:
+            wait_until(lambda: [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"]] == ["r2"], 60, "r2 online")
+            assert (tmp_path / "agent-r2" / "policies" / "current.json").exists()
+        finally:
+            agent.send_signal(signal.SIGTERM)
+            assert agent.wait(30) == 0
         # the robots' HTTP tokens are scoped to themselves
         robot1 = ApiClient(base, creds["r1"][0])
         assert [e["robot_id"] for e in robot1.get("/api/v1/episodes")["items"]] == ["r1"]
