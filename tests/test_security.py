@@ -165,7 +165,9 @@ def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, 
         )
         try:
             wait_until(lambda: [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"]] == ["r2"], 60, "r2 online")
-            assert (tmp_path / "agent-r2" / "policies" / "current.json").exists()
+            current = tmp_path / "agent-r2" / "policies" / "current.json"  # it comes online, then pulls
+            wait_until(current.exists, 60, "r2 to install the policy")
+            assert json.loads(current.read_text())["version"] == 1
         finally:
             agent.send_signal(signal.SIGTERM)
             assert agent.wait(30) == 0
