@@ -127,8 +127,12 @@ def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, 
             wait_until(lambda: any(x.get("mission_id") == "m-sec" for x in heard), 10, "the start message")
             heard.clear()
             # ... a robot's forgeries do not
-            for forged in ({"type": "captured", "t": 3, "captured_by": "r1"}, {"type": "stop", "reason": "forged"},
-                           {"type": "start", "robots": ["r2"], "seed": 5}):  # fmt: skip
+            forgeries = [
+                {"type": "captured", "t": 3, "captured_by": "r1"},
+                {"type": "stop", "reason": "forged"},
+                {"type": "start", "robots": ["r2"], "seed": 5},
+            ]
+            for forged in forgeries:
                 r1.put(mission_key("default", "m-sec"), json.dumps({**forged, "mission_id": "m-sec"}).encode())
             time.sleep(1.5)
             assert heard == []
