@@ -231,7 +231,7 @@ class Agent:
                 "GET", f"/api/v1/policies/{version}/artifact", headers=headers, timeout=60
             )
             if status != 304:  # 304: the tar we have is this version's
-                etag = resp_headers.get("ETag", resp_headers.get("etag", "")).strip('"')
+                etag = resp_headers.get("etag", "").strip('"')
                 if etag and etag != sha:
                     raise ValueError(f"artifact ETag {etag[:12]}... differs from the version's sha256")
                 atomic_write(tar_path, body)

@@ -187,11 +187,10 @@ class Server:
                 snap = self._numpy_snapshot(snap_dir)
                 _write_artifact(self.policy_dir(v))
                 art = self.artifact(v)
-                self.store.update_policy_artifact(
-                    v, sha256_file(art), art.stat().st_size, snap.meta["weights"]["sha256"]
-                )
+                digest = sha256_file(art)
+                self.store.update_policy_artifact(v, digest, art.stat().st_size, snap.meta["weights"]["sha256"])
             done.append(v)
-            log.info("policy version %d converted to %s (new sha256 %s...)", v, WEIGHTS, sha256_file(art)[:12])
+            log.info("policy version %d converted to %s (new sha256 %s...)", v, WEIGHTS, digest[:12])
         return done
 
     def ensure_initial_policy(self, robots: int, init_policy: str | None, sensor: Any, seed: int) -> None:
@@ -339,7 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--insecure",
         action="store_true",
-        help="allow listening beyond loopback without TLS (HTTP) or without a --zenoh-config (Zenoh): "
+        help="allow listening beyond loopback without TLS (HTTP) or without --zenoh-tls-cert/--zenoh-config (Zenoh): "
         "anyone on the network could then command the robots",
     )
     p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet name (default 'default')")

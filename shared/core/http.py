@@ -41,7 +41,8 @@ class ApiClient:
         headers: dict[str, str] | None = None,
         timeout: float | None = None,
     ) -> tuple[int, dict[str, str], bytes]:
-        """(status, response headers, raw body). 304 Not Modified is returned, not raised."""
+        """(status, response headers with lower-case names, raw body). 304 Not Modified is returned,
+        not raised."""
         data = None if body is None else json.dumps(body).encode()
         req = urllib.request.Request(self.base + path, data=data, method=method, headers=dict(headers or {}))
         if data is not None:
@@ -50,10 +51,10 @@ class ApiClient:
             req.add_header("Authorization", f"Bearer {self.token}")
         try:
             with urllib.request.urlopen(req, timeout=timeout or self.timeout, context=self.context) as resp:
-                return resp.status, dict(resp.headers.items()), resp.read()
+                return resp.status, {k.lower(): v for k, v in resp.headers.items()}, resp.read()
         except urllib.error.HTTPError as exc:
             if exc.code == 304:
-                return 304, dict(exc.headers.items()), b""
+                return 304, {k.lower(): v for k, v in exc.headers.items()}, b""
             raw = exc.read()
             try:
                 payload = json.loads(raw)
