@@ -17,7 +17,8 @@ PACKAGES = ("shared", "robot_agent", "training_server")
 ALLOWED: dict[str, tuple[str, ...]] = {
     "shared.core": ("shared.core",),
     "shared.engine": ("shared.core", "shared.engine"),
-    "shared.learning": ("shared.core", "shared.engine", "shared.learning"),
+    "shared.envs": ("shared.core", "shared.engine", "shared.envs"),
+    "shared.learning": ("shared.core", "shared.engine", "shared.envs", "shared.learning"),
     "shared.planners": ("shared.core", "shared.engine", "shared.planners"),
     "shared.registry": ("shared.core", "shared.engine", "shared.planners", "shared.learning", "shared.registry"),
     "shared.tools": ("shared",),
@@ -28,7 +29,8 @@ HEAVY = ("torch", "scipy", "matplotlib", "fastapi", "starlette", "uvicorn", "pyd
 FORBIDDEN: dict[str, tuple[str, ...]] = {
     "shared.core": HEAVY,
     "robot_agent": HEAVY,
-    "shared.engine": ("scipy", "matplotlib", "fastapi"),
+    "shared.engine": ("scipy", "matplotlib", "fastapi", "torchrl", "tensordict", "pettingzoo"),
+    "shared.envs": ("scipy", "matplotlib", "fastapi"),
     "shared.learning": ("scipy", "matplotlib", "fastapi"),
     "shared.planners": ("matplotlib", "fastapi"),
 }

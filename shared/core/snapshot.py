@@ -6,7 +6,8 @@ A snapshot is a directory:
     weights.safetensors    the N networks' parameters as float32 tensors (w_pos, w_bel, b1, w2, b2;
                            shapes in ``param_shapes``), safetensors format
     policy.json            metadata (``format`` "mures.policy/1"): graph_id, node labels in row
-                           order, n, robots, hidden, variant, beta, the belief model the robots use
+                           order, n, robots, hidden, variant, algorithm (the training method;
+                           absent in older snapshots: cepg), beta, the belief model the robots use
                            (Gamma_hat, b0, as model.json), the sensor, the training config and seed,
                            the weights file with its sha256, and the training summary
     training_summary.json  the training summary alone
@@ -41,7 +42,7 @@ from safetensors.numpy import load as load_safetensors
 from safetensors.numpy import save as save_safetensors
 
 from shared.core.belief import BeliefFilter
-from shared.core.choices import VARIANTS
+from shared.core.choices import ALGORITHMS, VARIANTS
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
 from shared.core.models import ModelError, Sensor, TargetModel, from_matrix
@@ -117,10 +118,14 @@ def write_snapshot(
     beta: list[float],
     config: dict[str, Any],
     summary: dict[str, Any],
+    algorithm: str = "cepg",
 ) -> Path:
-    """Write a snapshot directory atomically (an existing one at ``path`` is replaced)."""
+    """Write a snapshot directory atomically (an existing one at ``path`` is replaced).
+    ``algorithm`` names the method that trained the team (ALGORITHMS); every one runs the same way."""
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}")
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {algorithm!r}")
     robots, n, hidden = weights["w_pos"].shape
     _check_shapes(weights, param_shapes(n, robots, hidden), str(path))
     path = Path(path)
@@ -135,6 +140,7 @@ def write_snapshot(
         "robots": int(robots),
         "hidden": int(hidden),
         "variant": variant,
+        "algorithm": algorithm,
         "beta": [float(b) for b in beta],
         "model": {**model.to_json(graph), "kind": model.kind},
         "sensor": sensor.to_json(),

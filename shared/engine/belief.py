@@ -35,11 +35,12 @@ class BatchedBelief:
         (in0, in1), (out0, out1) = sensor.likelihoods()
         self.lik_in = torch.tensor([in0, in1], dtype=dtype, device=self.device)  # indexed by z
         self.lik_out = torch.tensor([out0, out1], dtype=dtype, device=self.device)
+        # [z, p, j]: Lambda's diagonal entry j for a robot at p seeing z, one gather per update
+        self.lik_table = torch.where(self.detect, self.lik_in.view(2, 1, 1), self.lik_out.view(2, 1, 1))  # (2, n, n)
 
     def likelihood(self, pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Diagonal of Lambda (Eq. 2) for robots at ``pos`` seeing ``z``: (...,) -> (..., n)."""
-        z = z.long()
-        return torch.where(self.detect[pos], self.lik_in[z].unsqueeze(-1), self.lik_out[z].unsqueeze(-1))
+        return self.lik_table[z.long(), pos]
 
     def collective_likelihood(
         self, pos: torch.Tensor, z: torch.Tensor, active: torch.Tensor | None = None

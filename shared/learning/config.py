@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import MISSING, asdict, dataclass, field, fields
 from typing import Any
 
-from shared.core.choices import BELIEFS, CE_STATES, VARIANTS
+from shared.core.choices import ALGORITHMS, BELIEFS, CE_STATES, VARIANTS
 
 
 def _opt(help: str, **kw: Any) -> Any:
@@ -48,6 +48,14 @@ class TrainConfig:
     """Everything that defines a training run (stored in the snapshot's metadata)."""
 
     robots: int = field(metadata=_opt("number of robots N", flag=False))
+    algorithm: str = field(
+        default="cepg",
+        metadata=_opt(
+            "training method: CE-PG (with its variants) or a MARL baseline, whose own hyperparameters "
+            "take --hp KEY=VALUE (docs/SPEC.md section 9)",
+            choices=ALGORITHMS,
+        ),
+    )
     episodes: int = field(default=400_000, metadata=_opt("training episodes", parse=positive_int))
     beta: list[float] = field(
         default_factory=lambda: [0.5],
@@ -63,7 +71,13 @@ class TrainConfig:
     variant: str = field(
         default="cepg", metadata=_opt("own belief, sensing range, or collective belief", choices=VARIANTS)
     )
-    batch: int = field(default=256, metadata=_opt("episodes per update (B), over all processes", parse=positive_int))
+    batch: int = field(
+        default=256,
+        metadata=_opt(
+            "episodes per update (B), over all processes; for a MARL baseline, episodes simulated side by side",
+            parse=positive_int,
+        ),
+    )
     eps: float = field(default=0.1, metadata=_opt("smoothing of the cross entropy, pi~ = (1-eps) pi + eps U"))
     ce_fraction: float = field(default=0.25, metadata=_opt("share of decisions the cross entropy is estimated on"))
     j_unit: float = field(default=1.0, metadata=_opt("J's unit in steps (1: Eq. 9's natural units)"))
@@ -95,6 +109,12 @@ class TrainConfig:
         return list(values)
 
     def check(self) -> None:
+        if self.algorithm not in ALGORITHMS:
+            raise ValueError(f"unknown algorithm {self.algorithm!r} (expected one of {', '.join(ALGORITHMS)})")
+        if self.algorithm != "cepg" and self.variant != "cepg":
+            raise ValueError(
+                f"variant {self.variant} is CE-PG's; {self.algorithm} trains robots with their own beliefs"
+            )
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r} (expected one of {', '.join(VARIANTS)})")
         if self.ce_states not in CE_STATES:
@@ -129,8 +149,14 @@ def default(name: str) -> Any:
     return factory()
 
 
+# Flags whose value a MARL baseline takes from its own defaults when they are not given.
+METHOD_DEFAULTS = ("episodes", "batch", "lr")
+
+
 def add_flags(parser: argparse.ArgumentParser) -> None:
-    """One flag per TrainConfig field (``--em-first`` for ``em_first``), defaults from the fields."""
+    """One flag per TrainConfig field (``--em-first`` for ``em_first``), defaults from the fields.
+    The flags of METHOD_DEFAULTS default to None (``from_flags`` fills in CE-PG's default), so
+    that a MARL baseline can tell an unset flag from a given one."""
     for f in fields(TrainConfig):
         meta = f.metadata
         if not meta.get("flag", True):
@@ -139,6 +165,8 @@ def add_flags(parser: argparse.ArgumentParser) -> None:
         parse = meta.get("parse") or (float if f.type in ("float", float) else str)
         shown = ",".join(f"{x:g}" for x in dflt) if isinstance(dflt, list) else dflt
         kw: dict[str, Any] = {"default": dflt, "help": f"{meta['help']} (default {shown})", "dest": f.name}
+        if f.name in METHOD_DEFAULTS:
+            kw.update(default=None, help=f"{meta['help']} (default {shown}; a MARL baseline's own otherwise)")
         if "choices" in meta:
             kw["choices"] = meta["choices"]
         else:
@@ -151,4 +179,7 @@ def add_flags(parser: argparse.ArgumentParser) -> None:
 def from_flags(args: argparse.Namespace, **given: Any) -> TrainConfig:
     """A TrainConfig from the parsed flags of ``add_flags``; ``given`` sets the other fields."""
     values = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if f.metadata.get("flag", True)}
+    for name in METHOD_DEFAULTS:
+        if values[name] is None:
+            values[name] = default(name)
     return TrainConfig(**values, **given)

@@ -76,9 +76,10 @@ def save_snapshot(
     beta: list[float],
     config: dict[str, Any],
     summary: dict[str, Any],
+    algorithm: str = "cepg",
 ) -> Path:
     """Write ``policy`` as a snapshot directory (shared/core/snapshot.py ``write_snapshot``)."""
-    return write_snapshot(path, graph, policy_weights(policy), model, sensor, variant, beta, config, summary)
+    return write_snapshot(path, graph, policy_weights(policy), model, sensor, variant, beta, config, summary, algorithm)
 
 
 def load_snapshot(path: str | Path, graph: Graph, device: torch.device | str = "cpu") -> Snapshot:

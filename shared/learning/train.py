@@ -152,7 +152,7 @@ def train(
         env_steps += int(steps)
         window.append((n_eps, ct_sum, cens_sum, ce))
         if episodes >= next_em:
-            em_log.append(_em_update(graph, target, sensor, cfg, policy, belief, episodes, rank, world, device))
+            em_log.append(em_update(graph, target, sensor, cfg, policy, belief, episodes, rank, world, device))
             model = belief_model(graph, belief, em_log[-1].get("kind", "em"))
             next_em = episodes + cfg.em_every
         stop = bool(should_stop and should_stop())
@@ -217,7 +217,7 @@ def belief_model(graph: Graph, belief: BatchedBelief, kind: str) -> TargetModel:
 
 
 @torch.no_grad()
-def _em_update(
+def em_update(
     graph: Graph,
     target: TargetModel,
     sensor: Sensor,

@@ -252,7 +252,9 @@ class _Progress:
         eta = (p["total"] - p["episodes"]) / max(rate, 1e-9)
         text = (
             f"{p['episodes']:>9,}/{p['total']:,} episodes  {rate:7.0f} eps/s  "
-            f"capture time {p['mean_capture_time']:6.2f}  CE {p['cross_entropy']:.2f}  ETA {max(eta, 0):4.0f} s"
+            f"capture time {p['mean_capture_time']:6.2f}  "
+            + (f"CE {p['cross_entropy']:.2f}  " if "cross_entropy" in p else "")
+            + f"ETA {max(eta, 0):4.0f} s"
         )
         if self.tty:
             bar = "#" * int(24 * frac)
@@ -299,14 +301,27 @@ def cmd_train(args: argparse.Namespace) -> int:
         init_model = load_model_file(graph, args.model)
     init_policy = load_snapshot(args.init, graph) if args.init else None
     cfg = train_config.from_flags(args, robots=args.robots, seed=args.seed, device=str(device))
+    marl = cfg.algorithm != "cepg"
     try:
         cfg.check()
         cfg.per_robot(cfg.beta, "--beta")
         cfg.per_robot(cfg.lr, "--lr")
+        if args.hp and not marl:
+            raise ValueError("--hp sets a MARL baseline's hyperparameters; CE-PG takes its own flags")
+        if marl and init_policy is not None:
+            raise ValueError(f"--init warm-starts CE-PG only; {cfg.algorithm} trains from scratch")
+        hyper = None
+        if marl:
+            from shared.learning.marl import hyperparameters
+
+            lr = None if args.lr is None else cfg.lr[0]
+            hyper = hyperparameters(cfg.algorithm, args.hp, episodes=args.episodes, envs=args.batch, lr=lr)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if args.threads:
         torch.set_num_threads(args.threads)
+    if marl and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise CliError(f"{cfg.algorithm} runs in one process; torchrun data parallelism is CE-PG's")
     rank = _init_distributed(device)
     stop = {"requested": False}
 
@@ -318,29 +333,53 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     old_handler = signal.signal(signal.SIGINT, on_sigint)
     bar = _Progress() if rank == 0 and not args.quiet else None
-    if rank == 0:
+    model_text = "true model" if cfg.belief == "true" else "EM-estimated model"
+    if rank == 0 and hyper is not None:
+        print(
+            f"training {cfg.algorithm} on {graph.name} (n={graph.n}), N={args.robots}, {hyper.episodes:,} episodes, "
+            f"{model_text}; hyperparameters {hyper.to_dict()}",
+            file=sys.stderr,
+        )
+    elif rank == 0:
         print(
             f"training {args.variant} on {graph.name} (n={graph.n}), N={args.robots}, beta={args.beta}, "
-            f"{args.episodes:,} episodes, {'true model' if cfg.belief == 'true' else 'EM-estimated model'}",
+            f"{cfg.episodes:,} episodes, {model_text}",
             file=sys.stderr,
         )
     try:
-        res = train(
-            graph,
-            target,
-            sensor,
-            cfg,
-            init_model=init_model,
-            init_policy=init_policy,
-            progress=bar,
-            should_stop=lambda: stop["requested"],
-        )
+        if hyper is not None:
+            from shared.learning.marl import train_marl
+
+            res = train_marl(
+                cfg.algorithm,
+                graph,
+                target,
+                sensor,
+                cfg,
+                hyper,
+                init_model=init_model,
+                progress=bar,
+                should_stop=lambda: stop["requested"],
+            )
+        else:
+            res = train(
+                graph,
+                target,
+                sensor,
+                cfg,
+                init_model=init_model,
+                init_policy=init_policy,
+                progress=bar,
+                should_stop=lambda: stop["requested"],
+            )
     finally:
         signal.signal(signal.SIGINT, old_handler)
         if bar:
             bar.close()
     if rank == 0:
         config = {**cfg.to_dict(), "target": target.kind, "map": graph.name}
+        if hyper is not None:
+            config.update(episodes=hyper.episodes, batch=hyper.envs, lr=[hyper.lr], hyperparameters=hyper.to_dict())
         save_snapshot(
             out,
             res.policy,
@@ -348,9 +387,10 @@ def cmd_train(args: argparse.Namespace) -> int:
             res.model,
             sensor,
             args.variant,
-            cfg.per_robot(cfg.beta, "beta"),
+            [] if marl else cfg.per_robot(cfg.beta, "beta"),
             config,
             res.summary,
+            algorithm=cfg.algorithm,
         )
         s = res.summary
         print(
@@ -511,13 +551,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth", metavar="MODEL", help="a known model (lazy:STAY, uniform, or .json): report the TV")
     p.set_defaults(func=cmd_estimate)
 
-    p = sub.add_parser("train", help="train a team with CE-PG in simulation and write a policy snapshot")
+    p = sub.add_parser(
+        "train", help="train a team in simulation (CE-PG or a MARL baseline) and write a policy snapshot"
+    )
     _add_world_args(p)
     p.add_argument("--out", required=True, metavar="DIR", help="snapshot directory to write")
     train_config.add_flags(p)  # one flag per TrainConfig field, its defaults
     p.add_argument("--true-model", dest="belief", action="store_const", const="true", help="the same as --belief true")
     p.add_argument("--model", metavar="model.json", help="Gamma_hat_0 and b0 for the beliefs (default I, uniform)")
-    p.add_argument("--init", metavar="DIR", help="start from this snapshot's weights")
+    p.add_argument("--init", metavar="DIR", help="start from this snapshot's weights (CE-PG)")
+    p.add_argument(
+        "--hp",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a MARL baseline's hyperparameter (repeatable; docs/SPEC.md section 9 lists them)",
+    )
     p.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_train)

@@ -1,0 +1,91 @@
+"""Step rate of the TorchRL environment against the raw simulator it wraps (issue: the TorchRL
+environment must step at least half as fast as the raw simulator).
+
+Run: python benchmarks/bench_envs.py [--batch B ...] [--seconds S] [--threads T]
+
+Three loops with uniformly random actions on OFFICE, N = 4, finished episodes restarted:
+  sim          the engine's SearchSim alone (auto-reset), no beliefs
+  sim+belief   SearchSim plus every robot's own belief update (Eq. 1): the work the environment's
+               observation needs, done with the engine's batched belief algebra
+  torchrl      mures_v0.torchrl_env: a random valid index per robot, then step_and_maybe_reset (what TorchRL's
+               rollouts and collectors call), observations, masks and the global state built
+Prints team steps per second for each and the ratios torchrl / sim and torchrl / sim+belief.
+"""
+
+import argparse
+import time
+
+import torch
+
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.engine.belief import BatchedBelief, BeliefTracker
+from shared.engine.searchers import RandomSearcher
+from shared.engine.sim import SearchSim
+from shared.envs import mures_v0
+
+
+def _rate(step, batch: int, seconds: float) -> float:
+    for _ in range(20):  # warm-up
+        step()
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        step()
+        n += 1
+    return n * batch / (time.perf_counter() - t0)
+
+
+def run(batch: int, seconds: float) -> dict[str, float]:
+    g = builtin_graph("office")
+    model, sensor = uniform_walk(g), Sensor()
+    sim = SearchSim(g, model, sensor, n_robots=4, batch=batch, seed=0)
+    searcher = RandomSearcher(g, seed=1)
+    state = {"obs": sim.reset()}
+
+    def sim_step() -> None:
+        state["obs"], _ = sim.step(searcher.act(state["obs"]))
+
+    tracker = BeliefTracker(BatchedBelief(g, model, sensor))
+
+    def belief_step() -> None:
+        obs, _ = sim.step(searcher.act(state["obs"]))
+        tracker.update(tracker.belief.likelihood(obs.pos, obs.z), obs.new)
+        state["obs"] = obs
+
+    env = mures_v0.torchrl_env(map="office", robots=4, batch_size=[batch], seed=0)
+    tds = {"td": env.reset()}
+    gen = torch.Generator().manual_seed(1)
+
+    def env_step() -> None:  # a uniformly random valid index, drawn as RandomSearcher draws
+        td = tds["td"]
+        deg = td["agents", "action_mask"].sum(-1)
+        td["agents", "action"] = (torch.rand(deg.shape, generator=gen) * deg).long()
+        _, tds["td"] = env.step_and_maybe_reset(td)
+
+    with torch.no_grad():
+        rates = {
+            "sim": _rate(sim_step, batch, seconds),
+            "sim+belief": _rate(belief_step, batch, seconds),
+            "torchrl": _rate(env_step, batch, seconds),
+        }
+    return rates
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, nargs="+", default=[256, 4096])
+    ap.add_argument("--seconds", type=float, default=3.0)
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    for b in args.batch:
+        r = run(b, args.seconds)
+        print(
+            f"OFFICE N=4 B={b:<5} threads={args.threads}  sim {r['sim']:>10,.0f}  sim+belief {r['sim+belief']:>10,.0f}  "
+            f"torchrl {r['torchrl']:>10,.0f} team-steps/s  torchrl/sim {r['torchrl'] / r['sim']:.2f}  "
+            f"torchrl/(sim+belief) {r['torchrl'] / r['sim+belief']:.2f}"
+        )
+
+
+if __name__ == "__main__":
+    main()

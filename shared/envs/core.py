@@ -1,0 +1,209 @@
+"""The paper setup as a multi-agent environment, batched: what both public interfaces wrap.
+
+``Scenario`` is a map with its true target model, the sensor, the robots' belief model and N;
+``EnvCore`` runs B episodes of it side by side on the engine's simulator (shared/engine/sim.py)
+and keeps each robot's own belief (Eq. 1) with the belief model, exactly as a robot agent does.
+``mures_v0.parallel_env`` (PettingZoo) runs one episode on it, ``mures_v0.torchrl_env`` (TorchRL)
+B of them; docs/SPEC.md section 9 is the contract.
+
+Per robot i (shapes for B episodes, N robots, n nodes, d = max |N[p]|):
+
+    observation  (B, N, 2n) float32   onehot(p^i) followed by the robot's own belief b^i_t
+    action_mask  (B, N, d)  bool      flag k: the k-th entry of N[p^i] exists
+    action       (B, N)     long      an index k into N[p^i] in the graph's order: p itself first,
+                                      then its neighbours by increasing row; an index beyond
+                                      |N[p^i]| is masked and, if taken anyway, means staying (k = 0)
+    reward       (B, N)     float32   -1 per step for every robot while the search goes on, 0 for the
+                                      step that reports a capture at t = 0; the return is -t_cap
+    state        (B, S)     float32   for centralised critics in training only: every robot's
+                                      onehot(p) (N * n), onehot(target) (n), t / T_max (1); a critic
+                                      that wants the beliefs too reads the robots' observations
+
+An episode terminates at capture and is truncated at T_max = 3n (docs/SPEC.md section 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from shared.core.graph import Graph, builtin_graph, load_graph_file
+from shared.core.models import Sensor, TargetModel, identity_model, load_model_file, parse_target
+from shared.engine.belief import BatchedBelief
+from shared.engine.sim import SearchSim
+
+BELIEF_MODELS = ("true", "identity")  # or a model.json path / a TargetModel
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A map, the true target model, the sensor, the robots' belief model (Gamma_hat, b0) and N."""
+
+    graph: Graph
+    target: TargetModel
+    sensor: Sensor
+    belief_model: TargetModel
+    robots: int
+
+    @property
+    def t_max(self) -> int:
+        return 3 * self.graph.n
+
+    @property
+    def d(self) -> int:
+        """Actions per robot: the largest closed neighbourhood."""
+        return int(self.graph.nbr.shape[1])
+
+    @property
+    def state_size(self) -> int:
+        return (self.robots + 1) * self.graph.n + 1
+
+
+def make_scenario(
+    map: str | Graph = "office",
+    robots: int = 4,
+    eta_fn: float = 0.0,
+    eta_fp: float = 0.0,
+    detection: str = "node",
+    target: str | TargetModel = "uniform",
+    belief_model: str | TargetModel = "true",
+) -> Scenario:
+    """The same options as `mures evaluate`: ``map`` a built-in name or a graph file's path;
+    ``target`` uniform, lazy:STAY or a model.json path; ``belief_model`` the robots' Gamma_hat and
+    b0: "true" (the target's own), "identity" (Gamma_hat_0 = I and a uniform b0, where CE-PG
+    starts), or a model.json path."""
+    if isinstance(map, Graph):
+        graph = map
+    elif isinstance(map, str) and (map.endswith(".json") or Path(map).exists()):
+        graph = load_graph_file(map)
+    else:
+        graph = builtin_graph(str(map))
+    graph.require_dense("the environment")
+    if not isinstance(robots, int) or isinstance(robots, bool) or robots < 1:
+        raise ValueError(f"robots must be a positive integer, got {robots!r}")
+    true_model = target if isinstance(target, TargetModel) else parse_target(graph, target)
+    sensor = Sensor(eta_fn=eta_fn, eta_fp=eta_fp, detection=detection)
+    if sensor.detection == "custom":
+        graph.detection_sets("custom")  # a clear error when the graph has no sensing table
+    if isinstance(belief_model, TargetModel):
+        model = belief_model
+    elif belief_model == "true":
+        model = true_model
+    elif belief_model == "identity":
+        model = identity_model(graph)
+    elif isinstance(belief_model, str) and belief_model.endswith(".json"):
+        model = load_model_file(graph, belief_model)
+    else:
+        raise ValueError(f"belief_model must be true, identity or a model.json path, got {belief_model!r}")
+    for m, what in ((true_model, "target"), (model, "belief_model")):
+        if m.n != graph.n:
+            raise ValueError(f"{what} has {m.n} nodes, the map {graph.n}")
+    return Scenario(graph, true_model, sensor, model, robots)
+
+
+class EnvCore:
+    """B episodes of a scenario with every robot's own belief (module docstring for the shapes).
+
+    Episodes start with ``reset(mask)``; ``step`` advances the running ones; finished slots freeze
+    until they are reset. Deterministic for a seed: the simulator's generator is the only source
+    of randomness.
+    """
+
+    def __init__(self, scenario: Scenario, batch: int, seed: int = 0, device: torch.device | str = "cpu") -> None:
+        self.scenario = scenario
+        g = scenario.graph
+        self.n, self.N, self.B, self.d = g.n, scenario.robots, batch, scenario.d
+        self.device = torch.device(device)
+        self.sim = SearchSim(
+            g, scenario.target, scenario.sensor, scenario.robots, batch, seed=seed, device=device, auto_reset=False
+        )
+        self.belief = BatchedBelief(g, scenario.belief_model, scenario.sensor, self.device)
+        self.nbr = torch.as_tensor(g.nbr, device=self.device)  # (n, d)
+        deg = torch.as_tensor(g.deg_closed, device=self.device)
+        self.valid = torch.arange(self.d, device=self.device) < deg.unsqueeze(1)  # (n, d)
+        self.offsets = torch.arange(self.N + 1, device=self.device) * self.n  # state's onehot blocks
+        self.b = torch.zeros(batch, self.N, self.n, device=self.device)  # (B, N, n) beliefs
+        self.done = torch.ones(batch, dtype=torch.bool, device=self.device)  # (B,) episode over (or never started)
+        self.capture_time = torch.zeros(batch, dtype=torch.long, device=self.device)
+        self.captured = torch.zeros(batch, dtype=torch.bool, device=self.device)
+        self.last_reset = torch.arange(batch, device=self.device)  # (k,) the slots the last reset started
+        self._ended = torch.zeros(3, dtype=torch.float64, device=self.device)  # episodes, sum t_cap, censored
+
+    def seed(self, seed: int) -> None:
+        self.sim.gen.manual_seed(int(seed))
+
+    def set_belief_model(self, model: TargetModel) -> None:
+        """Use another Gamma_hat, b0 for the robots' beliefs from the next update on (EM during training)."""
+        self.belief = BatchedBelief(self.scenario.graph, model, self.scenario.sensor, self.device)
+
+    def reset(self, mask: torch.Tensor | None = None) -> None:
+        """Start fresh episodes in the slots of ``mask`` (B,) bool (all when None): e_0 ~ b0,
+        robots on the start node, z_0 observed, b_0 ∝ Lambda_0 b0 (Theorem 1 at t = 0)."""
+        if mask is None:
+            mask = torch.ones(self.B, dtype=torch.bool, device=self.device)
+        self.sim._start_episodes(mask)
+        rows = self.last_reset = mask.nonzero().squeeze(1)
+        lik = self.belief.likelihood(self.sim.pos[rows], self.sim.z[rows])
+        self.b[rows] = self.belief.initial(lik)
+        self.done = self.done & ~mask
+        self.capture_time = torch.where(mask, 0, self.capture_time)
+        self.captured = self.captured & ~mask
+
+    def step(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Move every robot of the running episodes: action (B, N) indices into N[p].
+
+        Returns reward (B,), terminated (B,) and truncated (B,) (True only at the step that ends
+        an episode)."""
+        if action.shape != (self.B, self.N):
+            raise ValueError(f"expected actions of shape {(self.B, self.N)}, got {tuple(action.shape)}")
+        action = action.to(device=self.device, dtype=torch.long)
+        if bool(((action < 0) | (action >= self.d)).any()):
+            raise ValueError(
+                f"action indices must be in [0, {self.d}), got {action.min().item()}..{action.max().item()}"
+            )
+        pos = self.sim.pos
+        k = torch.where(self.valid[pos, action], action, 0)  # masked index: stay
+        moving = self.sim.alive & ~self.sim.pending
+        obs, res = self.sim.step(torch.gather(self.nbr[pos], 2, k.unsqueeze(-1)).squeeze(-1))
+        lik = self.belief.likelihood(obs.pos, obs.z)
+        b = self.belief.update(self.b, lik)  # Eq. 1
+        self.b = b if bool(moving.all()) else torch.where(moving.view(-1, 1, 1), b, self.b)
+        reward = -moving.to(torch.float32)
+        terminated = res.done & ~res.censored
+        truncated = res.done & res.censored
+        self.done = self.done | res.done
+        self.capture_time = torch.where(res.done, res.capture_time, self.capture_time)
+        self.captured = torch.where(res.done, ~res.censored, self.captured)
+        self._ended += torch.stack([res.done.sum(), res.capture_time[res.done].sum(), truncated.sum()]).double()
+        return reward, terminated, truncated
+
+    def take_stats(self) -> tuple[int, float, int]:
+        """(episodes ended, their summed capture times, how many were censored) since the last call."""
+        e, ct, c = (float(x) for x in self._ended)
+        self._ended.zero_()
+        return int(e), ct, int(c)
+
+    # ------------------------------------------------------------------ views
+    def observation(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, N, 2n): onehot(p^i) and b^i; only the episode slots ``rows`` (k,) when given."""
+        pos, b = (self.sim.pos, self.b) if rows is None else (self.sim.pos[rows], self.b[rows])
+        obs = torch.zeros((*b.shape[:-1], 2 * self.n), dtype=b.dtype, device=self.device)
+        obs[..., self.n :] = b
+        return obs.scatter_(-1, pos.unsqueeze(-1), 1.0)
+
+    def action_mask(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, N, d) bool."""
+        return self.valid[self.sim.pos if rows is None else self.sim.pos[rows]]
+
+    def state(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, S) the global state for centralised critics (module docstring)."""
+        sim = self.sim
+        pos, target, t = (
+            (sim.pos, sim.target, sim.t) if rows is None else (sim.pos[rows], sim.target[rows], sim.t[rows])
+        )
+        where = torch.cat([pos, target.unsqueeze(1)], dim=1) + self.offsets  # (B, N + 1) columns of the ones
+        out = torch.zeros(len(where), self.scenario.state_size, device=self.device)
+        out[:, -1] = t.to(torch.float32) / self.scenario.t_max
+        return out.scatter_(1, where, 1.0)

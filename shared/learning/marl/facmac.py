@@ -1,0 +1,119 @@
+"""FACMAC: Peng et al., "FACMAC: Factored Multi-Agent Centralised Policy Gradients" (NeurIPS
+2021), for discrete moves with Gumbel-softmax actions, on TorchRL's ``QMixer`` and
+``MultiAgentMLP``.
+
+Each robot's utility Q_i(o_i, a_i) (decentralised: its own observation and move) is mixed into
+Q_tot = QMIX(Q_1..Q_N; s), a monotonic mixing network conditioned on the global state (Rashid et
+al. 2018; TorchRL's QMixer). The critic learns Q_tot by TD(0) against target utilities, target
+mixer and the target actors' next actions. The actors are updated with the paper's centralised
+policy gradient: every robot's action is taken from its current policy at once (straight-through
+Gumbel-softmax, Jang et al. 2017) and the team ascends the mixed Q_tot. This actor update has no
+TorchRL loss and is written here.
+
+What differs: feed-forward utilities on the belief observation (no RNN), one network per robot
+instead of a shared one with an agent id, no off-policy TD(lambda).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.modules import MultiAgentMLP, QMixer
+
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+from shared.learning.config import TrainConfig
+from shared.learning.marl.common import MarlRun, Progress, TeamActor, make_actor, soft_update
+from shared.learning.marl.offpolicy import (
+    OffPolicyHyper,
+    clip_step,
+    gumbel_actions,
+    run_offpolicy,
+    unpack,
+    valid_logit_penalty,
+)
+from shared.learning.train import TrainResult
+
+
+@dataclass
+class FacmacHyper(OffPolicyHyper):
+    episodes: int = 50_000
+    lr: float = 1e-3
+    critic_lr: float = 1e-3
+    gumbel_tau: float = 1.0  # Gumbel-softmax temperature
+    mixing_embed: int = 32  # QMIX hidden width
+    logit_penalty: float = 1e-3  # weight of the mean squared logit
+
+
+class FactoredCritic(nn.Module):
+    """Q_tot(s, o, a) = QMIX(Q_1(o_1, a_1), .., Q_N(o_N, a_N); s): (M, S), (M, N, 2n), (M, N, d) -> (M, 1)."""
+
+    def __init__(self, state_size: int, obs_size: int, d: int, robots: int, hidden: int, embed: int) -> None:
+        super().__init__()
+        self.utility = MultiAgentMLP(
+            n_agent_inputs=obs_size + d,
+            n_agent_outputs=1,
+            n_agents=robots,
+            centralized=False,
+            share_params=False,
+            depth=2,
+            num_cells=hidden,
+            activation_class=nn.ReLU,
+        )
+        self.mixer = QMixer(state_shape=(state_size,), mixing_embed_dim=embed, n_agents=robots, device="cpu")
+
+    def forward(self, state: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        q = self.utility(torch.cat([obs, actions], dim=-1))  # (M, N, 1)
+        return self.mixer(q, state)
+
+
+class FacmacLearner:
+    def __init__(self, run: MarlRun, actor: TeamActor, hyper: FacmacHyper) -> None:
+        N, n, d = run.cfg.robots, run.graph.n, run.env.scenario.d
+        self.d, self.hyper = d, hyper
+        self.actor = actor
+        self.actor_target = copy.deepcopy(actor).requires_grad_(False)
+        self.critic = FactoredCritic(run.env.scenario.state_size, 2 * n, d, N, hyper.critic_hidden, hyper.mixing_embed)
+        self.critic = self.critic.to(run.device)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.opt_actor = torch.optim.Adam(actor.parameters(), lr=hyper.lr)
+        self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=hyper.critic_lr)
+
+    def update(self, batch: TensorDictBase, step: int) -> None:
+        b, h = unpack(batch), self.hyper
+        a = torch.nn.functional.one_hot(b["action"], self.d).float()
+        with torch.no_grad():
+            a_next = gumbel_actions(self.actor_target(b["next_obs"], b["next_mask"]), h.gumbel_tau)
+            y = b["reward"] + h.gamma * (1 - b["terminated"]) * self.critic_target(
+                b["next_state"], b["next_obs"], a_next
+            )
+        q = self.critic(b["state"], b["obs"], a)
+        clip_step(self.opt_critic, torch.nn.functional.mse_loss(q, y), list(self.critic.parameters()), h.max_grad_norm)
+
+        logits = self.actor(b["obs"], b["mask"])
+        q_pi = self.critic(b["state"], b["obs"], gumbel_actions(logits, h.gumbel_tau))  # all robots' policies at once
+        loss = -q_pi.mean() + h.logit_penalty * valid_logit_penalty(logits, b["mask"])
+        clip_step(self.opt_actor, loss, list(self.actor.parameters()), h.max_grad_norm)
+        soft_update(self.critic_target, self.critic, h.tau)
+        soft_update(self.actor_target, self.actor, h.tau)
+
+
+def train_facmac(
+    graph: Graph,
+    target: TargetModel,
+    sensor: Sensor,
+    cfg: TrainConfig,
+    hyper: FacmacHyper,
+    init_model: TargetModel | None = None,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> TrainResult:
+    run = MarlRun("facmac", graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
+    policy, logits, actor = make_actor(graph, cfg.robots, cfg.hidden, run.device)
+    run_offpolicy(run, actor, policy, FacmacLearner(run, logits.module, hyper), hyper)
+    return run.result(policy)

@@ -1,0 +1,102 @@
+"""MADDPG: Lowe et al., "Multi-Agent Actor-Critic for Mixed Cooperative-Competitive Environments"
+(NeurIPS 2017), for discrete moves as in the authors' code: Gumbel-softmax actions.
+
+Robot i's critic Q_i(s, o_i, a_1..a_N) (a TorchRL ``MultiAgentMLP``, one network per robot)
+learns by TD(0) against target networks, with the next actions drawn from the target actors;
+its actor (network i of a TeamPolicy, on o_i only) ascends Q_i with the other robots' actions
+from the replay buffer and its own replaced by a straight-through Gumbel-softmax sample
+(Jang et al. 2017), plus the authors' small penalty on the logits. TorchRL has no MADDPG loss for
+discrete actions, so this update is written here; the replay, collector and critic networks are
+TorchRL's (shared/learning/marl/offpolicy.py).
+
+What differs: the critics read the global state and the robot's own observation instead of all
+observations (the state holds every position); the robots share the team reward, so the N
+critics learn the same target from different inputs' networks; no policy ensembles.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+from shared.learning.config import TrainConfig
+from shared.learning.marl.common import MarlRun, Progress, TeamActor, make_actor, soft_update
+from shared.learning.marl.masac import CentralQ
+from shared.learning.marl.offpolicy import (
+    OffPolicyHyper,
+    clip_step,
+    gumbel_actions,
+    run_offpolicy,
+    unpack,
+    valid_logit_penalty,
+)
+from shared.learning.train import TrainResult
+
+
+@dataclass
+class MaddpgHyper(OffPolicyHyper):
+    episodes: int = 50_000
+    lr: float = 1e-3  # the paper's Table II value for MADDPG
+    critic_lr: float = 1e-3
+    gumbel_tau: float = 1.0  # Gumbel-softmax temperature
+    logit_penalty: float = 1e-3  # weight of the mean squared logit
+
+
+class MaddpgLearner:
+    def __init__(self, run: MarlRun, actor: TeamActor, hyper: MaddpgHyper) -> None:
+        N, n, d = run.cfg.robots, run.graph.n, run.env.scenario.d
+        self.N, self.d, self.hyper = N, d, hyper
+        self.actor = actor
+        self.actor_target = copy.deepcopy(actor).requires_grad_(False)
+        self.critic = CentralQ(run.env.scenario.state_size + 2 * n + N * d, N, 1, hyper.critic_hidden).to(run.device)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.opt_actor = torch.optim.Adam(actor.parameters(), lr=hyper.lr)
+        self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=hyper.critic_lr)
+        self.eye = torch.eye(N, device=run.device).view(1, N, N, 1)
+
+    def joint(self, actions: torch.Tensor) -> torch.Tensor:
+        """Every robot's critic sees the joint action: (M, N, d) one-hot -> (M, N, N d)."""
+        M = actions.shape[0]
+        return actions.reshape(M, 1, self.N * self.d).expand(M, self.N, self.N * self.d)
+
+    def update(self, batch: TensorDictBase, step: int) -> None:
+        b, h = unpack(batch), self.hyper
+        a = torch.nn.functional.one_hot(b["action"], self.d).float()  # (M, N, d)
+        with torch.no_grad():
+            a_next = gumbel_actions(self.actor_target(b["next_obs"], b["next_mask"]), h.gumbel_tau)
+            q_next = self.critic_target(b["next_state"], b["next_obs"], self.joint(a_next))  # (M, N, 1)
+            y = b["reward"].unsqueeze(1) + h.gamma * (1 - b["terminated"]).unsqueeze(1) * q_next
+        q = self.critic(b["state"], b["obs"], self.joint(a))
+        clip_step(self.opt_critic, torch.nn.functional.mse_loss(q, y), list(self.critic.parameters()), h.max_grad_norm)
+
+        logits = self.actor(b["obs"], b["mask"])  # (M, N, d)
+        g = gumbel_actions(logits, h.gumbel_tau)
+        # robot i's critic: the buffer's joint action with robot i's own replaced by g_i
+        mixed = self.eye * g.unsqueeze(1) + (1 - self.eye) * a.unsqueeze(1)  # (M, N_i, N_j, d)
+        q_pi = self.critic(b["state"], b["obs"], mixed.flatten(-2))
+        loss = -q_pi.mean() + h.logit_penalty * valid_logit_penalty(logits, b["mask"])
+        clip_step(self.opt_actor, loss, list(self.actor.parameters()), h.max_grad_norm)
+        soft_update(self.critic_target, self.critic, h.tau)
+        soft_update(self.actor_target, self.actor, h.tau)
+
+
+def train_maddpg(
+    graph: Graph,
+    target: TargetModel,
+    sensor: Sensor,
+    cfg: TrainConfig,
+    hyper: MaddpgHyper,
+    init_model: TargetModel | None = None,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> TrainResult:
+    run = MarlRun("maddpg", graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
+    policy, logits, actor = make_actor(graph, cfg.robots, cfg.hidden, run.device)
+    run_offpolicy(run, actor, policy, MaddpgLearner(run, logits.module, hyper), hyper)
+    return run.result(policy)

@@ -1,0 +1,215 @@
+"""MAMBPO: Willemsen, Coppola and de Croon, "MAMBPO: Sample-efficient multi-robot reinforcement
+learning using learned world models" (IROS 2021): MASAC (shared/learning/marl/masac.py, TorchRL's
+DiscreteSACLoss) trained on a mix of real transitions and short branched rollouts in a learned
+model (MBPO, Janner et al. 2019). TorchRL has no model-based MARL component, so the model and
+the rollouts are written here.
+
+The learned model is an ensemble of K networks for the target's motion, P(e' | e), each trained
+by maximum likelihood on the real transitions' true states (training is centralised: the
+simulator's state is at hand). A branched rollout starts from real states of the latest batch and
+runs ``horizon`` steps with the current actors: the robots' moves are applied as given (they are
+the actions), the next target is drawn from a randomly chosen ensemble member, each robot's z from
+the known sensor model (its belief filter uses that model), capture and truncation as in the
+simulator, each belief updated by Eq. 1, reward -1 per step. These transitions fill a model
+buffer; every SAC minibatch mixes ``real_ratio`` real transitions with model ones.
+
+What differs from the paper: the learned part is the target's motion only (the robots' own moves
+and their sensor are known to them, so they are not learned), and the ensemble's members are
+sampled per rollout rather than per step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers import RandomSampler
+
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+from shared.learning.config import TrainConfig
+from shared.learning.marl.common import MarlRun, Progress, make_actor, mlp
+from shared.learning.marl.masac import MasacHyper, SacLearner, sac_loss
+from shared.learning.marl.offpolicy import run_offpolicy
+from shared.learning.train import TrainResult
+
+
+@dataclass
+class MambpoHyper(MasacHyper):
+    episodes: int = 30_000
+    ensemble: int = 3  # K target-motion networks
+    model_lr: float = 1e-3
+    model_hidden: int = 128
+    model_steps: int = 2  # gradient steps on the model per collected batch
+    horizon: int = 3  # branched rollout length
+    rollout_starts: int = 256  # real states each round's rollouts start from
+    real_ratio: float = 0.5  # share of real transitions in a minibatch
+    model_buffer: int = 100_000
+
+
+class TargetMotionEnsemble(nn.Module):
+    """K networks onehot(e) (M, n) -> logits of e' (K, M, n)."""
+
+    def __init__(self, n: int, k: int, hidden: int) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(mlp(n, n, hidden) for _ in range(k))
+
+    def forward(self, onehot_e: torch.Tensor) -> torch.Tensor:
+        return torch.stack([m(onehot_e) for m in self.members])
+
+
+class WorldModel:
+    """The ensemble, its training on real transitions, and branched rollouts (module docstring)."""
+
+    def __init__(self, run: MarlRun, actor: nn.Module, hyper: MambpoHyper) -> None:
+        self.run, self.actor, self.hyper = run, actor, hyper
+        core = run.env.core
+        self.core, self.n, self.N = core, core.n, core.N
+        self.net = TargetMotionEnsemble(self.n, hyper.ensemble, hyper.model_hidden).to(run.device)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=hyper.model_lr)
+        self.buffer = ReplayBuffer(
+            storage=LazyTensorStorage(hyper.model_buffer, device=run.device), sampler=RandomSampler()
+        )
+        self.gen = torch.Generator(device=run.device).manual_seed(run.cfg.seed + 17)
+        self.last_loss = float("nan")
+
+    def _target(self, state: torch.Tensor) -> torch.Tensor:
+        """The target's row from the state's last onehot block: (M, S) -> (M,)."""
+        n, N = self.n, self.N
+        return state[:, N * n : (N + 1) * n].argmax(-1)
+
+    def fit(self, data: TensorDictBase) -> None:
+        e = self._target(data.get("state"))
+        e_next = self._target(data.get(("next", "state")))
+        moved = (data.get(("next", "state"))[:, -1] > data.get("state")[:, -1]).float()  # not a t = 0 capture
+        x = torch.nn.functional.one_hot(e, self.n).float()
+        for _ in range(self.hyper.model_steps):
+            logits = self.net(x)  # (K, M, n)
+            nll = torch.nn.functional.cross_entropy(
+                logits.flatten(0, 1), e_next.repeat(self.hyper.ensemble), reduction="none"
+            ).view(self.hyper.ensemble, -1)
+            loss = (nll * moved).sum() / moved.sum().clamp_min(1) / self.hyper.ensemble
+            self.opt.zero_grad()
+            loss.backward()
+            self.opt.step()
+        self.last_loss = float(loss.detach())
+
+    @torch.no_grad()
+    def rollout(self, data: TensorDictBase) -> None:
+        """Branched rollouts from the states of ``data`` (the latest real batch) into the buffer."""
+        core, h, n, N = self.core, self.hyper, self.n, self.N
+        start = data[torch.randperm(data.shape[0], generator=self.gen, device=data.device)[: h.rollout_starts]]
+        start = start[~start.get(("next", "done")).squeeze(-1)]
+        td = start.get("next").select(("agents", "observation"), ("agents", "action_mask"), "state")
+        if td.shape[0] == 0:
+            return
+        member = torch.randint(0, h.ensemble, (td.shape[0],), generator=self.gen, device=td.device)
+        t_max = core.scenario.t_max
+        belief = core.belief
+        for _ in range(h.horizon):
+            obs, mask, state = td.get(("agents", "observation")), td.get(("agents", "action_mask")), td.get("state")
+            td = self.actor(td)
+            a = td.get(("agents", "action"))  # (M, N)
+            pos = obs[..., :n].argmax(-1)
+            b = obs[..., n:]
+            e = self._target(state)
+            t = torch.round(state[:, -1] * t_max)
+            pos_next = torch.gather(core.nbr[pos], 2, a.unsqueeze(-1)).squeeze(-1)
+            logits = self.net(torch.nn.functional.one_hot(e, n).float())  # (K, M, n)
+            probs = torch.softmax(logits[member, torch.arange(len(e), device=e.device)], -1)
+            e_next = torch.multinomial(probs, 1, generator=self.gen).squeeze(1)
+            in_d = core.sim.detect[pos_next, e_next.unsqueeze(1)]  # (M, N)
+            u = torch.rand(in_d.shape, generator=self.gen, device=in_d.device)
+            sensor = core.scenario.sensor
+            z = torch.where(in_d, u >= sensor.eta_fn, u < sensor.eta_fp)
+            captured = (z & in_d).any(1)
+            t_next = t + 1
+            truncated = ~captured & (t_next >= t_max)
+            b_next = belief.update(b, belief.likelihood(pos_next, z))  # Eq. 1
+            obs_next = torch.zeros_like(obs)
+            obs_next[..., n:] = b_next
+            obs_next.scatter_(-1, pos_next.unsqueeze(-1), 1.0)
+            where = torch.cat([pos_next, e_next.unsqueeze(1)], 1) + core.offsets
+            state_next = torch.zeros_like(state)
+            state_next[:, -1] = t_next / t_max
+            state_next.scatter_(1, where, 1.0)
+            M = len(e)
+            term = captured.unsqueeze(1)
+            done = (captured | truncated).unsqueeze(1)
+            nxt = TensorDict(
+                {
+                    "agents": TensorDict(
+                        {
+                            "observation": obs_next,
+                            "action_mask": core.valid[pos_next],
+                            "reward": -torch.ones(M, N, 1, device=obs.device),
+                            "done": done.unsqueeze(1).expand(M, N, 1),
+                            "terminated": term.unsqueeze(1).expand(M, N, 1),
+                        },
+                        batch_size=[M, N],
+                    ),
+                    "state": state_next,
+                    "done": done,
+                    "terminated": term,
+                    "truncated": truncated.unsqueeze(1),
+                },
+                batch_size=[M],
+            )
+            step = TensorDict(
+                {
+                    "agents": TensorDict({"observation": obs, "action_mask": mask, "action": a}, batch_size=[M, N]),
+                    "state": state,
+                    "next": nxt,
+                },
+                batch_size=[M],
+            )
+            self.buffer.extend(step)
+            keep = ~done.squeeze(1)
+            if not bool(keep.any()):
+                break
+            td = nxt.select(("agents", "observation"), ("agents", "action_mask"), "state")[keep]
+            member = member[keep]
+
+
+class MambpoLearner:
+    """SAC updates on minibatches of real and model transitions."""
+
+    def __init__(self, sac: SacLearner, model: WorldModel, hyper: MambpoHyper) -> None:
+        self.sac, self.model, self.hyper = sac, model, hyper
+
+    def update(self, batch: TensorDictBase, step: int) -> None:
+        M = batch.shape[0]
+        k = max(1, round(self.hyper.real_ratio * M))
+        if len(self.model.buffer) > 0 and k < M:
+            fake = self.model.buffer.sample(M - k)
+            keys = [key for key in fake.keys(True, True)]
+            batch = torch.cat([batch[:k].select(*keys), fake.select(*keys)], 0)
+        self.sac.update(batch, step)
+
+
+def train_mambpo(
+    graph: Graph,
+    target: TargetModel,
+    sensor: Sensor,
+    cfg: TrainConfig,
+    hyper: MambpoHyper,
+    init_model: TargetModel | None = None,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> TrainResult:
+    run = MarlRun("mambpo", graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
+    policy, _logits, actor = make_actor(graph, cfg.robots, cfg.hidden, run.device)
+    model = WorldModel(run, actor, hyper)
+    learner = MambpoLearner(SacLearner(sac_loss(run, actor, hyper), hyper), model, hyper)
+
+    def on_batch(data: TensorDictBase) -> None:
+        model.fit(data)
+        if run.episodes >= hyper.warmup:
+            model.rollout(data)
+
+    run_offpolicy(run, actor, policy, learner, hyper, on_batch=on_batch)
+    return run.result(policy, {"model_nll": round(model.last_loss, 4)})

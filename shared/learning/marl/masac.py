@@ -1,0 +1,130 @@
+"""MASAC: multi-agent soft actor-critic with centralised critics and decentralised actors, the
+paper's [47] baseline, built on TorchRL's ``DiscreteSACLoss`` (Christodoulou 2019's discrete SAC:
+exact expectations over the discrete actions, twin Q networks, a learned temperature alpha) and
+its ``MultiAgentMLP`` critics.
+
+Robot i's critic Q_i(s, o_i, .) gives a value for each of its d actions from the global state
+and its own observation (training only); its actor is network i of a TeamPolicy on its own
+observation. Off-policy loop: shared/learning/marl/offpolicy.py.
+
+What differs: the temperature's entropy target is ``target_entropy`` times the mean over nodes
+of log |N[p]| (a masked action set makes TorchRL's default, 0.98 log d, unreachable at nodes of
+low degree); each critic conditions on the state, not on the other robots' actions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.modules import MultiAgentMLP
+from torchrl.objectives import DiscreteSACLoss, SoftUpdate, ValueEstimators
+
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+from shared.learning.config import TrainConfig
+from shared.learning.marl.common import MarlRun, Progress, agent_input, make_actor
+from shared.learning.marl.offpolicy import OffPolicyHyper, clip_step, mean_log_degree, run_offpolicy
+from shared.learning.train import TrainResult
+
+
+@dataclass
+class MasacHyper(OffPolicyHyper):
+    episodes: int = 50_000
+    lr: float = 3e-4
+    critic_lr: float = 1e-3
+    target_entropy: float = 0.3  # entropy target as a share of a uniform move's entropy
+    alpha_init: float = 0.1  # initial temperature
+
+
+class CentralQ(nn.Module):
+    """Robot i's critic on the global state and its own observation (and ``extra`` inputs, such
+    as actions): (..., S), (..., N, 2n), (..., N, k)... -> (..., N, outputs)."""
+
+    def __init__(self, inputs: int, robots: int, outputs: int, hidden: int) -> None:
+        super().__init__()
+        self.N = robots
+        self.net = MultiAgentMLP(
+            n_agent_inputs=inputs,
+            n_agent_outputs=outputs,
+            n_agents=robots,
+            centralized=False,
+            share_params=False,
+            depth=2,
+            num_cells=hidden,
+            activation_class=nn.ReLU,
+        )
+
+    def forward(self, state: torch.Tensor, observation: torch.Tensor, *extra: torch.Tensor) -> torch.Tensor:
+        return self.net(agent_input(state, observation, *extra))
+
+
+class SacLearner:
+    """One optimiser step of TorchRL's DiscreteSACLoss on a minibatch, then the target update."""
+
+    def __init__(self, loss: DiscreteSACLoss, hyper: MasacHyper) -> None:
+        self.loss, self.hyper = loss, hyper
+        self.actor_params = list(loss.actor_network_params.flatten_keys().values())
+        self.critic_params = list(loss.qvalue_network_params.flatten_keys().values())
+        self.opt_actor = torch.optim.Adam(self.actor_params, lr=hyper.lr)
+        self.opt_critic = torch.optim.Adam(self.critic_params, lr=hyper.critic_lr)
+        self.opt_alpha = torch.optim.Adam([loss.log_alpha], lr=hyper.lr)
+        self.target = SoftUpdate(loss, tau=hyper.tau)
+
+    def update(self, batch: TensorDictBase, step: int) -> None:
+        terms = self.loss(batch)
+        clip_step(self.opt_critic, terms["loss_qvalue"], self.critic_params, self.hyper.max_grad_norm)
+        clip_step(self.opt_actor, terms["loss_actor"], self.actor_params, self.hyper.max_grad_norm)
+        clip_step(self.opt_alpha, terms["loss_alpha"], [self.loss.log_alpha], self.hyper.max_grad_norm)
+        self.target.step()
+
+
+def sac_loss(run: MarlRun, actor: nn.Module, hyper: MasacHyper) -> DiscreteSACLoss:
+    """TorchRL's discrete SAC loss over the team's actor and per-robot central critics."""
+    env, N, n, d = run.env, run.cfg.robots, run.graph.n, run.env.scenario.d
+    q = TensorDictModule(
+        CentralQ(env.scenario.state_size + 2 * n, N, d, hyper.critic_hidden).to(run.device),
+        in_keys=["state", ("agents", "observation")],
+        out_keys=[("agents", "action_value")],
+    )
+    loss = DiscreteSACLoss(
+        actor_network=actor,
+        qvalue_network=q,
+        action_space="categorical",
+        num_actions=d,
+        num_qvalue_nets=2,
+        alpha_init=hyper.alpha_init,
+        target_entropy=hyper.target_entropy * mean_log_degree(env.core.valid),
+        loss_function="l2",
+    )
+    loss.set_keys(
+        action=("agents", "action"),
+        action_value=("agents", "action_value"),
+        reward=("agents", "reward"),
+        done=("agents", "done"),
+        terminated=("agents", "terminated"),
+        value=("agents", "state_value"),
+    )
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=hyper.gamma)
+    return loss
+
+
+def train_masac(
+    graph: Graph,
+    target: TargetModel,
+    sensor: Sensor,
+    cfg: TrainConfig,
+    hyper: MasacHyper,
+    init_model: TargetModel | None = None,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> TrainResult:
+    run = MarlRun("masac", graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
+    policy, _logits, actor = make_actor(graph, cfg.robots, cfg.hidden, run.device)
+    learner = SacLearner(sac_loss(run, actor, hyper), hyper)
+    run_offpolicy(run, actor, policy, learner, hyper)
+    return run.result(policy)

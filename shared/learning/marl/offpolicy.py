@@ -1,0 +1,113 @@
+"""The loop the off-policy baselines share (MASAC, MADDPG, FACMAC, MAMBPO): a TorchRL collector
+fills a TorchRL replay buffer with transitions of ``envs`` episodes run side by side, and after
+every ``collect`` environment steps the method takes ``updates`` gradient steps on minibatches
+sampled from it. The first ``warmup`` episodes are flown by the untrained actors before updates
+begin. Each method supplies an ``Learner`` with ``update(batch)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers import RandomSampler
+
+from shared.learning.marl.common import MarlHyper, MarlRun, agents_done
+from shared.learning.policy import TeamPolicy
+
+
+@dataclass
+class OffPolicyHyper(MarlHyper):
+    envs: int = 32
+    collect: int = 8  # environment steps between rounds of updates (envs * collect transitions)
+    updates: int = 4  # gradient steps per round
+    minibatch: int = 256  # transitions per gradient step
+    buffer: int = 200_000  # replay capacity in transitions
+    warmup: int = 1_000  # episodes before the first update
+    tau: float = 0.01  # Polyak rate of the target networks
+
+
+class Learner(Protocol):
+    def update(self, batch: TensorDictBase, step: int) -> None: ...
+
+
+def run_offpolicy(
+    run: MarlRun, actor: torch.nn.Module, policy: TeamPolicy, learner: Learner, hyper: OffPolicyHyper, on_batch=None
+) -> None:
+    """Collect, store, update, until the run's budget is spent or a stop is asked.
+    ``on_batch(data)`` (optional) sees every collected batch (MAMBPO trains its model on it)."""
+    buffer = ReplayBuffer(
+        storage=LazyTensorStorage(hyper.buffer, device=run.device),
+        sampler=RandomSampler(),
+        batch_size=hyper.minibatch,
+    )
+    collector = Collector(
+        run.env,
+        actor,
+        frames_per_batch=hyper.envs * hyper.collect,
+        total_frames=-1,
+        auto_register_policy_transforms=False,
+    )
+    step = 0
+    try:
+        for data in collector:
+            data = agents_done(data).reshape(-1)
+            buffer.extend(data.exclude(("agents", "logits"), ("next", "agents", "logits")))
+            if on_batch is not None:
+                on_batch(data)
+            if run.episodes >= hyper.warmup:
+                for _ in range(hyper.updates):
+                    learner.update(buffer.sample(), step)
+                    step += 1
+                    run.updates += 1
+                collector.update_policy_weights_()
+            if run.after_steps(data.numel(), policy):
+                break
+    finally:
+        collector.shutdown()
+
+
+def clip_step(
+    opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch.nn.Parameter], max_norm: float
+) -> None:
+    opt.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, max_norm)
+    opt.step()
+
+
+def mean_log_degree(valid: torch.Tensor) -> float:
+    """Mean over nodes of log |N[p]|: the entropy of a uniform move (valid: (n, d) bool)."""
+    return float(torch.log(valid.sum(1).double()).mean()) if valid.numel() else math.nan
+
+
+def unpack(batch: TensorDictBase) -> dict[str, torch.Tensor]:
+    """A minibatch of M transitions as plain tensors: obs (M, N, 2n), mask (M, N, d), state (M, S),
+    action (M, N), reward (M, 1) (the team's), terminated (M, 1) float, and the same ``next_``."""
+    return {
+        "obs": batch.get(("agents", "observation")),
+        "mask": batch.get(("agents", "action_mask")),
+        "state": batch.get("state"),
+        "action": batch.get(("agents", "action")),
+        "reward": batch.get(("next", "agents", "reward"))[..., 0, :],
+        "terminated": batch.get(("next", "terminated")).float(),
+        "next_obs": batch.get(("next", "agents", "observation")),
+        "next_mask": batch.get(("next", "agents", "action_mask")),
+        "next_state": batch.get(("next", "state")),
+    }
+
+
+def gumbel_actions(logits: torch.Tensor, tau: float) -> torch.Tensor:
+    """A straight-through Gumbel-softmax sample (Jang et al. 2017): one-hot forward, the relaxed
+    softmax's gradient backward. logits (..., d) with masked entries at NEG_INF -> (..., d)."""
+    return torch.nn.functional.gumbel_softmax(logits, tau=tau, hard=True)
+
+
+def valid_logit_penalty(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean squared logit over the allowed actions (MADDPG's regulariser of the actor's output)."""
+    return (logits.square() * mask).sum() / mask.sum().clamp_min(1)

@@ -1,0 +1,139 @@
+"""The environment interfaces (docs/SPEC.md section 9): PettingZoo's and TorchRL's own checkers,
+the same dynamics as the engine's simulator (a random team gives `mures evaluate --searcher
+random`'s capture times), determinism for a seed, and clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from pettingzoo.test import parallel_api_test
+from torchrl.envs.utils import check_env_specs
+
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.engine.evaluate import evaluate, mean_ci95
+from shared.engine.searchers import RandomSearcher
+from shared.envs import mures_v0
+
+
+def test_parallel_env_passes_pettingzoo_api_test():
+    env = mures_v0.parallel_env(map="office", robots=3, seed=0)
+    parallel_api_test(env, num_cycles=400)
+    noisy = mures_v0.parallel_env(map="museum", robots=2, seed=1, eta_fn=0.1, eta_fp=0.05, target="lazy:0.5")
+    parallel_api_test(noisy, num_cycles=200)
+
+
+def test_torchrl_env_passes_check_env_specs():
+    env = mures_v0.torchrl_env(map="office", robots=4, batch_size=[8], seed=0)
+    check_env_specs(env)
+    td = env.rollout(60, break_when_any_done=False)  # partial resets inside
+    assert td["agents", "observation"].shape == (8, 60, 4, 120)
+    assert td["next", "agents", "reward"].shape == (8, 60, 4, 1)
+    assert td["state"].shape == (8, 60, env.scenario.state_size)
+    obs = td["agents", "observation"]
+    assert torch.allclose(obs[..., :60].sum(-1), torch.ones(8, 60, 4))  # onehot(p)
+    assert torch.allclose(obs[..., 60:].sum(-1), torch.ones(8, 60, 4), atol=1e-4)  # beliefs sum to 1
+    assert bool(td["next", "done"].any()), "60 steps of 8 random episodes should end some"
+
+
+def _pz_episode(env, seed, pick):
+    """The last step's infos of one episode with actions ``pick(agent, observation)``."""
+    obs, _ = env.reset(seed=seed)
+    while env.agents:
+        obs, _rewards, _terms, _truncs, infos = env.step({a: pick(a, obs[a]) for a in env.agents})
+    return infos
+
+
+def test_random_team_in_parallel_env_has_the_simulators_capture_times():
+    """Exact: the env driven by the random searcher's own draws reproduces `evaluate` episode by
+    episode (the same generator seeds, chunk = 1); in distribution: PettingZoo's masked
+    action_space.sample() team against `mures evaluate --searcher random`."""
+    g, sensor = builtin_graph("office"), Sensor()
+    model = uniform_walk(g)
+    K, seed = 40, 3
+    ref = evaluate(g, model, sensor, 3, lambda s: RandomSearcher(g, seed=s), episodes=K, seed=seed, chunk=1)
+    env = mures_v0.parallel_env(map="office", robots=3)
+    nbr = g.nbr
+    for c in range(K):
+        chunk_seed = seed * 1_000_003 + c
+        searcher = RandomSearcher(g, seed=chunk_seed + 7919)
+        env.reset(seed=chunk_seed)
+        while env.agents:
+            moves = searcher.act(env.core.sim._obs())[0].numpy()  # node rows
+            pos = env.core.sim.pos[0].numpy()
+            actions = {a: int(np.flatnonzero(nbr[pos[i]] == moves[i])[0]) for i, a in enumerate(env.possible_agents)}
+            *_, infos = env.step(actions)
+        info = infos["robot_0"]
+        assert info["capture_time"] == ref.capture_time[c], f"episode {c}"
+        assert info["captured"] == (not ref.censored[c])
+
+    rng = np.random.default_rng(0)
+    env = mures_v0.parallel_env(map="office", robots=3, seed=11)
+    for a in env.possible_agents:
+        env.action_space(a).seed(int(rng.integers(1 << 31)))
+    times = []
+    for ep in range(400):
+        infos = _pz_episode(env, None if ep else 11, lambda a, o: env.action_space(a).sample(o["action_mask"]))
+        times.append(infos["robot_0"]["capture_time"])
+    evaluated = evaluate(g, model, sensor, 3, lambda s: RandomSearcher(g, seed=s), episodes=1500, seed=5)
+    m1, h1 = mean_ci95(times)
+    m2, h2 = mean_ci95(evaluated.capture_time)
+    assert abs(m1 - m2) < 1.5 * np.hypot(h1, h2), (m1, h1, m2, h2)
+
+
+def test_reward_is_minus_one_per_step_and_the_last_step_reports():
+    env = mures_v0.parallel_env(map="office", robots=2, seed=4)
+    env.reset(seed=4)
+    total = 0.0
+    while env.agents:
+        _obs, rewards, terms, truncs, infos = env.step({a: 0 for a in env.agents})  # everyone stays
+        total += rewards["robot_0"]
+    info = infos["robot_0"]
+    assert set(info) == {"capture_time", "captured"}
+    assert total == -info["capture_time"]
+    assert info["captured"] == terms["robot_0"] and truncs["robot_0"] == (not info["captured"])
+    if not info["captured"]:
+        assert info["capture_time"] == 3 * 60  # truncation at T_max = 3n
+
+
+def test_same_seed_same_episodes():
+    def run(seed):
+        env = mures_v0.torchrl_env(map="museum", robots=3, batch_size=[4], seed=seed)
+        torch.manual_seed(0)
+        return env.rollout(40, break_when_any_done=False)
+
+    a, b, c = run(7), run(7), run(8)
+    assert torch.equal(a["next", "agents", "observation"], b["next", "agents", "observation"])
+    assert torch.equal(a["next", "done"], b["next", "done"])
+    assert not torch.equal(a["next", "state"], c["next", "state"])
+
+    def episode(seed):
+        env = mures_v0.parallel_env(map="office", robots=2, seed=seed)
+        out = []
+        obs, _ = env.reset()
+        while env.agents:
+            obs, *_ = env.step({a: int(np.argmax(o["action_mask"][::-1] == 1)) for a, o in obs.items()})
+            out.append(obs["robot_1"]["observation"].copy())
+        return np.stack(out)
+
+    assert np.array_equal(episode(5), episode(5))
+
+
+def test_belief_model_option_and_bad_options():
+    env = mures_v0.parallel_env(map="office", robots=1, seed=0, belief_model="identity")
+    obs, _ = env.reset()
+    b = obs["robot_0"]["observation"][60:]
+    assert np.allclose(b[b > 0], b[b > 0][0])  # uniform b0 over the nodes z_0 = 0 leaves possible
+    with pytest.raises(ValueError, match="belief_model"):
+        mures_v0.parallel_env(map="office", robots=1, belief_model="oracle")
+    with pytest.raises(ValueError, match="robots"):
+        mures_v0.parallel_env(map="office", robots=0)
+    with pytest.raises(ValueError, match="batch_size"):
+        mures_v0.torchrl_env(map="office", robots=2, batch_size=[2, 3])
+    env = mures_v0.parallel_env(map="office", robots=2, seed=0)
+    env.reset()
+    with pytest.raises(ValueError, match="no action for robot_1"):
+        env.step({"robot_0": 0})
+    with pytest.raises(ValueError, match="action indices"):
+        env.step({"robot_0": 0, "robot_1": 99})
