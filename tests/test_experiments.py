@@ -120,3 +120,37 @@ def test_sensor_noise_and_variant_experiments_and_their_report(tmp_path):
     assert "## Fig. 10: eta_fp" in text and "| N | eta_fp 0.0 | eta_fp 0.1 | eta_fp 0.3 | eta_fp 0.5 |" in text
     assert "| 2 | 0.00 ± 0.00 |" in text  # N = 2, eta_fp = 0: no false alarm in any episode
     assert "| cepg+ |" in text and "fig6" not in text.split("## Not recorded")[1]
+
+
+def test_marl_experiment_and_its_report(tmp_path, monkeypatch):
+    """The MARL experiment at a tiny budget (two methods, one sweep setting): rows for random,
+    cepg and each method on OFFICE and WARD with training figures and learning curves, the sweep,
+    and the report's section."""
+    from shared.tools import experiments
+    from shared.tools.experiments import Budget
+
+    monkeypatch.setattr(experiments, "MARL", ("mappo", "maddpg"))
+    monkeypatch.setattr(experiments, "MARL_SWEEP", {"mappo": [("clip=0.1",)], "maddpg": [("gumbel_tau=0.5",)]})
+    b = Budget(quick=True, episodes=40, train=256, planner=1, milp_limit=0.05, teams=(2,), marl_train=300)
+    experiments.marl(tmp_path, b)
+    d = json.loads((tmp_path / "marl" / "marl.json").read_text())
+    assert {(r["map"], r["method"]) for r in d["rows"]} == {
+        (m, x) for m in ("office", "ward") for x in ("random", "cepg", "mappo", "maddpg")
+    }
+    for r in d["rows"]:
+        assert r["episodes"] == 40 and r["robots"] == 4 and r["decision_ms"] > 0
+        if r["method"] in ("mappo", "maddpg"):
+            assert r["train_episodes"] >= 300 and r["train_wall_seconds"] > 0
+    assert set(d["learning_curves"]) == {"office/mappo", "office/maddpg", "ward/mappo", "ward/maddpg"}
+    assert [(r["method"], r["overrides"]) for r in d["sweep"]] == [
+        ("mappo", ["defaults"]),
+        ("mappo", ["clip=0.1"]),
+        ("maddpg", ["defaults"]),
+        ("maddpg", ["gumbel_tau=0.5"]),
+    ]
+    meta = json.loads(
+        next((tmp_path / "snapshots").glob("office-N4-maddpg-300-s0")).joinpath("policy.json").read_text()
+    )
+    assert meta["algorithm"] == "maddpg"
+    text = report(tmp_path, tmp_path / "results.md").read_text()
+    assert "## The MARL baselines" in text and "| WARD | maddpg |" in text and "| mappo | clip=0.1 | 300 |" in text

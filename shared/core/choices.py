@@ -15,4 +15,4 @@ CE_STATES: Final = ("shared", "all")  # where the cross entropy of Eq. 9 counts 
 BELIEFS: Final = ("em", "true")  # the robots' belief model while training: EM-estimated or the true one
 ESTIMATORS: Final = ("em", "eq8")  # how `mures estimate` fits Gamma_hat
 ALGORITHMS: Final = ("cepg", "maddpg", "masac", "facmac", "mambpo", "mappo")  # `mures train --algorithm`
-BUILTIN_MAPS: Final = ("office", "museum")
+BUILTIN_MAPS: Final = ("office", "museum", "ward")  # ward: ours, not the paper's (docs/SPEC.md section 7)

@@ -310,7 +310,8 @@ def load_graph_file(path: str | Path) -> Graph:
 
 
 def builtin_graph(name: str) -> Graph:
-    """OFFICE or MUSEUM, with the published labels and start nodes (43 and 1)."""
+    """OFFICE or MUSEUM (the published labels and start nodes, 43 and 1), or WARD (ours: a corridor of
+    12 nodes, 1..12, with two rooms off each, 13..36; start at the corridor's end, node 1)."""
     key = name.lower()
     if key not in BUILTIN_MAPS:
         raise GraphError(f"unknown built-in map {name!r} (expected one of {', '.join(BUILTIN_MAPS)})")

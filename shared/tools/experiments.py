@@ -8,7 +8,9 @@ docs/results.md; nothing in it is typed by hand.
 Experiments: fig4 (toy learning curves), fig5 (beta), fig6 (the variants), fig7 (all methods,
 N = 1..5, OFFICE and MUSEUM), fig8 (decision time per team step, measured in fig7), fig9 and fig10
 (sensor noise: capture time, false alarms), fig11 (all methods under eta_fn), fig12 and fig13
-(robustness). ``all`` runs them in turn. Budgets: ``FULL`` is the paper's protocol, ``QUICK`` fits CI.
+(robustness), marl (the MARL baselines at their default budgets on OFFICE and WARD with learning
+curves, and a small hyperparameter sweep). ``all`` runs them in turn. Budgets: ``FULL`` is the
+paper's protocol, ``QUICK`` fits CI.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 
 from shared.core.files import atomic_write
 
-EXPERIMENTS = ("fig4", "fig5", "fig6", "fig7", "fig8", "fig9", "fig10", "fig11", "fig12", "fig13")
+EXPERIMENTS = ("fig4", "fig5", "fig6", "fig7", "fig8", "fig9", "fig10", "fig11", "fig12", "fig13", "marl")
 PLANNERS = ("fhpe", "fhpe-sa", "milp", "d-milp")
 
 
@@ -48,7 +50,7 @@ def _write(out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]
     atomic_write(out / f"{name}.json", json.dumps({**data, "rows": rows}, indent=1) + "\n")
     if rows:
         with open(out / f"{name}.csv", "w", newline="", encoding="utf-8") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # rows differ
             w.writeheader()
             w.writerows(rows)
 
@@ -112,13 +114,15 @@ class Budget:
     planner: int  # episodes for fhpe, milp and d-milp (one MILP solve per robot step); fhpe-sa runs 4x
     milp_limit: float  # HiGHS time limit per solve, seconds
     teams: tuple[int, ...]  # team sizes N of the sweeps (fig6, fig9, fig10)
+    marl_train: int | None = None  # training episodes per MARL baseline; None: each method's default budget
 
     def with_train(self, episodes: int | None) -> Budget:
-        return self if episodes is None else replace(self, train=episodes)
+        return self if episodes is None else replace(self, train=episodes, marl_train=episodes)
 
 
 FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5))
-QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4))
+QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4), marl_train=2_000)
+MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.MARL_ALGORITHMS
 SEED = 1  # evaluation seed of every cell (training seeds: 0)
 ETAS = (0.0, 0.1, 0.3, 0.5)  # the paper's sensor-noise grid (Fig. 9-11)
 LEARNED = {"pg": ("cepg", 1.0), "cepg": ("cepg", 0.5), "cepg+": ("cepg+", 0.5), "c-cepg": ("c-cepg", 0.5)}
@@ -177,15 +181,73 @@ def _snapshot(
     return path
 
 
+def _marl_snapshot(
+    root: Path,
+    env: str,
+    robots: int,
+    algorithm: str,
+    episodes: int | None,
+    seed: int,
+    eta_fn: float = 0.0,
+    eta_fp: float = 0.0,
+    overrides: tuple[str, ...] = (),
+) -> Path:
+    """A cached team of a MARL baseline (``episodes`` None: the method's default budget), with
+    EM-estimated beliefs as CE-PG's, retrained when its stored configuration differs."""
+    from shared.core.graph import builtin_graph
+    from shared.core.models import uniform_walk
+    from shared.learning.config import TrainConfig
+    from shared.learning.marl import hyperparameters, train_marl
+    from shared.learning.snapshot import save_snapshot
+
+    hyper = hyperparameters(algorithm, list(overrides), episodes=episodes)
+    if hasattr(hyper, "warmup"):
+        hyper.warmup = min(hyper.warmup, hyper.episodes // 4)  # small runs learn for most of their budget
+    tag = "".join(f"-{k}{v}" for k, v in (("fn", eta_fn), ("fp", eta_fp)) if v)
+    tag += "".join(f"-{o.replace('=', '')}" for o in overrides)
+    path = root / "snapshots" / f"{env}-N{robots}-{algorithm}-{hyper.episodes}-s{seed}{tag}"
+    g = builtin_graph(env)
+    cfg = TrainConfig(
+        robots=robots,
+        algorithm=algorithm,
+        seed=seed,
+        em_first=min(8192, hyper.episodes // 2),
+        em_missions=min(512, max(32, hyper.episodes // 64)),
+        em_max_iter=300 if hyper.episodes >= 100_000 else 100,
+    )
+    config = {
+        **cfg.to_dict(),
+        "episodes": hyper.episodes,
+        "batch": hyper.envs,
+        "lr": [hyper.lr],
+        "hyperparameters": hyper.to_dict(),
+        "map": g.name,
+    }
+    meta = path / "policy.json"
+    if meta.exists() and json.loads(meta.read_text(encoding="utf-8")).get("training") == json.loads(json.dumps(config)):
+        return path
+    sensor = sensor_for("cepg", eta_fn, eta_fp)
+    noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
+    extra = f" ({', '.join(overrides)})" if overrides else ""
+    _say(f"  training {algorithm.upper()} {env} N={robots}{noise}{extra}, {hyper.episodes:,} episodes")
+    res = train_marl(algorithm, g, uniform_walk(g), sensor, cfg, hyper)
+    save_snapshot(path, res.policy, g, res.model, sensor, "cepg", [], config, res.summary, algorithm=algorithm)
+    return path
+
+
 def _learned(
     root: Path, env: str, robots: int, method: str, b: Budget, eta_fn: float = 0.0, eta_fp: float = 0.0
 ) -> Callable[[int], Any]:
-    """seed -> searcher for a learned method (pg, cepg, cepg+, c-cepg), training it if not cached."""
+    """seed -> searcher for a learned method (pg, cepg, cepg+, c-cepg, or a MARL baseline),
+    training it if not cached."""
     from shared.core.graph import builtin_graph
     from shared.learning.snapshot import load_snapshot
 
-    variant, beta = LEARNED[method]
     g = builtin_graph(env)
+    if method in MARL:
+        snap = load_snapshot(_marl_snapshot(root, env, robots, method, b.marl_train, 0, eta_fn, eta_fp), g)
+        return _flown(snap, g, sensor_for("cepg", eta_fn, eta_fp), robots)
+    variant, beta = LEARNED[method]
     snap = load_snapshot(_snapshot(root, env, robots, beta, b.train, 0, variant, eta_fn, eta_fp), g)
     return _flown(snap, g, sensor_for(variant, eta_fn, eta_fp), robots)
 
@@ -281,7 +343,7 @@ def _all_methods(root: Path, env: str, N: int, b: Budget, eta_fn: float = 0.0) -
         _cell(env, N, m, _reference(env, N, m, sensor), b.episodes, sensor=sensor, latency=True)
         for m in ("random", "greedy")
     ]
-    for m in LEARNED:
+    for m in (*LEARNED, *MARL):
         rows.append(
             _cell(
                 env,
@@ -289,7 +351,7 @@ def _all_methods(root: Path, env: str, N: int, b: Budget, eta_fn: float = 0.0) -
                 m,
                 _learned(root, env, N, m, b, eta_fn),
                 b.episodes,
-                sensor=sensor_for(LEARNED[m][0], eta_fn),
+                sensor=sensor_for(LEARNED[m][0] if m in LEARNED else "cepg", eta_fn),
                 latency=True,
             )
         )
@@ -313,6 +375,7 @@ def _setup(name: str, b: Budget, **extra: Any) -> dict[str, Any]:
         "quick": b.quick,
         "episodes": b.episodes,
         "training_episodes": b.train,
+        "marl_training_episodes": b.marl_train or "each method's default",
         "seed": SEED,
         **extra,
         "machine": machine(),
@@ -511,7 +574,7 @@ def fig12(root: Path, b: Budget) -> Path:
     for env in ("office", "museum"):
         for withdraw in (None, [None, None, None, 5]):
             label = "none" if withdraw is None else "r4@t5"
-            for m in ("random", "greedy", "pg", "cepg"):
+            for m in ("random", "greedy", "pg", "cepg", *MARL):
                 make = _reference(env, N, m, sensor) if m in ("random", "greedy") else _learned(root, env, N, m, b)
                 rows.append({**_cell(env, N, m, make, b.episodes, withdraw_at=withdraw), "withdrawn": label})
     out = root / "fig12"
@@ -530,14 +593,20 @@ def fig13(root: Path, b: Budget) -> Path:
     sensor = sensor_for("cepg")
     for env in ("office", "museum"):
         g = builtin_graph(env)
-        five = load_snapshot(_snapshot(root, env, 5, 0.5, b.train, 0), g)
-        for k in range(1, 6):
-            rows.append(
-                {**_cell(env, k, "cepg trained for 5", _flown(five, g, sensor, k), b.episodes), "trained_for": 5}
+        for m in ("cepg", *MARL):
+            path = (
+                _snapshot(root, env, 5, 0.5, b.train, 0)
+                if m == "cepg"
+                else _marl_snapshot(root, env, 5, m, b.marl_train, 0)
             )
-            rows.append(
-                {**_cell(env, k, "cepg trained for k", _learned(root, env, k, "cepg", b), b.episodes), "trained_for": k}
-            )
+            five = load_snapshot(path, g)
+            for k in range(1, 6):
+                rows.append(
+                    {**_cell(env, k, f"{m} trained for 5", _flown(five, g, sensor, k), b.episodes), "trained_for": 5}
+                )
+                rows.append(
+                    {**_cell(env, k, f"{m} trained for k", _learned(root, env, k, m, b), b.episodes), "trained_for": k}
+                )
     out = root / "fig13"
     _write(out, "fig13", _setup("fig13", b), rows)
     _bars(out / "fig13.png", rows, "robots", "capture time (steps)")
@@ -605,7 +674,93 @@ def _lines(path: Path, rows: list[dict[str, Any]], key: str, value: str, ylabel:
     plt.close(fig)
 
 
+# ---------------------------------------------------------------------- the MARL baselines
+# A small sweep per method around its defaults (one change at a time), at a fifth of the budget.
+MARL_SWEEP: dict[str, list[tuple[str, ...]]] = {
+    "mappo": [("lr=0.0003",), ("entropy=0.0",), ("clip=0.1",)],
+    "masac": [("lr=0.001",), ("updates=8",), ("target_entropy=0.6",)],
+    "maddpg": [("lr=0.0003",), ("gumbel_tau=0.5",), ("updates=8",)],
+    "facmac": [("lr=0.0003",), ("gumbel_tau=0.5",), ("updates=8",)],
+    "mambpo": [("real_ratio=0.2",), ("horizon=1",), ("updates=8",)],
+}
+MARL_MAPS = ("office", "ward")  # the paper's OFFICE and our WARD
+
+
+def marl(root: Path, b: Budget) -> Path:
+    """The MARL baselines at their default budgets on OFFICE and WARD, N = 4, with learning
+    curves, against random and CE-PG; and a small hyperparameter sweep on OFFICE."""
+    from shared.core.graph import builtin_graph
+    from shared.core.snapshot import read_meta
+    from shared.learning.snapshot import load_snapshot
+
+    N, rows, curves, sweep = 4, [], {}, []
+    sensor = sensor_for("cepg")
+    t_start = time.perf_counter()
+    for env in MARL_MAPS:
+        rows.append(_cell(env, N, "random", _reference(env, N, "random", sensor), b.episodes, latency=True))
+        rows.append(
+            {
+                **_cell(env, N, "cepg", _learned(root, env, N, "cepg", b), b.episodes, latency=True),
+                "train_episodes": b.train,
+            }
+        )
+        for m in MARL:
+            path = _marl_snapshot(root, env, N, m, b.marl_train, 0)
+            summary = read_meta(path)["summary"]
+            row = _cell(env, N, m, _learned(root, env, N, m, b), b.episodes, latency=True)
+            row.update(
+                train_episodes=summary["episodes"],
+                train_wall_seconds=summary["wall_seconds"],
+                train_episodes_per_second=summary["episodes_per_second"],
+            )
+            rows.append(row)
+            curves[f"{env}/{m}"] = summary["learning_curve"]
+            took = f"{summary['episodes']:,} episodes, {summary['wall_seconds']:.0f} s"
+            _say(f"  marl: {env} {m} {row['mean_capture_time']:.2f} ({took})")
+    g = builtin_graph("office")
+    for m in MARL:
+        default_budget = _marl_hyper_episodes(m)
+        episodes = b.marl_train or max(1_000, default_budget // 5)
+        for overrides in [(), *MARL_SWEEP[m]]:
+            path = _marl_snapshot(root, "office", N, m, episodes, 0, overrides=overrides)
+            row = _cell("office", N, m, _flown(load_snapshot(path, g), g, sensor, N), b.episodes)
+            sweep.append({**row, "overrides": list(overrides) or ["defaults"], "train_episodes": episodes})
+    out = root / "marl"
+    setup = _setup("marl", b, robots=N, maps=list(MARL_MAPS), wall_seconds=round(time.perf_counter() - t_start, 1))
+    _write(out, "marl", {**setup, "sweep": sweep, "learning_curves": curves}, rows)
+    _plot_curves(out / "marl_curves.png", curves)
+    return out
+
+
+def _marl_hyper_episodes(method: str) -> int:
+    from shared.learning.marl import hyperparameters
+
+    return int(hyperparameters(method).episodes)
+
+
+def _plot_curves(path: Path, curves: dict[str, list[dict[str, Any]]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    maps = sorted({k.split("/")[0] for k in curves})
+    fig, axes = plt.subplots(1, len(maps), figsize=(6 * len(maps), 4), squeeze=False)
+    for ax, env in zip(axes[0], maps, strict=True):
+        for key, pts in curves.items():
+            if key.startswith(env + "/") and pts:
+                ax.plot([p["episodes"] for p in pts], [p["mean_capture_time"] for p in pts], label=key.split("/")[1])
+        ax.set_title(f"{env.upper()}, N = 4: training episodes' capture time")
+        ax.set_xlabel("training episodes")
+        ax.set_ylabel("capture time (steps)")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 RUNNERS: dict[str, Callable[[Path, Budget], Path]] = {
+    "marl": marl,
     "fig5": fig5,
     "fig6": fig6,
     "fig7": fig7,
@@ -833,12 +988,68 @@ def report(root: Path, out: Path) -> Path:
                 lines.append(f"| {lab} | " + " | ".join(cells) + " |")
             lines.append("")
         lines += [f"![{fig}]({rel}/{fig}/{fig}.png)", ""]
+    lines += _marl_report(root, rel)
     missing = [e for e in EXPERIMENTS if e != "fig8" and not (root / e).exists()]
     if missing:
         lines += ["## Not recorded", "", ", ".join(missing) + ": run `mures experiment NAME` to record them.", ""]
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(out, "\n".join(lines))
     return out
+
+
+def _marl_report(root: Path, rel: str) -> list[str]:
+    """The MARL baselines' section: budgets, capture times against random and CE-PG, the sweep."""
+    f = root / "marl" / "marl.json"
+    if not f.exists():
+        return []
+    d = json.loads(f.read_text())
+    rows, lines = d["rows"], []
+    given = d["marl_training_episodes"]
+    budget = f"{given:,} episodes" if isinstance(given, int) else "at its default budget (the table's episodes)"
+    lines += [
+        "## The MARL baselines (N = 4, OFFICE and our WARD)",
+        "",
+        f"Setup: each method trained once (seed 0), {budget}, with EM-estimated beliefs as CE-PG's (CE-PG: "
+        f"{d['training_episodes']:,} episodes); every team evaluated on {d['episodes']} episodes, seed {d['seed']}; "
+        f"quick={d['quick']}; {d['machine']['cpus']} CPUs, {d['machine']['date']}. Training throughput is "
+        "episodes per second of the whole run (EM included). "
+        "Decision time: per team step, one episode at a time.",
+        "",
+        "| map | method | capture time | vs random | training episodes | training wall s | episodes/s | decision ms |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for env in d["maps"]:
+        sel = [r for r in rows if r["map"] == env]
+        rnd = next((r for r in sel if r["method"] == "random"), None)
+        for r in sel:
+            vs = (
+                "—"
+                if rnd is None or r is rnd
+                else f"{100 * (1 - r['mean_capture_time'] / rnd['mean_capture_time']):+.0f} %"
+            )
+            lines.append(
+                f"| {env.upper()} | {r['method']} | {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], r['episodes'])} "
+                f"| {vs} | {r.get('train_episodes', '—') if r['method'] != 'random' else '—'} "
+                f"| {r.get('train_wall_seconds', '—')} | {r.get('train_episodes_per_second', '—')} "
+                f"| {r.get('decision_ms', '—')} |"
+            )
+    lines += [
+        "",
+        '"vs random": how much sooner than random the team captures (negative: later).',
+        "",
+        f"![marl curves]({rel}/marl/marl_curves.png)",
+        "",
+        "Sweep on OFFICE, N = 4, one change at a time from the defaults (each at the budget shown):",
+        "",
+        "| method | setting | training episodes | capture time |",
+        "| --- | --- | --- | --- |",
+    ]
+    for r in d["sweep"]:
+        lines.append(
+            f"| {r['method']} | {', '.join(r['overrides'])} | {r['train_episodes']:,} "
+            f"| {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], r['episodes'])} |"
+        )
+    return [*lines, ""]
 
 
 def _fmt(mean: float, half: float, episodes: int) -> str:

@@ -42,7 +42,7 @@ from shared.learning.train import TrainResult
 
 @dataclass
 class FacmacHyper(OffPolicyHyper):
-    episodes: int = 50_000
+    episodes: int = 20_000
     lr: float = 1e-3
     critic_lr: float = 1e-3
     gumbel_tau: float = 1.0  # Gumbel-softmax temperature

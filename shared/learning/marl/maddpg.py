@@ -41,7 +41,7 @@ from shared.learning.train import TrainResult
 
 @dataclass
 class MaddpgHyper(OffPolicyHyper):
-    episodes: int = 50_000
+    episodes: int = 20_000
     lr: float = 1e-3  # the paper's Table II value for MADDPG
     critic_lr: float = 1e-3
     gumbel_tau: float = 1.0  # Gumbel-softmax temperature

@@ -40,7 +40,7 @@ from shared.learning.train import TrainResult
 
 @dataclass
 class MambpoHyper(MasacHyper):
-    episodes: int = 30_000
+    episodes: int = 15_000
     ensemble: int = 3  # K target-motion networks
     model_lr: float = 1e-3
     model_hidden: int = 128

@@ -34,7 +34,7 @@ from shared.learning.train import TrainResult
 
 @dataclass
 class MasacHyper(OffPolicyHyper):
-    episodes: int = 50_000
+    episodes: int = 20_000
     lr: float = 3e-4
     critic_lr: float = 1e-3
     target_entropy: float = 0.3  # entropy target as a share of a uniform move's entropy
