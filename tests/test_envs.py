@@ -1,4 +1,4 @@
-"""The environment interfaces (docs/SPEC.md section 9): PettingZoo's and TorchRL's own checkers,
+"""The environment interfaces (docs/SPEC.md section 11): PettingZoo's and TorchRL's own checkers,
 the same dynamics as the engine's simulator (a random team gives `mures evaluate --searcher
 random`'s capture times), determinism for a seed, and clear errors."""
 

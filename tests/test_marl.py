@@ -159,3 +159,44 @@ def test_bad_hyperparameters_are_clear_errors(tmp_path, capsys):
     with pytest.raises(ValueError, match="unknown MARL algorithm"):
         hyperparameters("qmix")
     assert np.isclose(hyperparameters("mappo", ["lr=0.002"]).lr, 0.002)
+
+
+@pytest.mark.slow
+def test_a_fleet_flies_a_mappo_team_as_it_flies_cepg(tmp_path):
+    """A MAPPO snapshot as the server's first version: the server lists its algorithm, three
+    robot-agent processes download and fly it, and their capture times agree with `evaluate`'s."""
+    from shared.core.graph import builtin_graph
+    from shared.core.models import uniform_walk
+    from shared.engine.evaluate import mean_ci95
+    from shared.learning.snapshot import load_snapshot
+    from shared.tools.fleetsim import launch
+
+    team = tmp_path / "mappo-team"
+    args = ["train", "--env", "office", "--robots", "3", "--algorithm", "mappo", "--episodes", "3000"]
+    assert main([*args, "--belief", "true", "--quiet", "--out", str(team)]) == 0
+    g = builtin_graph("office")
+    fleet = launch(
+        g,
+        ["--env", "office"],
+        uniform_walk(g),
+        Sensor(),
+        3,
+        tmp_path / "fleet",
+        server_extra=["--init-policy", str(team)],
+    )
+    try:
+        assert fleet.api.get("/api/v1/policies/current")["meta"]["algorithm"] == "mappo"
+        flown = []
+        for s in range(60):
+            m = fleet.fly(["r1", "r2", "r3"], seed=s)
+            ct = m["outcome"]["capture_time"]
+            flown.append(ct if ct is not None else m["params"]["max_steps"])
+    finally:
+        fleet.close()
+    snap = load_snapshot(team, g)
+    res = evaluate(
+        g, uniform_walk(g), Sensor(), 3, lambda s: PolicySearcher(snap, g, Sensor(), 3, seed=s), episodes=1500, seed=5
+    )
+    m_fleet, h_fleet = mean_ci95(flown)
+    m_eval, h_eval = mean_ci95(res.capture_time)
+    assert abs(m_fleet - m_eval) <= h_fleet + h_eval, (m_fleet, h_fleet, m_eval, h_eval)

@@ -153,6 +153,7 @@ class Server:
                 "graph_id": self.graph.graph_id,
                 "robots": snap.robots,
                 "variant": snap.variant,
+                "algorithm": snap.meta.get("algorithm", "cepg"),
                 "beta": snap.meta.get("beta"),
                 "sensor": snap.meta.get("sensor"),
                 "weights_sha256": snap.meta["weights"]["sha256"],

@@ -4,7 +4,7 @@
 ``EnvCore`` runs B episodes of it side by side on the engine's simulator (shared/engine/sim.py)
 and keeps each robot's own belief (Eq. 1) with the belief model, exactly as a robot agent does.
 ``mures_v0.parallel_env`` (PettingZoo) runs one episode on it, ``mures_v0.torchrl_env`` (TorchRL)
-B of them; docs/SPEC.md section 9 is the contract.
+B of them; docs/SPEC.md section 11 is the contract.
 
 Per robot i (shapes for B episodes, N robots, n nodes, d = max |N[p]|):
 
@@ -123,6 +123,7 @@ class EnvCore:
         self.nbr = torch.as_tensor(g.nbr, device=self.device)  # (n, d)
         deg = torch.as_tensor(g.deg_closed, device=self.device)
         self.valid = torch.arange(self.d, device=self.device) < deg.unsqueeze(1)  # (n, d)
+        self.nbr_flat, self.valid_flat = self.nbr.reshape(-1), self.valid.reshape(-1)  # (n d,) row p*d + k
         self.offsets = torch.arange(self.N + 1, device=self.device) * self.n  # state's onehot blocks
         self.b = torch.zeros(batch, self.N, self.n, device=self.device)  # (B, N, n) beliefs
         self.done = torch.ones(batch, dtype=torch.bool, device=self.device)  # (B,) episode over (or never started)
@@ -163,10 +164,10 @@ class EnvCore:
             raise ValueError(
                 f"action indices must be in [0, {self.d}), got {action.min().item()}..{action.max().item()}"
             )
-        pos = self.sim.pos
-        k = torch.where(self.valid[pos, action], action, 0)  # masked index: stay
+        flat = self.sim.pos * self.d + action  # (B, N) entries of the (n, d) tables
+        k = torch.where(self.valid_flat[flat], flat, flat - action)  # a masked index: stay (index 0)
         moving = self.sim.alive & ~self.sim.pending
-        obs, res = self.sim.step(torch.gather(self.nbr[pos], 2, k.unsqueeze(-1)).squeeze(-1))
+        obs, res = self.sim.step(self.nbr_flat[k])
         lik = self.belief.likelihood(obs.pos, obs.z)
         b = self.belief.update(self.b, lik)  # Eq. 1
         self.b = b if bool(moving.all()) else torch.where(moving.view(-1, 1, 1), b, self.b)
@@ -176,7 +177,7 @@ class EnvCore:
         self.done = self.done | res.done
         self.capture_time = torch.where(res.done, res.capture_time, self.capture_time)
         self.captured = torch.where(res.done, ~res.censored, self.captured)
-        self._ended += torch.stack([res.done.sum(), res.capture_time[res.done].sum(), truncated.sum()]).double()
+        self._ended += torch.stack([res.done.sum(), (res.capture_time * res.done).sum(), truncated.sum()]).double()
         return reward, terminated, truncated
 
     def take_stats(self) -> tuple[int, float, int]:

@@ -1,4 +1,4 @@
-"""MuRES as a PettingZoo ParallelEnv and as a batched TorchRL environment (docs/SPEC.md section 9).
+"""MuRES as a PettingZoo ParallelEnv and as a batched TorchRL environment (docs/SPEC.md section 11).
 
     from shared.envs import mures_v0
     env = mures_v0.parallel_env(map="office", robots=4, seed=0)         # PettingZoo, one episode

@@ -52,7 +52,7 @@ class TrainConfig:
         default="cepg",
         metadata=_opt(
             "training method: CE-PG (with its variants) or a MARL baseline, whose own hyperparameters "
-            "take --hp KEY=VALUE (docs/SPEC.md section 9)",
+            "take --hp KEY=VALUE (docs/SPEC.md section 11)",
             choices=ALGORITHMS,
         ),
     )

@@ -565,7 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="a MARL baseline's hyperparameter (repeatable; docs/SPEC.md section 9 lists them)",
+        help="a MARL baseline's hyperparameter (repeatable; docs/SPEC.md section 11 lists them)",
     )
     p.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -587,7 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_fleet_sim)
 
     p = sub.add_parser("experiment", help="regenerate one of the paper's figures as data and a plot")
-    p.add_argument("name", help="fig4 .. fig13 (fig8 comes with fig7), or all")
+    p.add_argument("name", help="fig4 .. fig13 (fig8 comes with fig7), marl (the MARL baselines), or all")
     p.add_argument(
         "--quick", action="store_true", help="small runs: all experiments together in minutes (barely trained teams)"
     )

@@ -833,7 +833,8 @@ def report(root: Path, out: Path) -> Path:
             f"{d['training_episodes']:,} episodes with EM-estimated beliefs (Gamma_hat_0 = I); horizons "
             f"{d['horizons']}, discount {d['discount']}, MILP time limit {d['milp_time_limit_s']} s per solve "
             f"(HiGHS); quick={d['quick']}; {d['machine']['cpus']} CPUs, {d['machine']['date']}; the whole "
-            f"grid took {d['wall_seconds']:.0f} s.",
+            f"grid took {d['wall_seconds']:.0f} s. MARL baselines (maddpg, masac, facmac, mambpo, mappo) trained "
+            f"for {_marl_budget(d)} with EM-estimated beliefs, executed decentralised as CE-PG.",
             "",
             "The planners (fhpe, fhpe-sa, milp, d-milp) and the oracle get the true target model and see all "
             "robots' observations (centralised); pg, cepg and cepg+ robots use only their own observations "
@@ -959,7 +960,8 @@ def report(root: Path, out: Path) -> Path:
             f"## {title}",
             "",
             f"Setup: {d['episodes']} episodes per cell, seed {d['seed']}; learned teams "
-            f"trained for {d['training_episodes']:,} episodes; quick={d['quick']}; {d['machine']['date']}. "
+            f"trained for {d['training_episodes']:,} episodes (MARL baselines: {_marl_budget(d)}); "
+            f"quick={d['quick']}; {d['machine']['date']}. "
             + (
                 f"Planners: {d['planner_episodes']} episodes (fhpe-sa {d['fhpe_sa_episodes']}), MILP time limit "
                 f"{d['milp_time_limit_s']} s per solve. "
@@ -997,6 +999,14 @@ def report(root: Path, out: Path) -> Path:
     return out
 
 
+def _marl_budget(setup: dict[str, Any]) -> str:
+    """The MARL baselines' training budget as a setup states it (older results have none)."""
+    given = setup.get("marl_training_episodes")
+    if given is None:
+        return "(not recorded)"
+    return f"{given:,} episodes" if isinstance(given, int) else "each method's default budget"
+
+
 def _marl_report(root: Path, rel: str) -> list[str]:
     """The MARL baselines' section: budgets, capture times against random and CE-PG, the sweep."""
     f = root / "marl" / "marl.json"
@@ -1004,8 +1014,7 @@ def _marl_report(root: Path, rel: str) -> list[str]:
         return []
     d = json.loads(f.read_text())
     rows, lines = d["rows"], []
-    given = d["marl_training_episodes"]
-    budget = f"{given:,} episodes" if isinstance(given, int) else "at its default budget (the table's episodes)"
+    budget = _marl_budget(d)
     lines += [
         "## The MARL baselines (N = 4, OFFICE and our WARD)",
         "",

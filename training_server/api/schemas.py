@@ -156,7 +156,7 @@ class PolicyVersion(BaseModel):
     bytes: int
     parent: int | None
     run_id: str | None
-    meta: dict[str, Any] = Field(description="graph_id, robots, variant, beta, sensor, training, metrics")
+    meta: dict[str, Any] = Field(description="graph_id, robots, variant, algorithm, beta, sensor, training, metrics")
     current: bool
     artifact: str
 

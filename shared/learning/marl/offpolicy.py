@@ -7,7 +7,9 @@ begin. Each method supplies an ``Learner`` with ``update(batch)``.
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -19,6 +21,8 @@ from torchrl.data.replay_buffers import RandomSampler
 
 from shared.learning.marl.common import MarlHyper, MarlRun, agents_done
 from shared.learning.policy import TeamPolicy
+
+logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines (buffer set-up) would interleave with progress
 
 
 @dataclass
@@ -37,7 +41,12 @@ class Learner(Protocol):
 
 
 def run_offpolicy(
-    run: MarlRun, actor: torch.nn.Module, policy: TeamPolicy, learner: Learner, hyper: OffPolicyHyper, on_batch=None
+    run: MarlRun,
+    actor: torch.nn.Module,
+    policy: TeamPolicy,
+    learner: Learner,
+    hyper: OffPolicyHyper,
+    on_batch: Callable[[TensorDictBase], None] | None = None,
 ) -> None:
     """Collect, store, update, until the run's budget is spent or a stop is asked.
     ``on_batch(data)`` (optional) sees every collected batch (MAMBPO trains its model on it)."""
