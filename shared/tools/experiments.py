@@ -999,6 +999,19 @@ def report(root: Path, out: Path) -> Path:
     return out
 
 
+def _plateau(curve: list[dict[str, Any]], window: int = 10, within: float = 0.10) -> tuple[int, float] | None:
+    """(episodes, wall seconds) of the first learning-curve point whose moving average over
+    ``window`` points is within ``within`` of the last moving average; None for a short curve."""
+    if len(curve) < 2 * window:
+        return None
+    ct = np.array([p["mean_capture_time"] for p in curve])
+    smooth = np.convolve(ct, np.ones(window) / window, mode="valid")  # point k: mean of k .. k + window - 1
+    final = smooth[-1]
+    k = int(np.argmax(smooth <= final * (1 + within)))
+    p = curve[k + window - 1]
+    return int(p["episodes"]), float(p["wall_seconds"])
+
+
 def _marl_budget(setup: dict[str, Any]) -> str:
     """The MARL baselines' training budget as a setup states it (older results have none)."""
     given = setup.get("marl_training_episodes")
@@ -1024,8 +1037,9 @@ def _marl_report(root: Path, rel: str) -> list[str]:
         "episodes per second of the whole run (EM included). "
         "Decision time: per team step, one episode at a time.",
         "",
-        "| map | method | capture time | vs random | training episodes | training wall s | episodes/s | decision ms |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| map | method | capture time | vs random | training episodes | training wall s | episodes/s | "
+        "within 10% of final (episodes, s) | decision ms |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for env in d["maps"]:
         sel = [r for r in rows if r["map"] == env]
@@ -1036,11 +1050,12 @@ def _marl_report(root: Path, rel: str) -> list[str]:
                 if rnd is None or r is rnd
                 else f"{100 * (1 - r['mean_capture_time'] / rnd['mean_capture_time']):+.0f} %"
             )
+            reach = _plateau(d["learning_curves"].get(f"{env}/{r['method']}", []))
             lines.append(
                 f"| {env.upper()} | {r['method']} | {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], r['episodes'])} "
                 f"| {vs} | {r.get('train_episodes', '—') if r['method'] != 'random' else '—'} "
                 f"| {r.get('train_wall_seconds', '—')} | {r.get('train_episodes_per_second', '—')} "
-                f"| {r.get('decision_ms', '—')} |"
+                f"| {'—' if reach is None else f'{reach[0]:,}, {reach[1]:.0f}'} | {r.get('decision_ms', '—')} |"
             )
     lines += [
         "",
