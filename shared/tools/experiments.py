@@ -1051,15 +1051,18 @@ def _marl_report(root: Path, rel: str) -> list[str]:
                 else f"{100 * (1 - r['mean_capture_time'] / rnd['mean_capture_time']):+.0f} %"
             )
             reach = _plateau(d["learning_curves"].get(f"{env}/{r['method']}", []))
+            trained = f"{r['train_episodes']:,}" if "train_episodes" in r else "—"
             lines.append(
                 f"| {env.upper()} | {r['method']} | {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], r['episodes'])} "
-                f"| {vs} | {r.get('train_episodes', '—') if r['method'] != 'random' else '—'} "
+                f"| {vs} | {trained} "
                 f"| {r.get('train_wall_seconds', '—')} | {r.get('train_episodes_per_second', '—')} "
                 f"| {'—' if reach is None else f'{reach[0]:,}, {reach[1]:.0f}'} | {r.get('decision_ms', '—')} |"
             )
     lines += [
         "",
-        '"vs random": how much sooner than random the team captures (negative: later).',
+        '"vs random": how much sooner than random the team captures (negative: later). "Within 10% of final": '
+        "the first point of the learning curve (training episodes' capture time, smoothed over 10 points) within "
+        "10% of the smoothed value at the end of the run: where the curve flattens.",
         "",
         f"![marl curves]({rel}/marl/marl_curves.png)",
         "",
