@@ -9,8 +9,9 @@ simulator through the TorchRL environment (shared/envs) and saved as ordinary sn
       mappo   Yu et al. 2022             shared/learning/marl/mappo.py
 
 ``hyperparameters(name, overrides)`` gives a method's documented defaults with `--hp KEY=VALUE`
-overrides applied; ``train_marl(name, ...)`` trains and returns a ``TrainResult`` as CE-PG's
-``train`` does.
+overrides applied; ``train_marl(name, ...)`` sets up the run (``MarlRun``: environment, the team's
+actor, bookkeeping), hands it to the method's ``train(run, hyper)`` and returns its
+``TrainResult``, as CE-PG's ``train`` does.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from typing import Any
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
 from shared.learning.config import TrainConfig
-from shared.learning.marl.common import MarlHyper, Progress, apply_overrides
+from shared.learning.marl.common import MarlHyper, MarlRun, Progress, apply_overrides
 from shared.learning.train import TrainResult
 
 MARL_ALGORITHMS = ("maddpg", "masac", "facmac", "mambpo", "mappo")
@@ -57,5 +58,7 @@ def train_marl(
 ) -> TrainResult:
     """Train ``name`` with ``hyper`` (see ``hyperparameters``); ``cfg`` gives N, the seed, the
     device, the hidden width of the actors and the belief model (EM as CE-PG's, or true)."""
-    fn = getattr(_module(name), f"train_{name}")
-    return fn(graph, target, sensor, cfg, hyper, init_model=init_model, progress=progress, should_stop=should_stop)
+    module = _module(name)
+    run = MarlRun(name, graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
+    result: TrainResult = module.train(run, hyper)
+    return result

@@ -150,6 +150,16 @@ def mlp(inputs: int, outputs: int, hidden: int) -> nn.Sequential:
     )
 
 
+def clip_step(
+    opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch.nn.Parameter], max_norm: float
+) -> None:
+    """One optimiser step on ``loss`` with the gradient's norm clipped to ``max_norm``."""
+    opt.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, max_norm)
+    opt.step()
+
+
 def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
     """Polyak averaging of target networks: target <- (1 - tau) target + tau source."""
     with torch.no_grad():
@@ -168,9 +178,10 @@ def agents_done(td: TensorDictBase) -> TensorDictBase:
 
 # ---------------------------------------------------------------------- the run
 class MarlRun:
-    """One training run's environment and bookkeeping: the budget, the learning curve, progress,
-    the stop request and Algorithm 2's EM updates of the robots' belief model (as CE-PG's:
-    Gamma_hat_0 = I and a uniform b0, re-estimated from missions flown with the current actors)."""
+    """One training run's environment, the team's actor and the bookkeeping: the budget, the
+    learning curve, progress, the stop request and Algorithm 2's EM updates of the robots' belief
+    model (as CE-PG's: Gamma_hat_0 = I and a uniform b0, re-estimated from missions flown with
+    the current actors). ``policy``, ``logits`` and ``actor`` are ``make_actor``'s three views."""
 
     def __init__(
         self,
@@ -202,12 +213,13 @@ class MarlRun:
         self._window = [0, 0.0, 0]
         self.t0 = time.perf_counter()
         self.interrupted = False
+        self.policy, self.logits, self.actor = make_actor(graph, cfg.robots, cfg.hidden, self.device)
 
     @property
     def belief(self) -> Any:
         return self.env.core.belief
 
-    def after_steps(self, steps: int, policy: TeamPolicy) -> bool:
+    def after_steps(self, steps: int) -> bool:
         """Account ``steps`` team steps (B per environment step) and the episodes they ended;
         run EM when due; log. True when training should end (budget spent or stop asked)."""
         self.env_steps += steps
@@ -223,7 +235,7 @@ class MarlRun:
                     self.target,
                     self.sensor,
                     self.cfg,
-                    policy,
+                    self.policy,
                     self.belief,
                     self.episodes,
                     0,
@@ -261,7 +273,7 @@ class MarlRun:
             self.interrupted = True
         return over or stop
 
-    def result(self, policy: TeamPolicy, extra: dict[str, Any] | None = None) -> TrainResult:
+    def result(self, extra: dict[str, Any] | None = None) -> TrainResult:
         wall = time.perf_counter() - self.t0
         model = belief_model(self.graph, self.belief, self.model_kind) if self.cfg.belief == "em" else self.target
         summary = {
@@ -281,4 +293,4 @@ class MarlRun:
             "learning_curve": self.curve,
             **(extra or {}),
         }
-        return TrainResult(policy=policy, model=model, summary=summary, interrupted=self.interrupted)
+        return TrainResult(policy=self.policy, model=model, summary=summary, interrupted=self.interrupted)

@@ -16,8 +16,6 @@ instead of a shared one with an agent id, no off-policy TD(lambda).
 
 from __future__ import annotations
 
-import copy
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -25,13 +23,10 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.modules import MultiAgentMLP, QMixer
 
-from shared.core.graph import Graph
-from shared.core.models import Sensor, TargetModel
-from shared.learning.config import TrainConfig
-from shared.learning.marl.common import MarlRun, Progress, TeamActor, make_actor, soft_update
+from shared.learning.marl.common import MarlRun
 from shared.learning.marl.offpolicy import (
     OffPolicyHyper,
-    clip_step,
+    TargetActorCritic,
     gumbel_actions,
     run_offpolicy,
     unpack,
@@ -72,19 +67,16 @@ class FactoredCritic(nn.Module):
         return self.mixer(q, state)
 
 
-class FacmacLearner:
-    def __init__(self, run: MarlRun, actor: TeamActor, hyper: FacmacHyper) -> None:
-        N, n, d = run.cfg.robots, run.graph.n, run.env.scenario.d
-        self.d, self.hyper = d, hyper
-        self.actor = actor
-        self.actor_target = copy.deepcopy(actor).requires_grad_(False)
-        self.critic = FactoredCritic(run.env.scenario.state_size, 2 * n, d, N, hyper.critic_hidden, hyper.mixing_embed)
-        self.critic = self.critic.to(run.device)
-        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.opt_actor = torch.optim.Adam(actor.parameters(), lr=hyper.lr)
-        self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=hyper.critic_lr)
+class FacmacLearner(TargetActorCritic):
+    hyper: FacmacHyper
 
-    def update(self, batch: TensorDictBase, step: int) -> None:
+    def __init__(self, run: MarlRun, hyper: FacmacHyper) -> None:
+        N, n, d = run.cfg.robots, run.graph.n, run.env.scenario.d
+        critic = FactoredCritic(run.env.scenario.state_size, 2 * n, d, N, hyper.critic_hidden, hyper.mixing_embed)
+        super().__init__(run.logits.module, critic.to(run.device), hyper)
+        self.d = d
+
+    def update(self, batch: TensorDictBase) -> None:
         b, h = unpack(batch), self.hyper
         a = torch.nn.functional.one_hot(b["action"], self.d).float()
         with torch.no_grad():
@@ -92,28 +84,13 @@ class FacmacLearner:
             y = b["reward"] + h.gamma * (1 - b["terminated"]) * self.critic_target(
                 b["next_state"], b["next_obs"], a_next
             )
-        q = self.critic(b["state"], b["obs"], a)
-        clip_step(self.opt_critic, torch.nn.functional.mse_loss(q, y), list(self.critic.parameters()), h.max_grad_norm)
+        self.critic_step(self.critic(b["state"], b["obs"], a), y)
 
         logits = self.actor(b["obs"], b["mask"])
         q_pi = self.critic(b["state"], b["obs"], gumbel_actions(logits, h.gumbel_tau))  # all robots' policies at once
-        loss = -q_pi.mean() + h.logit_penalty * valid_logit_penalty(logits, b["mask"])
-        clip_step(self.opt_actor, loss, list(self.actor.parameters()), h.max_grad_norm)
-        soft_update(self.critic_target, self.critic, h.tau)
-        soft_update(self.actor_target, self.actor, h.tau)
+        self.actor_step(-q_pi.mean() + h.logit_penalty * valid_logit_penalty(logits, b["mask"]))
 
 
-def train_facmac(
-    graph: Graph,
-    target: TargetModel,
-    sensor: Sensor,
-    cfg: TrainConfig,
-    hyper: FacmacHyper,
-    init_model: TargetModel | None = None,
-    progress: Progress | None = None,
-    should_stop: Callable[[], bool] | None = None,
-) -> TrainResult:
-    run = MarlRun("facmac", graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
-    policy, logits, actor = make_actor(graph, cfg.robots, cfg.hidden, run.device)
-    run_offpolicy(run, actor, policy, FacmacLearner(run, logits.module, hyper), hyper)
-    return run.result(policy)
+def train(run: MarlRun, hyper: FacmacHyper) -> TrainResult:
+    run_offpolicy(run, FacmacLearner(run, hyper), hyper)
+    return run.result()

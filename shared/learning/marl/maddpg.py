@@ -16,21 +16,16 @@ critics learn the same target from different inputs' networks; no policy ensembl
 
 from __future__ import annotations
 
-import copy
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
 
-from shared.core.graph import Graph
-from shared.core.models import Sensor, TargetModel
-from shared.learning.config import TrainConfig
-from shared.learning.marl.common import MarlRun, Progress, TeamActor, make_actor, soft_update
+from shared.learning.marl.common import MarlRun
 from shared.learning.marl.masac import CentralQ
 from shared.learning.marl.offpolicy import (
     OffPolicyHyper,
-    clip_step,
+    TargetActorCritic,
     gumbel_actions,
     run_offpolicy,
     unpack,
@@ -48,16 +43,14 @@ class MaddpgHyper(OffPolicyHyper):
     logit_penalty: float = 1e-3  # weight of the mean squared logit
 
 
-class MaddpgLearner:
-    def __init__(self, run: MarlRun, actor: TeamActor, hyper: MaddpgHyper) -> None:
+class MaddpgLearner(TargetActorCritic):
+    hyper: MaddpgHyper
+
+    def __init__(self, run: MarlRun, hyper: MaddpgHyper) -> None:
         N, n, d = run.cfg.robots, run.graph.n, run.env.scenario.d
-        self.N, self.d, self.hyper = N, d, hyper
-        self.actor = actor
-        self.actor_target = copy.deepcopy(actor).requires_grad_(False)
-        self.critic = CentralQ(run.env.scenario.state_size + 2 * n + N * d, N, 1, hyper.critic_hidden).to(run.device)
-        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.opt_actor = torch.optim.Adam(actor.parameters(), lr=hyper.lr)
-        self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=hyper.critic_lr)
+        critic = CentralQ(run.env.scenario.state_size + 2 * n + N * d, N, 1, hyper.critic_hidden).to(run.device)
+        super().__init__(run.logits.module, critic, hyper)
+        self.N, self.d = N, d
         self.eye = torch.eye(N, device=run.device).view(1, N, N, 1)
 
     def joint(self, actions: torch.Tensor) -> torch.Tensor:
@@ -65,38 +58,23 @@ class MaddpgLearner:
         M = actions.shape[0]
         return actions.reshape(M, 1, self.N * self.d).expand(M, self.N, self.N * self.d)
 
-    def update(self, batch: TensorDictBase, step: int) -> None:
+    def update(self, batch: TensorDictBase) -> None:
         b, h = unpack(batch), self.hyper
         a = torch.nn.functional.one_hot(b["action"], self.d).float()  # (M, N, d)
         with torch.no_grad():
             a_next = gumbel_actions(self.actor_target(b["next_obs"], b["next_mask"]), h.gumbel_tau)
             q_next = self.critic_target(b["next_state"], b["next_obs"], self.joint(a_next))  # (M, N, 1)
             y = b["reward"].unsqueeze(1) + h.gamma * (1 - b["terminated"]).unsqueeze(1) * q_next
-        q = self.critic(b["state"], b["obs"], self.joint(a))
-        clip_step(self.opt_critic, torch.nn.functional.mse_loss(q, y), list(self.critic.parameters()), h.max_grad_norm)
+        self.critic_step(self.critic(b["state"], b["obs"], self.joint(a)), y)
 
         logits = self.actor(b["obs"], b["mask"])  # (M, N, d)
         g = gumbel_actions(logits, h.gumbel_tau)
         # robot i's critic: the buffer's joint action with robot i's own replaced by g_i
         mixed = self.eye * g.unsqueeze(1) + (1 - self.eye) * a.unsqueeze(1)  # (M, N_i, N_j, d)
         q_pi = self.critic(b["state"], b["obs"], mixed.flatten(-2))
-        loss = -q_pi.mean() + h.logit_penalty * valid_logit_penalty(logits, b["mask"])
-        clip_step(self.opt_actor, loss, list(self.actor.parameters()), h.max_grad_norm)
-        soft_update(self.critic_target, self.critic, h.tau)
-        soft_update(self.actor_target, self.actor, h.tau)
+        self.actor_step(-q_pi.mean() + h.logit_penalty * valid_logit_penalty(logits, b["mask"]))
 
 
-def train_maddpg(
-    graph: Graph,
-    target: TargetModel,
-    sensor: Sensor,
-    cfg: TrainConfig,
-    hyper: MaddpgHyper,
-    init_model: TargetModel | None = None,
-    progress: Progress | None = None,
-    should_stop: Callable[[], bool] | None = None,
-) -> TrainResult:
-    run = MarlRun("maddpg", graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
-    policy, logits, actor = make_actor(graph, cfg.robots, cfg.hidden, run.device)
-    run_offpolicy(run, actor, policy, MaddpgLearner(run, logits.module, hyper), hyper)
-    return run.result(policy)
+def train(run: MarlRun, hyper: MaddpgHyper) -> TrainResult:
+    run_offpolicy(run, MaddpgLearner(run, hyper), hyper)
+    return run.result()

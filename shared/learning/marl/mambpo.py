@@ -20,7 +20,6 @@ sampled per rollout rather than per step.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -29,10 +28,7 @@ from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 
-from shared.core.graph import Graph
-from shared.core.models import Sensor, TargetModel
-from shared.learning.config import TrainConfig
-from shared.learning.marl.common import MarlRun, Progress, make_actor, mlp
+from shared.learning.marl.common import MarlRun, mlp
 from shared.learning.marl.masac import MasacHyper, SacLearner, sac_loss
 from shared.learning.marl.offpolicy import run_offpolicy
 from shared.learning.train import TrainResult
@@ -65,8 +61,8 @@ class TargetMotionEnsemble(nn.Module):
 class WorldModel:
     """The ensemble, its training on real transitions, and branched rollouts (module docstring)."""
 
-    def __init__(self, run: MarlRun, actor: nn.Module, hyper: MambpoHyper) -> None:
-        self.run, self.actor, self.hyper = run, actor, hyper
+    def __init__(self, run: MarlRun, hyper: MambpoHyper) -> None:
+        self.run, self.actor, self.hyper = run, run.actor, hyper
         core = run.env.core
         self.core, self.n, self.N = core, core.n, core.N
         self.net = TargetMotionEnsemble(self.n, hyper.ensemble, hyper.model_hidden).to(run.device)
@@ -181,35 +177,24 @@ class MambpoLearner:
     def __init__(self, sac: SacLearner, model: WorldModel, hyper: MambpoHyper) -> None:
         self.sac, self.model, self.hyper = sac, model, hyper
 
-    def update(self, batch: TensorDictBase, step: int) -> None:
+    def update(self, batch: TensorDictBase) -> None:
         M = batch.shape[0]
         k = max(1, round(self.hyper.real_ratio * M))
         if len(self.model.buffer) > 0 and k < M:
             fake = self.model.buffer.sample(M - k)
-            keys = [key for key in fake.keys(True, True)]
+            keys = list(fake.keys(True, True))
             batch = torch.cat([batch[:k].select(*keys), fake.select(*keys)], 0)
-        self.sac.update(batch, step)
+        self.sac.update(batch)
 
 
-def train_mambpo(
-    graph: Graph,
-    target: TargetModel,
-    sensor: Sensor,
-    cfg: TrainConfig,
-    hyper: MambpoHyper,
-    init_model: TargetModel | None = None,
-    progress: Progress | None = None,
-    should_stop: Callable[[], bool] | None = None,
-) -> TrainResult:
-    run = MarlRun("mambpo", graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
-    policy, _logits, actor = make_actor(graph, cfg.robots, cfg.hidden, run.device)
-    model = WorldModel(run, actor, hyper)
-    learner = MambpoLearner(SacLearner(sac_loss(run, actor, hyper), hyper), model, hyper)
+def train(run: MarlRun, hyper: MambpoHyper) -> TrainResult:
+    model = WorldModel(run, hyper)
+    learner = MambpoLearner(SacLearner(sac_loss(run, hyper), hyper), model, hyper)
 
     def on_batch(data: TensorDictBase) -> None:
         model.fit(data)
         if run.episodes >= hyper.warmup:
             model.rollout(data)
 
-    run_offpolicy(run, actor, policy, learner, hyper, on_batch=on_batch)
-    return run.result(policy, {"model_nll": round(model.last_loss, 4)})
+    run_offpolicy(run, learner, hyper, on_batch=on_batch)
+    return run.result({"model_nll": round(model.last_loss, 4)})

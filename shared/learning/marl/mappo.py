@@ -13,9 +13,7 @@ clipping; the actor's architecture is CE-PG's (2n -> 2n -> n), so that the team 
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -23,10 +21,7 @@ from torch import nn
 from torchrl.collectors import Collector
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from shared.core.graph import Graph
-from shared.core.models import Sensor, TargetModel
-from shared.learning.config import TrainConfig
-from shared.learning.marl.common import MarlHyper, MarlRun, Progress, agents_done, central_input, make_actor, mlp
+from shared.learning.marl.common import MarlHyper, MarlRun, agents_done, central_input, clip_step, mlp
 from shared.learning.train import TrainResult
 
 
@@ -57,19 +52,8 @@ class CentralValue(nn.Module):
         return v.unsqueeze(-2).expand(*v.shape[:-1], self.N, 1)
 
 
-def train_mappo(
-    graph: Graph,
-    target: TargetModel,
-    sensor: Sensor,
-    cfg: TrainConfig,
-    hyper: MappoHyper,
-    init_model: TargetModel | None = None,
-    progress: Progress | None = None,
-    should_stop: Callable[[], bool] | None = None,
-) -> TrainResult:
-    run = MarlRun("mappo", graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
-    env, dev, N, n = run.env, run.device, cfg.robots, graph.n
-    policy, _logits, actor = make_actor(graph, N, cfg.hidden, dev)
+def train(run: MarlRun, hyper: MappoHyper) -> TrainResult:
+    env, dev, N, n, actor = run.env, run.device, run.cfg.robots, run.graph.n, run.actor
     S = env.scenario.state_size
     critic = TensorDictModule(
         CentralValue(S + 2 * n * N, N, hyper.critic_hidden).to(dev),
@@ -105,7 +89,7 @@ def train_mappo(
     )
     try:
         for data in collector:
-            data = agents_done(data.reshape(-1) if data.ndim == 1 else data)
+            data = agents_done(data)
             with torch.no_grad():
                 loss.value_estimator(
                     data, params=loss.critic_network_params, target_params=loss.target_critic_network_params
@@ -117,22 +101,11 @@ def train_mappo(
                     mb = flat[perm[a : a + hyper.minibatch]]
                     terms = loss(mb)
                     total = terms["loss_objective"] + terms["loss_critic"] + terms.get("loss_entropy", 0.0)
-                    opt.zero_grad()
-                    total.backward()
-                    nn.utils.clip_grad_norm_(loss.parameters(), hyper.max_grad_norm)
-                    opt.step()
+                    clip_step(opt, total, list(loss.parameters()), hyper.max_grad_norm)
                     run.updates += 1
             collector.update_policy_weights_()
-            if run.after_steps(data.numel(), policy):
+            if run.after_steps(data.numel()):
                 break
     finally:
         collector.shutdown()
-    return run.result(policy)
-
-
-def hyper_defaults() -> MappoHyper:
-    return MappoHyper()
-
-
-def describe() -> dict[str, Any]:
-    return {"paper": "Yu et al. 2022, MAPPO", "library": "torchrl ClipPPOLoss, GAE, Collector"}
+    return run.result()

@@ -14,7 +14,6 @@ low degree); each critic conditions on the state, not on the other robots' actio
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -24,10 +23,7 @@ from torch import nn
 from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import DiscreteSACLoss, SoftUpdate, ValueEstimators
 
-from shared.core.graph import Graph
-from shared.core.models import Sensor, TargetModel
-from shared.learning.config import TrainConfig
-from shared.learning.marl.common import MarlRun, Progress, agent_input, make_actor
+from shared.learning.marl.common import MarlRun, agent_input
 from shared.learning.marl.offpolicy import OffPolicyHyper, clip_step, mean_log_degree, run_offpolicy
 from shared.learning.train import TrainResult
 
@@ -75,7 +71,7 @@ class SacLearner:
         self.opt_alpha = torch.optim.Adam([loss.log_alpha], lr=hyper.lr)
         self.target = SoftUpdate(loss, tau=hyper.tau)
 
-    def update(self, batch: TensorDictBase, step: int) -> None:
+    def update(self, batch: TensorDictBase) -> None:
         terms = self.loss(batch)
         clip_step(self.opt_critic, terms["loss_qvalue"], self.critic_params, self.hyper.max_grad_norm)
         clip_step(self.opt_actor, terms["loss_actor"], self.actor_params, self.hyper.max_grad_norm)
@@ -83,7 +79,7 @@ class SacLearner:
         self.target.step()
 
 
-def sac_loss(run: MarlRun, actor: nn.Module, hyper: MasacHyper) -> DiscreteSACLoss:
+def sac_loss(run: MarlRun, hyper: MasacHyper) -> DiscreteSACLoss:
     """TorchRL's discrete SAC loss over the team's actor and per-robot central critics."""
     env, N, n, d = run.env, run.cfg.robots, run.graph.n, run.env.scenario.d
     q = TensorDictModule(
@@ -92,7 +88,7 @@ def sac_loss(run: MarlRun, actor: nn.Module, hyper: MasacHyper) -> DiscreteSACLo
         out_keys=[("agents", "action_value")],
     )
     loss = DiscreteSACLoss(
-        actor_network=actor,
+        actor_network=run.actor,
         qvalue_network=q,
         action_space="categorical",
         num_actions=d,
@@ -113,18 +109,6 @@ def sac_loss(run: MarlRun, actor: nn.Module, hyper: MasacHyper) -> DiscreteSACLo
     return loss
 
 
-def train_masac(
-    graph: Graph,
-    target: TargetModel,
-    sensor: Sensor,
-    cfg: TrainConfig,
-    hyper: MasacHyper,
-    init_model: TargetModel | None = None,
-    progress: Progress | None = None,
-    should_stop: Callable[[], bool] | None = None,
-) -> TrainResult:
-    run = MarlRun("masac", graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
-    policy, _logits, actor = make_actor(graph, cfg.robots, cfg.hidden, run.device)
-    learner = SacLearner(sac_loss(run, actor, hyper), hyper)
-    run_offpolicy(run, actor, policy, learner, hyper)
-    return run.result(policy)
+def train(run: MarlRun, hyper: MasacHyper) -> TrainResult:
+    run_offpolicy(run, SacLearner(sac_loss(run, hyper), hyper), hyper)
+    return run.result()

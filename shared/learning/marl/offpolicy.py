@@ -2,11 +2,12 @@
 fills a TorchRL replay buffer with transitions of ``envs`` episodes run side by side, and after
 every ``collect`` environment steps the method takes ``updates`` gradient steps on minibatches
 sampled from it. The first ``warmup`` episodes are flown by the untrained actors before updates
-begin. Each method supplies an ``Learner`` with ``update(batch)``.
+begin. Each method supplies a ``Learner`` with ``update(batch)``.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from collections.abc import Callable
@@ -19,8 +20,7 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 
-from shared.learning.marl.common import MarlHyper, MarlRun, agents_done
-from shared.learning.policy import TeamPolicy
+from shared.learning.marl.common import MarlHyper, MarlRun, agents_done, clip_step, soft_update
 
 logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines (buffer set-up) would interleave with progress
 
@@ -37,13 +37,34 @@ class OffPolicyHyper(MarlHyper):
 
 
 class Learner(Protocol):
-    def update(self, batch: TensorDictBase, step: int) -> None: ...
+    def update(self, batch: TensorDictBase) -> None: ...
+
+
+class TargetActorCritic:
+    """The team's actor and a critic, each with a Polyak-averaged target copy and an Adam
+    optimiser (MADDPG and FACMAC): ``critic_step`` then ``actor_step`` per minibatch."""
+
+    def __init__(self, actor: torch.nn.Module, critic: torch.nn.Module, hyper: OffPolicyHyper) -> None:
+        self.actor, self.critic, self.hyper = actor, critic, hyper
+        self.actor_target = copy.deepcopy(actor).requires_grad_(False)
+        self.critic_target = copy.deepcopy(critic).requires_grad_(False)
+        self.opt_actor = torch.optim.Adam(actor.parameters(), lr=hyper.lr)
+        self.opt_critic = torch.optim.Adam(critic.parameters(), lr=hyper.critic_lr)
+
+    def critic_step(self, q: torch.Tensor, target: torch.Tensor) -> None:
+        """TD regression of ``q`` on ``target`` (computed without gradient)."""
+        loss = torch.nn.functional.mse_loss(q, target)
+        clip_step(self.opt_critic, loss, list(self.critic.parameters()), self.hyper.max_grad_norm)
+
+    def actor_step(self, loss: torch.Tensor) -> None:
+        """The actors' step on ``loss``, then both target networks follow."""
+        clip_step(self.opt_actor, loss, list(self.actor.parameters()), self.hyper.max_grad_norm)
+        soft_update(self.critic_target, self.critic, self.hyper.tau)
+        soft_update(self.actor_target, self.actor, self.hyper.tau)
 
 
 def run_offpolicy(
     run: MarlRun,
-    actor: torch.nn.Module,
-    policy: TeamPolicy,
     learner: Learner,
     hyper: OffPolicyHyper,
     on_batch: Callable[[TensorDictBase], None] | None = None,
@@ -57,12 +78,11 @@ def run_offpolicy(
     )
     collector = Collector(
         run.env,
-        actor,
+        run.actor,
         frames_per_batch=hyper.envs * hyper.collect,
         total_frames=-1,
         auto_register_policy_transforms=False,
     )
-    step = 0
     try:
         for data in collector:
             data = agents_done(data).reshape(-1)
@@ -71,23 +91,13 @@ def run_offpolicy(
                 on_batch(data)
             if run.episodes >= hyper.warmup:
                 for _ in range(hyper.updates):
-                    learner.update(buffer.sample(), step)
-                    step += 1
+                    learner.update(buffer.sample())
                     run.updates += 1
                 collector.update_policy_weights_()
-            if run.after_steps(data.numel(), policy):
+            if run.after_steps(data.numel()):
                 break
     finally:
         collector.shutdown()
-
-
-def clip_step(
-    opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch.nn.Parameter], max_norm: float
-) -> None:
-    opt.zero_grad()
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(params, max_norm)
-    opt.step()
 
 
 def mean_log_degree(valid: torch.Tensor) -> float:
