@@ -164,10 +164,8 @@ class EnvCore:
             raise ValueError(
                 f"action indices must be in [0, {self.d}), got {action.min().item()}..{action.max().item()}"
             )
-        flat = self.sim.pos * self.d + action  # (B, N) entries of the (n, d) tables
-        k = torch.where(self.valid_flat[flat], flat, flat - action)  # a masked index: stay (index 0)
         moving = self.sim.alive & ~self.sim.pending
-        obs, res = self.sim.step(self.nbr_flat[k])
+        obs, res = self.sim.step(self.destinations(self.sim.pos, action))
         lik = self.belief.likelihood(obs.pos, obs.z)
         b = self.belief.update(self.b, lik)  # Eq. 1
         self.b = b if bool(moving.all()) else torch.where(moving.view(-1, 1, 1), b, self.b)
@@ -180,6 +178,12 @@ class EnvCore:
         self._ended += torch.stack([res.done.sum(), (res.capture_time * res.done).sum(), truncated.sum()]).double()
         return reward, terminated, truncated
 
+    def destinations(self, pos: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The nodes that action indices lead to: pos, action (...) -> node rows (...); a masked
+        index means staying (index 0, p itself)."""
+        flat = pos * self.d + action  # entries of the (n, d) tables
+        return self.nbr_flat[torch.where(self.valid_flat[flat], flat, flat - action)]
+
     def take_stats(self) -> tuple[int, float, int]:
         """(episodes ended, their summed capture times, how many were censored) since the last call."""
         e, ct, c = (float(x) for x in self._ended)
@@ -189,7 +193,12 @@ class EnvCore:
     # ------------------------------------------------------------------ views
     def observation(self, rows: torch.Tensor | None = None) -> torch.Tensor:
         """(B, N, 2n): onehot(p^i) and b^i; only the episode slots ``rows`` (k,) when given."""
-        pos, b = (self.sim.pos, self.b) if rows is None else (self.sim.pos[rows], self.b[rows])
+        if rows is None:
+            return self.encode_observation(self.sim.pos, self.b)
+        return self.encode_observation(self.sim.pos[rows], self.b[rows])
+
+    def encode_observation(self, pos: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Positions (M, N) and beliefs (M, N, n) as observations (M, N, 2n)."""
         obs = torch.zeros((*b.shape[:-1], 2 * self.n), dtype=b.dtype, device=self.device)
         obs[..., self.n :] = b
         return obs.scatter_(-1, pos.unsqueeze(-1), 1.0)
@@ -201,10 +210,13 @@ class EnvCore:
     def state(self, rows: torch.Tensor | None = None) -> torch.Tensor:
         """(B, S) the global state for centralised critics (module docstring)."""
         sim = self.sim
-        pos, target, t = (
-            (sim.pos, sim.target, sim.t) if rows is None else (sim.pos[rows], sim.target[rows], sim.t[rows])
-        )
-        where = torch.cat([pos, target.unsqueeze(1)], dim=1) + self.offsets  # (B, N + 1) columns of the ones
+        if rows is None:
+            return self.encode_state(sim.pos, sim.target, sim.t)
+        return self.encode_state(sim.pos[rows], sim.target[rows], sim.t[rows])
+
+    def encode_state(self, pos: torch.Tensor, target: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """Positions (M, N), target rows (M,) and times (M,) as global states (M, S)."""
+        where = torch.cat([pos, target.unsqueeze(1)], dim=1) + self.offsets  # (M, N + 1) columns of the ones
         out = torch.zeros(len(where), self.scenario.state_size, device=self.device)
         out[:, -1] = t.to(torch.float32) / self.scenario.t_max
         return out.scatter_(1, where, 1.0)

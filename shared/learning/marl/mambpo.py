@@ -114,7 +114,7 @@ class WorldModel:
             b = obs[..., n:]
             e = self._target(state)
             t = torch.round(state[:, -1] * t_max)
-            pos_next = torch.gather(core.nbr[pos], 2, a.unsqueeze(-1)).squeeze(-1)
+            pos_next = core.destinations(pos, a)
             logits = self.net(torch.nn.functional.one_hot(e, n).float())  # (K, M, n)
             probs = torch.softmax(logits[member, torch.arange(len(e), device=e.device)], -1)
             e_next = torch.multinomial(probs, 1, generator=self.gen).squeeze(1)
@@ -126,13 +126,8 @@ class WorldModel:
             t_next = t + 1
             truncated = ~captured & (t_next >= t_max)
             b_next = belief.update(b, belief.likelihood(pos_next, z))  # Eq. 1
-            obs_next = torch.zeros_like(obs)
-            obs_next[..., n:] = b_next
-            obs_next.scatter_(-1, pos_next.unsqueeze(-1), 1.0)
-            where = torch.cat([pos_next, e_next.unsqueeze(1)], 1) + core.offsets
-            state_next = torch.zeros_like(state)
-            state_next[:, -1] = t_next / t_max
-            state_next.scatter_(1, where, 1.0)
+            obs_next = core.encode_observation(pos_next, b_next)
+            state_next = core.encode_state(pos_next, e_next, t_next)
             M = len(e)
             term = captured.unsqueeze(1)
             done = (captured | truncated).unsqueeze(1)
