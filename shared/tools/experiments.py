@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -135,6 +135,30 @@ def sensor_for(variant: str, eta_fn: float = 0.0, eta_fp: float = 0.0) -> Any:
     return Sensor(eta_fn=eta_fn, eta_fp=eta_fp, detection="neighbourhood" if variant == "cepg+" else "node")
 
 
+class _EmSchedule(TypedDict):
+    em_first: int
+    em_missions: int
+    em_max_iter: int
+
+
+def _em_schedule(episodes: int) -> _EmSchedule:
+    """The EM settings of a cached team of ``episodes`` training episodes: small runs get fewer EM
+    missions and iterations (EM is most of a small run)."""
+    return {
+        "em_first": min(8192, episodes // 2),
+        "em_missions": min(512, max(32, episodes // 64)),
+        "em_max_iter": 300 if episodes >= 100_000 else 100,
+    }
+
+
+def _cached(path: Path, config: dict[str, Any]) -> bool:
+    """A snapshot at ``path`` trained with exactly ``config`` (code defaults included) exists."""
+    meta = path / "policy.json"
+    return meta.exists() and json.loads(meta.read_text(encoding="utf-8")).get("training") == json.loads(
+        json.dumps(config)
+    )
+
+
 def _snapshot(
     root: Path,
     env: str,
@@ -165,14 +189,11 @@ def _snapshot(
         beta=[beta],
         seed=seed,
         variant=variant,
-        em_first=min(8192, episodes // 2),
-        em_missions=min(512, max(32, episodes // 64)),
-        em_max_iter=300 if episodes >= 100_000 else 100,
-    )  # small runs: fewer EM missions and iterations (EM is most of a small run)
+        **_em_schedule(episodes),
+    )
     config = {**cfg.to_dict(), "map": g.name}
-    meta = path / "policy.json"
-    if meta.exists() and json.loads(meta.read_text(encoding="utf-8")).get("training") == json.loads(json.dumps(config)):
-        return path  # cached, and trained with exactly this configuration (code defaults included)
+    if _cached(path, config):
+        return path
     sensor = sensor_for(variant, eta_fn, eta_fp)
     noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
     _say(f"  training {'PG' if beta == 1 else variant.upper()} {env} N={robots}{noise}, {episodes:,} episodes")
@@ -211,9 +232,7 @@ def _marl_snapshot(
         robots=robots,
         algorithm=algorithm,
         seed=seed,
-        em_first=min(8192, hyper.episodes // 2),
-        em_missions=min(512, max(32, hyper.episodes // 64)),
-        em_max_iter=300 if hyper.episodes >= 100_000 else 100,
+        **_em_schedule(hyper.episodes),
     )
     config = {
         **cfg.to_dict(),
@@ -223,8 +242,7 @@ def _marl_snapshot(
         "hyperparameters": hyper.to_dict(),
         "map": g.name,
     }
-    meta = path / "policy.json"
-    if meta.exists() and json.loads(meta.read_text(encoding="utf-8")).get("training") == json.loads(json.dumps(config)):
+    if _cached(path, config):
         return path
     sensor = sensor_for("cepg", eta_fn, eta_fp)
     noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
