@@ -13,17 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from fleet_checks import replay, snapshot_dir
 from prometheus_client.parser import text_string_to_metric_families
 
-from robot_agent.agent import mission_seed
 from shared.core.files import read_token
 from shared.core.graph import builtin_graph
 from shared.core.http import ApiClient, ApiError
 from shared.core.models import Sensor, uniform_walk
 from shared.core.records import make_record
-from shared.core.snapshot import PolicyAgent, read_snapshot
 from shared.core.wire import episode_key, zenoh_config
-from shared.engine.evaluate import evaluate, mean_ci95
+from shared.engine.evaluate import evaluate, mean_ci95, means_differ
 from shared.learning.snapshot import PolicySearcher, load_snapshot
 from shared.tools.fleetsim import agent_rss_mb, launch, start_server, wait_until
 
@@ -42,12 +41,8 @@ def fleet(tmp_path_factory):
     f.close()
 
 
-def _snapshot_dir(fleet, version):
-    return fleet.workdir / "server" / "policies" / f"v{version}" / "snapshot"
-
-
 def _snapshot(fleet, version):
-    return load_snapshot(_snapshot_dir(fleet, version), fleet.graph)
+    return load_snapshot(snapshot_dir(fleet, version), fleet.graph)
 
 
 def _fly_many(fleet, seeds):
@@ -59,23 +54,6 @@ def _fly_many(fleet, seeds):
     return np.array(out, dtype=float)
 
 
-def _replay(fleet, robot, mission):
-    """Re-decide a robot's mission from its own record only: its nodes and z's, the mission seed
-    and its index; the policy of the record's version must choose exactly the recorded moves."""
-    rec = fleet.api.get(f"/api/v1/episodes/{robot}/{mission['id']}")
-    snap = read_snapshot(_snapshot_dir(fleet, rec["policy_version"]), fleet.graph)  # what the agent reads
-    g = fleet.graph
-    index = mission["robots"].index(robot)
-    agent = PolicyAgent(snap, g, index, seed=mission_seed(mission["params"]["seed"], index))
-    steps = rec["steps"]
-    for k, st in enumerate(steps):
-        p = g.index[st["node"]]
-        agent.reset(p, st["z"]) if k == 0 else agent.observe(p, st["z"])
-        if k + 1 < len(steps):
-            assert g.labels[agent.act(p)] == steps[k + 1]["node"], f"{robot} step {k} of {mission['id']}"
-    return rec
-
-
 def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
     """300 missions of the initial policy through the whole chain vs `mures evaluate` of the same
     policy: the capture times agree within their 95% CIs; every record is stored once; each robot's
@@ -84,14 +62,13 @@ def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
     stats = fleet.api.get("/api/v1/episodes/stats")
     assert stats["stored"] == 900 and stats["missions"] == 300 and stats["by_policy_version"] == {"1": 900}
     assert stats["rejected"] == {}
-    m_fleet, h_fleet = mean_ci95(ct)
     g = fleet.graph
     snap = _snapshot(fleet, 1)
     res = evaluate(
         g, uniform_walk(g), Sensor(), 3, lambda s: PolicySearcher(snap, g, Sensor(), 3, seed=s), episodes=1500, seed=5
-    ).summary()
-    m_eval, h_eval = res["mean_capture_time"], res["ci95_halfwidth"]
-    assert abs(m_fleet - m_eval) <= h_fleet + h_eval, (m_fleet, h_fleet, m_eval, h_eval)
+    )
+    differ, z = means_differ(ct, res.capture_time)
+    assert not differ, (mean_ci95(ct), mean_ci95(res.capture_time), z)
     # the world and the agents are deterministic for a mission seed and a policy version
     again = fleet.fly(ROBOTS, seed=0)
     first = fleet.api.get("/api/v1/episodes?limit=3")["items"][0]["mission_id"]
@@ -102,7 +79,7 @@ def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
     items = fleet.api.get("/api/v1/episodes?limit=3")["items"]
     mission = fleet.api.get(f"/api/v1/missions/{items[0]['mission_id']}")
     for robot in ROBOTS:
-        _replay(fleet, robot, mission)
+        replay(fleet, robot, mission)
     # the agents have pulled a policy and flown 301 missions: torch was never loaded, and they stay small
     for robot, proc in fleet.agents.items():
         maps = Path(f"/proc/{proc.pid}/maps").read_text()
@@ -152,8 +129,8 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
     fleet.world.step_delay = 0.0
     m2 = fleet.fly(ROBOTS, seed=8)
     for robot in ROBOTS:
-        assert _replay(fleet, robot, fleet.api.get(f"/api/v1/missions/{m1['id']}"))["policy_version"] == 2
-        assert _replay(fleet, robot, m2)["policy_version"] == 1
+        assert replay(fleet, robot, fleet.api.get(f"/api/v1/missions/{m1['id']}"))["policy_version"] == 2
+        assert replay(fleet, robot, m2)["policy_version"] == 1
     fleet.api.post("/api/v1/policies/current", {"version": 2})
 
 

@@ -3,11 +3,12 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from shared.core.graph import builtin_graph, graph_from_dict
 from shared.core.models import Sensor, from_matrix, uniform_walk
-from shared.engine.evaluate import evaluate
+from shared.engine.evaluate import evaluate, means_differ
 from shared.engine.searchers import RandomSearcher
 from shared.engine.sim import SearchSim
 
@@ -47,8 +48,20 @@ def test_matches_an_independent_reference_implementation():
     res = evaluate(g, model, sensor, 2, lambda s: RandomSearcher(g, seed=s), episodes=3000, seed=5)
     ct, fa = res.capture_time.astype(float), res.false_alarms.astype(float)
     for a, b in ((ct, ref_ct), (fa, ref_fa)):
-        se = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
-        assert abs(a.mean() - b.mean()) < 4 * se, (a.mean(), b.mean(), se)
+        differ, z = means_differ(a, b, z=4.0)
+        assert not differ, (a.mean(), b.mean(), z)
+
+
+def test_means_differ_is_welchs_two_sample_test():
+    rng = np.random.default_rng(3)
+    a, b = rng.exponential(10.0, 60), rng.exponential(10.0, 1500)
+    differ, z = means_differ(a, b)
+    se = math.sqrt(a.var(ddof=1) / 60 + b.var(ddof=1) / 1500)
+    assert not differ and np.isclose(z, (a.mean() - b.mean()) / se)
+    assert means_differ(a + 8.0, b)[0] and means_differ(a, b, z=abs(z) / 2)[0]
+    assert means_differ([3, 3], [3, 3]) == (False, 0.0) and means_differ([4, 4], [3, 3])[0]
+    with pytest.raises(ValueError, match="at least 2"):
+        means_differ([1.0], b)
 
 
 class Scripted:

@@ -42,6 +42,23 @@ def mean_ci95(x: Any) -> tuple[float, float]:
     return float(a.mean()), half
 
 
+Z999 = 3.2905267314918945  # two-sided 0.1 %
+
+
+def means_differ(a: Any, b: Any, z: float = Z999) -> tuple[bool, float]:
+    """Welch's two-sample z-test of equal means: (differ, z-score). The default level is 0.1 %
+    two-sided, so that a check run on every CI build fails by chance once in 1000 runs; asking
+    that the means lie within the sum of their 95 % half-widths fails by chance between once in
+    20 and once in 180 runs, depending on the two samples' sizes."""
+    x, y = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if len(x) < 2 or len(y) < 2:
+        raise ValueError("means_differ needs at least 2 values in each sample")
+    se = math.sqrt(x.var(ddof=1) / len(x) + y.var(ddof=1) / len(y))
+    d = float(x.mean() - y.mean())
+    score = d / se if se > 0 else (0.0 if d == 0 else math.copysign(math.inf, d))
+    return abs(score) > z, score
+
+
 @dataclass
 class EvalResult:
     capture_time: np.ndarray  # (B,) int
