@@ -1,7 +1,7 @@
 """Step rate of the TorchRL environment against the raw simulator it wraps (issue: the TorchRL
 environment must step at least half as fast as the raw simulator).
 
-Run: python benchmarks/bench_envs.py [--batch B ...] [--seconds S] [--threads T]
+Run: python benchmarks/bench_envs.py [--batch B ...] [--seconds S] [--rounds R] [--threads T]
 
 Three loops with uniformly random actions on OFFICE, N = 4, finished episodes restarted:
   sim          the engine's SearchSim alone (auto-reset), no beliefs
@@ -9,10 +9,13 @@ Three loops with uniformly random actions on OFFICE, N = 4, finished episodes re
                observation needs, done with the engine's batched belief algebra
   torchrl      mures_v0.torchrl_env: a random valid index per robot, then step_and_maybe_reset (what TorchRL's
                rollouts and collectors call), observations, masks and the global state built
-Prints team steps per second for each and the ratios torchrl / sim and torchrl / sim+belief.
+The three loops take turns for --rounds rounds of --seconds each (a shared machine's load then
+falls on all three alike); prints the median team steps per second of each and the median of the
+per-round ratios torchrl / sim and torchrl / sim+belief.
 """
 
 import argparse
+import statistics
 import time
 
 import torch
@@ -35,7 +38,7 @@ def _rate(step, batch: int, seconds: float) -> float:
     return n * batch / (time.perf_counter() - t0)
 
 
-def run(batch: int, seconds: float) -> dict[str, float]:
+def run(batch: int, seconds: float, rounds: int) -> dict[str, float]:
     g = builtin_graph("office")
     model, sensor = uniform_walk(g), Sensor()
     sim = SearchSim(g, model, sensor, n_robots=4, batch=batch, seed=0)
@@ -62,28 +65,32 @@ def run(batch: int, seconds: float) -> dict[str, float]:
         td["agents", "action"] = (torch.rand(deg.shape, generator=gen) * deg).long()
         _, tds["td"] = env.step_and_maybe_reset(td)
 
+    loops = {"sim": sim_step, "sim+belief": belief_step, "torchrl": env_step}
+    per_round: dict[str, list[float]] = {k: [] for k in (*loops, "torchrl/sim", "torchrl/(sim+belief)")}
     with torch.no_grad():
-        rates = {
-            "sim": _rate(sim_step, batch, seconds),
-            "sim+belief": _rate(belief_step, batch, seconds),
-            "torchrl": _rate(env_step, batch, seconds),
-        }
-    return rates
+        for _ in range(rounds):
+            r = {name: _rate(step, batch, seconds) for name, step in loops.items()}
+            r["torchrl/sim"] = r["torchrl"] / r["sim"]
+            r["torchrl/(sim+belief)"] = r["torchrl"] / r["sim+belief"]
+            for k, v in r.items():
+                per_round[k].append(v)
+    return {k: statistics.median(v) for k, v in per_round.items()}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--batch", type=int, nargs="+", default=[256, 4096])
-    ap.add_argument("--seconds", type=float, default=3.0)
+    ap.add_argument("--seconds", type=float, default=2.0)
+    ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     for b in args.batch:
-        r = run(b, args.seconds)
+        r = run(b, args.seconds, args.rounds)
         print(
-            f"OFFICE N=4 B={b:<5} threads={args.threads}  sim {r['sim']:>10,.0f}  sim+belief {r['sim+belief']:>10,.0f}  "
-            f"torchrl {r['torchrl']:>10,.0f} team-steps/s  torchrl/sim {r['torchrl'] / r['sim']:.2f}  "
-            f"torchrl/(sim+belief) {r['torchrl'] / r['sim+belief']:.2f}"
+            f"OFFICE N=4 B={b:<5} threads={args.threads} median of {args.rounds}  sim {r['sim']:>10,.0f}  sim+belief {r['sim+belief']:>10,.0f}  "
+            f"torchrl {r['torchrl']:>10,.0f} team-steps/s  torchrl/sim {r['torchrl/sim']:.2f}  "
+            f"torchrl/(sim+belief) {r['torchrl/(sim+belief)']:.2f}"
         )
 
 

@@ -37,6 +37,36 @@ def test_torchrl_env_passes_check_env_specs():
     assert bool(td["next", "done"].any()), "60 steps of 8 random episodes should end some"
 
 
+def test_torchrl_envs_own_maybe_reset_equals_torchrls_generic_one():
+    """``MuresTorchEnv.maybe_reset`` (the fast path step_and_maybe_reset and the collectors take)
+    gives, entry by entry, what EnvBase's reset-and-merge gives: full and partial resets, and the
+    transitions in "next" keep their final observations."""
+    from torchrl.envs import EnvBase
+
+    for B in (1, 7):
+        envs = [mures_v0.torchrl_env(map="office", robots=3, batch_size=[B], seed=3) for _ in range(2)]
+        tds = [e.reset() for e in envs]
+        gens = [torch.Generator().manual_seed(1) for _ in range(2)]
+        resets = 0
+        for step in range(150):
+            out = []
+            for k, (env, td) in enumerate(zip(envs, tds, strict=True)):
+                deg = td["agents", "action_mask"].sum(-1)
+                td["agents", "action"] = (torch.rand(deg.shape, generator=gens[k]) * deg).long()
+                data = env.step(td)
+                final = data["next"].clone()
+                nxt = env._step_mdp(data)
+                nxt = env.maybe_reset(nxt) if k == 0 else EnvBase.maybe_reset(env, nxt)
+                assert (data["next"] == final).all(), "the reset changed the step's data"
+                out.append((data, nxt))
+            (d0, n0), (d1, n1) = out
+            resets += int(d0["next", "done"].sum())
+            assert set(n0.keys(True, True)) == set(n1.keys(True, True))
+            assert (d0 == d1).all() and (n0 == n1).all(), f"B={B} step {step}"
+            tds = [n0, n1]
+        assert resets > B, "the episodes should have ended and restarted"
+
+
 def _pz_episode(env, seed, pick):
     """The last step's infos of one episode with actions ``pick(agent, observation)``."""
     obs, _ = env.reset(seed=seed)

@@ -126,11 +126,11 @@ class EnvCore:
         self.nbr_flat, self.valid_flat = self.nbr.reshape(-1), self.valid.reshape(-1)  # (n d,) row p*d + k
         self.offsets = torch.arange(self.N + 1, device=self.device) * self.n  # state's onehot blocks
         self.b = torch.zeros(batch, self.N, self.n, device=self.device)  # (B, N, n) beliefs
-        self.done = torch.ones(batch, dtype=torch.bool, device=self.device)  # (B,) episode over (or never started)
         self.capture_time = torch.zeros(batch, dtype=torch.long, device=self.device)
         self.captured = torch.zeros(batch, dtype=torch.bool, device=self.device)
         self.last_reset = torch.arange(batch, device=self.device)  # (k,) the slots the last reset started
-        self._ended = torch.zeros(3, dtype=torch.float64, device=self.device)  # episodes, sum t_cap, censored
+        # per slot since the last take_stats: episodes ended, their summed capture times, censored
+        self._ended = torch.zeros(3, batch, dtype=torch.long, device=self.device)
 
     def seed(self, seed: int) -> None:
         self.sim.gen.manual_seed(int(seed))
@@ -148,9 +148,8 @@ class EnvCore:
         rows = self.last_reset = mask.nonzero().squeeze(1)
         lik = self.belief.likelihood(self.sim.pos[rows], self.sim.z[rows])
         self.b[rows] = self.belief.initial(lik)
-        self.done = self.done & ~mask
-        self.capture_time = torch.where(mask, 0, self.capture_time)
-        self.captured = self.captured & ~mask
+        self.capture_time.masked_fill_(mask, 0)
+        self.captured.masked_fill_(mask, False)
 
     def step(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Move every robot of the running episodes: action (B, N) indices into N[p].
@@ -172,10 +171,12 @@ class EnvCore:
         reward = -moving.to(torch.float32)
         terminated = res.done & ~res.censored
         truncated = res.done & res.censored
-        self.done = self.done | res.done
         self.capture_time = torch.where(res.done, res.capture_time, self.capture_time)
-        self.captured = torch.where(res.done, ~res.censored, self.captured)
-        self._ended += torch.stack([res.done.sum(), (res.capture_time * res.done).sum(), truncated.sum()]).double()
+        self.captured |= terminated  # False from the reset until the episode ends
+        ended, ct_sum, censored = self._ended
+        ended += res.done
+        ct_sum += res.capture_time * res.done
+        censored += truncated
         return reward, terminated, truncated
 
     def destinations(self, pos: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -186,9 +187,9 @@ class EnvCore:
 
     def take_stats(self) -> tuple[int, float, int]:
         """(episodes ended, their summed capture times, how many were censored) since the last call."""
-        e, ct, c = (float(x) for x in self._ended)
+        e, ct, c = self._ended.sum(1).tolist()
         self._ended.zero_()
-        return int(e), ct, int(c)
+        return int(e), float(ct), int(c)
 
     # ------------------------------------------------------------------ views
     def observation(self, rows: torch.Tensor | None = None) -> torch.Tensor:
@@ -199,9 +200,10 @@ class EnvCore:
 
     def encode_observation(self, pos: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Positions (M, N) and beliefs (M, N, n) as observations (M, N, 2n)."""
-        obs = torch.zeros((*b.shape[:-1], 2 * self.n), dtype=b.dtype, device=self.device)
+        obs = torch.empty((*b.shape[:-1], 2 * self.n), dtype=b.dtype, device=self.device)
         obs[..., self.n :] = b
-        return obs.scatter_(-1, pos.unsqueeze(-1), 1.0)
+        obs[..., : self.n].zero_().scatter_(-1, pos.unsqueeze(-1), 1.0)
+        return obs
 
     def action_mask(self, rows: torch.Tensor | None = None) -> torch.Tensor:
         """(B, N, d) bool."""

@@ -29,6 +29,13 @@ from shared.envs.core import EnvCore, Scenario, make_scenario
 __all__ = ["MuresParallelEnv", "MuresTorchEnv", "parallel_env", "torchrl_env"]
 
 
+_DONE_KEYS = (("done",), ("terminated",), ("truncated",))
+
+
+def _is_tensor(cls: type) -> bool:
+    return issubclass(cls, torch.Tensor)
+
+
 def _agent(i: int) -> str:
     return f"robot_{i}"
 
@@ -157,9 +164,12 @@ class MuresTorchEnv(EnvBase):
     def graph(self) -> Graph:
         return self.scenario.graph
 
-    def _observe(self, rows: torch.Tensor | None = None) -> TensorDict:
+    def _observe(
+        self, rows: torch.Tensor | None = None, reward: torch.Tensor | None = None, **done: torch.Tensor
+    ) -> TensorDict:
         """Observations of every slot, or of the slots ``rows`` only: the others are zeros, which
-        TorchRL never reads (a partial reset keeps the other slots' data, ``_update_during_reset``)."""
+        TorchRL never reads (a partial reset keeps the other slots' data, ``_update_during_reset``);
+        with the team's ``reward`` (B,) and the done flags (B,) when given."""
         core = self.core
         obs, mask, state = core.observation(rows), core.action_mask(rows), core.state(rows)
         if rows is not None:
@@ -167,10 +177,15 @@ class MuresTorchEnv(EnvBase):
             for f, x in zip(full, (obs, mask, state), strict=True):
                 f[rows] = x
             obs, mask, state = full
+        agents = {"observation": obs, "action_mask": mask}
+        if reward is not None:
+            agents["reward"] = reward.view(-1, 1, 1).expand(-1, core.N, 1).clone()
+        # the device on both levels: a nested TensorDict without one costs a .to() per entry
         return TensorDict(
             {
-                "agents": TensorDict({"observation": obs, "action_mask": mask}, batch_size=obs.shape[:2]),
+                "agents": TensorDict(agents, batch_size=obs.shape[:2], device=self.device),
                 "state": state,
+                **{k: v.view(-1, 1) for k, v in done.items()},
             },
             batch_size=self.batch_size,
             device=self.device,
@@ -181,21 +196,47 @@ class MuresTorchEnv(EnvBase):
         if tensordict is not None and "_reset" in tensordict.keys():  # noqa: SIM118 - a TensorDict's keys
             mask = tensordict.get("_reset").reshape(self.core.B)
         self.core.reset(mask)
-        out = self._observe(None if mask is None or bool(mask.all()) else self.core.last_reset)
-        for key in ("done", "terminated", "truncated"):
-            out.set(key, torch.zeros(self.core.B, 1, dtype=torch.bool, device=self.device))
-        return out
+        rows = None if mask is None or bool(mask.all()) else self.core.last_reset
+        flags = torch.zeros(3, self.core.B, dtype=torch.bool, device=self.device)
+        return self._observe(rows, done=flags[0], terminated=flags[1], truncated=flags[2])
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
-        action = tensordict.get(("agents", "action"))
-        reward, term, trunc = self.core.step(action)
-        out = self._observe()
-        N = self.core.N
-        out.set(("agents", "reward"), reward.view(-1, 1, 1).expand(-1, N, 1).clone())
-        out.set("done", (term | trunc).unsqueeze(1))
-        out.set("terminated", term.unsqueeze(1))
-        out.set("truncated", trunc.unsqueeze(1))
-        return out
+        reward, term, trunc = self.core.step(tensordict.get(("agents", "action")))
+        return self._observe(reward=reward, done=term | trunc, terminated=term, truncated=trunc)
+
+    def maybe_reset(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Restart the finished episodes of a step_mdp'd tensordict: what ``EnvBase.maybe_reset``
+        does through ``reset`` (a "_reset" mask, ``_reset``, then a masked merge of every entry),
+        done directly: the restarted slots' observation, mask, state and done flags are written
+        into new tensors (the old ones are shared with the step's "next" data, which must keep the
+        final observations). Same result, entry by entry (tests/test_envs.py), with a fraction of
+        the tensor operations. A TransformedEnv around this one takes the generic path."""
+        done = tensordict.get("done", None)
+        if done is None or not bool(done.any()):
+            return tensordict
+        core = self.core
+        core.reset(done.reshape(core.B))
+        rows = core.last_reset
+        # after the reset no slot is done; the masks are small enough to recompute for all slots
+        flags = torch.zeros(3, core.B, 1, dtype=torch.bool, device=self.device)
+        fresh: dict[tuple[str, ...], torch.Tensor] = {
+            ("agents", "observation"): tensordict.get(("agents", "observation")).index_put(
+                (rows,), core.observation(rows)
+            ),
+            ("agents", "action_mask"): core.action_mask(),
+            ("state",): tensordict.get("state").index_put((rows,), core.state(rows)),
+            **{k: f for k, f in zip(_DONE_KEYS, flags, strict=True)},
+        }
+        # reset's merge: a full reset updates the reset entries only; a partial one also pads
+        # every other entry (the last action, ...) with 0 in the restarted slots
+        partial = len(rows) < core.B
+        for key in tensordict.keys(include_nested=True, leaves_only=True, is_leaf=_is_tensor):
+            k = key if isinstance(key, tuple) else (key,)
+            if k in fresh:
+                tensordict.set(key, fresh[k])
+            elif partial:
+                tensordict.set(key, tensordict.get(key).index_fill(0, rows, 0))
+        return tensordict
 
     def _set_seed(self, seed: int | None) -> None:
         self.core.seed(0 if seed is None else seed)
