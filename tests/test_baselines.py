@@ -113,3 +113,21 @@ def test_planners_beat_random(office):
         ).summary()
         res[name] = r["mean_capture_time"]
     assert res["fhpe-sa"] < res["random"] and res["fhpe"] < res["random"], res
+
+
+def test_native_solver_output_stays_off_stdout():
+    """What native code prints during a solve (HiGHS's printf diagnostics) goes to stderr, and
+    output before and after keeps its order on stdout: `--json` stays pure JSON."""
+    import subprocess
+    import sys
+
+    code = (
+        "from shared.planners.milp import native_stdout_to_stderr, _LIBC\n"
+        "print('before', flush=False)\n"
+        "with native_stdout_to_stderr():\n"
+        "    _LIBC.printf(b'HighsMipSolverData chatter\\n')\n"
+        "print('after')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout == "before\nafter\n"
+    assert "HighsMipSolverData chatter" in out.stderr

@@ -3,12 +3,41 @@ describes the model)."""
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import os
+import sys
+from collections.abc import Iterator
+
 import numpy as np
 import scipy.sparse as sp
 
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
 from shared.planners.base import GAMMA, Planner
+
+_LIBC = ctypes.CDLL(None)
+
+
+@contextlib.contextmanager
+def native_stdout_to_stderr() -> Iterator[None]:
+    """While the block runs, what native code writes to stdout (file descriptor 1) goes to stderr.
+
+    HiGHS prints some diagnostics with printf whatever its output options say (for example
+    ``HighsMipSolverData::transformNewIntegerFeasibleSolution tmpSolver.run();`` in the middle of a
+    d-milp run), which broke `mures evaluate --json`'s promise of pure JSON on stdout. C's stdio
+    buffers are flushed before fd 1 is restored, so nothing written inside leaks out later.
+    Process-wide: another thread printing during a solve also goes to stderr."""
+    sys.stdout.flush()
+    _LIBC.fflush(None)
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        _LIBC.fflush(None)
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 class Milp(Planner):
@@ -128,13 +157,14 @@ class Milp(Planner):
                 lb[X(r, t)[v]] = 1.0
         integrality = np.zeros(nvar)
         integrality[: nx + ny] = 1
-        res = milp(
-            cost,
-            constraints=LinearConstraint(A, np.concatenate(lo), np.concatenate(hi)),
-            integrality=integrality,
-            bounds=Bounds(lb, ub),
-            options={"time_limit": self.time_limit, "disp": False},
-        )
+        with native_stdout_to_stderr():
+            res = milp(
+                cost,
+                constraints=LinearConstraint(A, np.concatenate(lo), np.concatenate(hi)),
+                integrality=integrality,
+                bounds=Bounds(lb, ub),
+                options={"time_limit": self.time_limit, "disp": False},
+            )
         if res.status == 1:
             self.timeouts += 1
         if res.x is None:  # no incumbent within the limit
