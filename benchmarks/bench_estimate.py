@@ -1,7 +1,8 @@
-"""EM acceptance run: a lazy target (stay 0.9) on our WAREHOUSE map, 3 random robots, eta_fn = 0.1,
-1000 missions; mean row total-variation distance of the estimate to the truth, and wall time.
+"""EM acceptance run: a lazy target (stay 0.9) on our WAREHOUSE map (or --map ward, 36 nodes), 3
+random robots, eta_fn = 0.1, 1000 missions; mean row total-variation distance of the estimate to the
+truth, and wall time.
 
-Run: python benchmarks/bench_estimate.py [--missions 1000] [--seed 1]
+Run: python benchmarks/bench_estimate.py [--map warehouse|ward|GRAPH.json] [--missions 1000] [--seed 1] [--threads T]
 """
 
 import argparse
@@ -9,8 +10,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
-from shared.core.graph import load_graph_file
+from shared.core.graph import builtin_graph, load_graph_file
 from shared.core.models import Sensor, lazy_walk, uniform_walk
 from shared.engine.estimate import collect_missions, em, eq8, mean_row_tv
 from shared.engine.evaluate import episode_records, evaluate
@@ -23,8 +25,15 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--missions", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--map", default="warehouse")
+    ap.add_argument("--threads", type=int, default=torch.get_num_threads())
     args = ap.parse_args()
-    g = load_graph_file(MAP)
+    torch.set_num_threads(args.threads)
+    g = (
+        load_graph_file(MAP if args.map == "warehouse" else args.map)
+        if args.map.endswith(".json") or args.map == "warehouse"
+        else builtin_graph(args.map)
+    )
     truth, sensor, N = lazy_walk(g, 0.9), Sensor(eta_fn=0.1), 3
     res = evaluate(g, truth, sensor, N, lambda s: RandomSearcher(g, seed=s), args.missions, args.seed, record=True)
     recs = list(episode_records(g, res, sensor))
@@ -34,7 +43,8 @@ def main() -> None:
     t_em = time.perf_counter() - t0
     e8 = eq8(g, collect_missions(enumerate(recs), g, capture_aware=False))
     print(
-        f"WAREHOUSE n={g.n}, lazy target stay 0.9, N=3 random robots, eta_fn=0.1, {args.missions} missions, seed {args.seed}"
+        f"{g.name} n={g.n}, lazy target stay 0.9, N=3 random robots, eta_fn=0.1, {args.missions} missions, "
+        f"seed {args.seed}, {args.threads} threads"
     )
     print(
         f"  EM     mean row TV {mean_row_tv(est.model, truth):.4f}  ({est.iterations} passes, converged={est.converged}, {t_em:.1f} s)"

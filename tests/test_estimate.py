@@ -107,3 +107,43 @@ def test_records_bound_integers_quote_little_and_store_only_the_contract(grid_da
         assert len(str(exc.value)) < 300  # the value is quoted cut short, never echoed whole
     padded = {**good, "note": huge, "steps": [{**s, "extra": 1} for s in good["steps"]]}
     assert canonical_record(parse_record(padded, g), g) == good
+
+
+def test_packed_forward_backward_matches_a_plain_one_mission_at_a_time():
+    """The EM's forward-backward (missions sorted by length, step t on the missions still
+    running) against the textbook recursion run on each mission alone, lengths 1 to T."""
+    import torch
+
+    from shared.engine.estimate import MissionData, _ForwardBackward
+
+    rng = np.random.default_rng(5)
+    n, M, T = 6, 9, 7
+    G = rng.random((n, n)) * (rng.random((n, n)) < 0.6) + np.eye(n)
+    G /= G.sum(1, keepdims=True)
+    b0 = rng.random(n)
+    b0 /= b0.sum()
+    length = np.array([1, 7, 3, 7, 2, 5, 4, 6, 3])
+    lik = rng.random((M, T, n)) * (rng.random((M, T, n)) < 0.8)
+    lik[np.arange(T)[None, :] >= length[:, None]] = 1.0
+    fb = _ForwardBackward(MissionData(lik=lik, length=length, used_records=M))
+    alpha, beta, c, xi = fb(torch.as_tensor(G), torch.as_tensor(b0))
+    order = np.argsort(-length, kind="stable")
+    ll, counts = 0.0, np.zeros((n, n))
+    for slot, m in enumerate(order):
+        Tm, Lm = length[m], lik[m]
+        a, cs = np.zeros((Tm, n)), np.zeros(Tm)
+        for t in range(Tm):
+            a[t] = (b0 if t == 0 else a[t - 1] @ G) * Lm[t]
+            cs[t] = a[t].sum()
+            a[t] /= cs[t]
+        bt = np.ones((Tm, n))
+        for t in range(Tm - 2, -1, -1):
+            bt[t] = G @ (Lm[t + 1] * bt[t + 1]) / cs[t + 1]
+            counts += np.outer(a[t], Lm[t + 1] * bt[t + 1] / cs[t + 1])
+        ll += np.log(cs).sum()
+        assert np.allclose(alpha[:Tm, slot].numpy(), a) and np.allclose(beta[:Tm, slot].numpy(), bt)
+        assert np.allclose(c[:Tm, slot].numpy(), cs) and np.all(c[Tm:, slot].numpy() == 1.0)
+    assert np.isclose(float(c.log().sum()), ll)
+    assert np.allclose(xi.numpy(), counts)
+    again = fb(torch.as_tensor(G), torch.as_tensor(b0))  # buffers reused: the same answer
+    assert np.allclose(again[3].numpy(), counts)

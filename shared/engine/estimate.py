@@ -5,7 +5,8 @@ true positions (docs/SPEC.md section 2). The hidden state is the target's node e
 emission is the product of the Lambdas of every robot of the mission (Theorem 3, Eq. 7).
 
 ``em`` (default): Baum-Welch with the sensor known. Scaled forward-backward smoothing over all
-missions at once (tensors (M, T, n): M missions padded to T steps), expected transition counts,
+missions at once (tensors (T, M, n), the M missions sorted by length so that step t works on
+those still running only), expected transition counts,
 transitions restricted to the closed neighbourhoods (the support of the initial guess, which
 Baum-Welch never leaves), rows stochastic, iterated until the log-likelihood stops improving.
 
@@ -127,31 +128,62 @@ class Estimate:
         return out
 
 
-def _forward_backward(
-    G: torch.Tensor, b0: torch.Tensor, L: torch.Tensor, valid: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Scaled forward-backward, time-major. G (n, n), b0 (n,), L (T, M, n), valid (T, M) bool.
+class _ForwardBackward:
+    """Scaled forward-backward over M missions at once, time-major and packed by length: the
+    missions sorted longest first, so that step t works on the missions [0, active[t]) that have
+    a step t instead of on every mission padded to T. Buffers are allocated once per data set
+    and reused by every pass (an EM run makes hundreds).
 
-    Returns alpha (T, M, n) (filtered, normalised), beta (T, M, n) (scaled), c (T, M) scales
-    with log P(observations) = sum_t log c_t over valid t.
+    ``__call__(G, b0)`` with G (n, n), b0 (n,) returns views of those buffers, valid until the
+    next call: alpha (T, M, n) (filtered, normalised; 0 after a mission's end), beta (T, M, n)
+    (scaled; 1 after it), c (T, M) scales (1 after it; log P(observations) = sum log c), and
+    xi (n, n) = sum over missions and t of alpha_t^T w_{t+1}, w_{t+1} = L_{t+1} beta_{t+1} / c_{t+1},
+    so that G * xi are the expected transition counts (Baum-Welch's E-step).
     """
-    T, M, _n = L.shape
-    alpha = torch.empty_like(L)
-    c = torch.empty(T, M, dtype=L.dtype)
-    a = b0.unsqueeze(0) * L[0]
-    for t in range(T):
-        if t > 0:
-            a = (alpha[t - 1] @ G) * L[t]  # Eq. 6: Lambda_c Gamma^T b, as row vectors
-        s = a.sum(1)
-        s = torch.where(s > 0, s, torch.full_like(s, 1e-300))
-        c[t] = s
-        alpha[t] = a / s.unsqueeze(1)
-    beta = torch.ones_like(L)
-    Gt = G.T.contiguous()
-    for t in range(T - 2, -1, -1):
-        w = (L[t + 1] * beta[t + 1]) / c[t + 1].unsqueeze(1)
-        beta[t] = torch.where(valid[t + 1].unsqueeze(1), w @ Gt, 1.0)
-    return alpha, beta, c
+
+    def __init__(self, data: MissionData) -> None:
+        order = np.argsort(-data.length, kind="stable")
+        self.L = torch.as_tensor(data.lik[order]).transpose(0, 1).contiguous()  # (T, M, n)
+        T, M, n = self.L.shape
+        self.active = (data.length[None, :] > np.arange(T)[:, None]).sum(1)  # (T,) non-increasing
+        self.alpha = torch.zeros_like(self.L)
+        self.beta = torch.ones_like(self.L)
+        self.c = torch.ones(T, M, dtype=self.L.dtype)
+        self.w = torch.empty(M, n, dtype=self.L.dtype)
+        self.xi = torch.empty(n, n, dtype=self.L.dtype)
+
+    def __call__(
+        self, G: torch.Tensor, b0: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        L, active, alpha, beta, c, xi = self.L, self.active, self.alpha, self.beta, self.c, self.xi
+        T = L.shape[0]
+        # every step writes into slices of the buffers, in place: at these sizes the number of
+        # operations, not their arithmetic, sets the time
+        torch.mul(b0.unsqueeze(0), L[0], out=alpha[0])
+        for t in range(T):
+            k = int(active[t])
+            if k == 0:
+                break
+            a = alpha[t, :k]
+            if t > 0:
+                torch.mm(alpha[t - 1, :k], G, out=a)  # Eq. 6: Lambda_c Gamma^T b, as row vectors
+                a.mul_(L[t, :k])
+            s = c[t, :k]
+            torch.sum(a, 1, out=s)
+            s.clamp_min_(1e-300)
+            a.div_(s.unsqueeze(1))
+        xi.zero_()
+        Gt = G.T.contiguous()
+        for t in range(T - 2, -1, -1):
+            k = int(active[t + 1])
+            if k == 0:
+                continue
+            w = self.w[:k]
+            torch.mul(L[t + 1, :k], beta[t + 1, :k], out=w)
+            w.div_(c[t + 1, :k].unsqueeze(1))
+            torch.mm(w, Gt, out=beta[t, :k])
+            xi.addmm_(alpha[t, :k].T, w)
+        return alpha, beta, c, xi
 
 
 def em(
@@ -178,9 +210,7 @@ def em(
     init = init or uniform_walk(graph)
     if len(data.length) == 0:
         raise ValueError("no usable missions in the records")
-    L = torch.as_tensor(data.lik).transpose(0, 1).contiguous()  # (T, M, n)
-    T, _M, n = L.shape
-    valid = torch.arange(T).unsqueeze(1) < torch.as_tensor(data.length).unsqueeze(0)  # (T, M)
+    forward_backward = _ForwardBackward(data)
     G = torch.as_tensor(init.dense())
     support = G > 0
     b0 = torch.as_tensor(init.b0)
@@ -190,11 +220,10 @@ def em(
         """One EM update; also returns the log-likelihood of its input."""
         nonlocal passes
         passes += 1
-        alpha, beta, c = _forward_backward(G, b0, L, valid)
-        ll = float(torch.where(valid, c.log(), torch.zeros_like(c)).sum())
+        alpha, beta, c, xi = forward_backward(G, b0)
+        ll = float(c.log().sum())
         # E-step: xi_t(u, v) = alpha_t(u) G(u, v) L_{t+1}(v) beta_{t+1}(v) / c_{t+1}, summed over t, missions
-        w = (L[1:] * beta[1:]) / c[1:].unsqueeze(2) * valid[1:].unsqueeze(2)
-        counts = G * (alpha[:-1].reshape(-1, n).T @ w.reshape(-1, n)) + pseudo_count * support
+        counts = G * xi + pseudo_count * support
         rows = counts.sum(1, keepdim=True)
         # M-step: rows stochastic on the support; a row with no expected transition keeps its value
         G_new = torch.where(rows > 0, counts / rows.clamp_min(1e-300), G)
@@ -244,15 +273,15 @@ def eq8(graph: Graph, data: MissionData, rounds: int = 1, b0: np.ndarray | None 
     renormalised (a row left empty becomes the uniform walk's row).
     """
     t0 = time.perf_counter()
-    L = torch.as_tensor(data.lik).transpose(0, 1).contiguous()  # (T, M, n)
-    T, _M, n = L.shape
-    valid = torch.arange(T).unsqueeze(1) < torch.as_tensor(data.length).unsqueeze(0)  # (T, M)
+    forward_backward = _ForwardBackward(data)
+    _T, M, n = forward_backward.L.shape
+    valid = torch.arange(M).unsqueeze(0) < torch.as_tensor(forward_backward.active).unsqueeze(1)  # (T, M)
     G = torch.eye(n, dtype=torch.float64)
     prior = torch.as_tensor(np.full(n, 1.0 / n) if b0 is None else b0)
     support = torch.as_tensor(graph.closed_adjacency)
     fallback = torch.as_tensor(uniform_walk(graph).dense())
     for _ in range(max(1, rounds)):
-        alpha, _beta, _c = _forward_backward(G, prior, L, valid)
+        alpha, _beta, _c, _xi = forward_backward(G, prior)
         pair = valid[1:]  # transitions t -> t+1 inside a mission
         B0 = alpha[:-1][pair]  # (K, n) rows b_t
         B1 = alpha[1:][pair]  # (K, n) rows b_{t+1}
