@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from shared.tools.cli import main
 from shared.tools.experiments import report
 
@@ -154,3 +156,74 @@ def test_marl_experiment_and_its_report(tmp_path, monkeypatch):
     assert meta["algorithm"] == "maddpg"
     text = report(tmp_path, tmp_path / "results.md").read_text()
     assert "## The MARL baselines" in text and "| WARD | maddpg |" in text and "| mappo | clip=0.1 | 300 |" in text
+
+
+def _rows(path):
+    """An experiment's rows without their timings (which differ from run to run)."""
+    rows = json.loads(path.read_text())["rows"]
+    return [{k: v for k, v in r.items() if k not in ("wall_seconds", "decision_ms")} for r in rows]
+
+
+@pytest.mark.slow
+def test_teams_trained_by_local_processes_and_by_a_dask_cluster_give_the_same_rows(tmp_path, monkeypatch):
+    """fig6 at a tiny budget, its six teams trained three ways: in this process, by two local
+    worker processes, and as tasks on a Dask cluster (a scheduler and two workers started here on
+    loopback): the same rows; a finished run leaves nothing to train."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from shared.tools import experiments
+    from shared.tools.experiments import Budget
+    from shared.tools.fleetsim import free_port, wait_until
+
+    tiny = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,))
+    monkeypatch.setattr(experiments, "QUICK", tiny)
+    experiments.run("fig6", tmp_path / "local", quick=True)
+    expected = _rows(tmp_path / "local" / "fig6" / "fig6.json")
+    assert len(expected) == 6 and all(r["mean_capture_time"] > 0 for r in expected)
+
+    experiments.run("fig6", tmp_path / "pool", quick=True, workers=2)
+    assert _rows(tmp_path / "pool" / "fig6" / "fig6.json") == expected
+
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    root = str(Path(__file__).resolve().parent.parent)
+    env = {**os.environ, "PYTHONPATH": root, "OMP_NUM_THREADS": "1"}
+    dask = str(Path(sys.executable).parent / "dask")  # the `dask scheduler` / `dask worker` commands
+    procs = [
+        subprocess.Popen(
+            [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+            env=env,
+            cwd=tmp_path,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
+    try:
+        for i in range(2):
+            worker = [address, "--nthreads", "1", "--no-dashboard", "--local-directory", str(tmp_path / f"w{i}")]
+            procs.append(
+                subprocess.Popen(
+                    [dask, "worker", *worker],
+                    env=env,
+                    cwd=tmp_path,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        from distributed import Client
+
+        with Client(address, timeout=60) as client:
+            wait_until(lambda: len(client.scheduler_info()["workers"]) == 2, 120, "two Dask workers")
+        experiments.run("fig6", tmp_path / "dask", quick=True, scheduler=address)
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(30)
+    assert _rows(tmp_path / "dask" / "fig6" / "fig6.json") == expected
+    assert experiments.plan("fig6", tmp_path / "dask", tiny) == []  # resumes: every team is cached
+    with pytest.raises(ValueError, match="cannot reach the Dask scheduler at tcp://"):
+        experiments.run("fig6", tmp_path / "nowhere", quick=True, scheduler=f"tcp://127.0.0.1:{free_port()}")

@@ -502,7 +502,14 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     try:
-        out = run(args.name, Path(args.results), args.quick, args.train_episodes)
+        out = run(
+            args.name,
+            Path(args.results),
+            args.quick,
+            args.train_episodes,
+            workers=args.workers,
+            scheduler=args.dask_scheduler,
+        )
     except ValueError as exc:
         raise CliError(str(exc)) from None
     print(f"{args.name}: wrote {out} in {time.perf_counter() - t0:.0f} s")
@@ -598,6 +605,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="training episodes per learned team (default: 400000, or 2000 with --quick)",
     )
     p.add_argument("--results", default="results", help="results directory (default results/)")
+    p.add_argument(
+        "--workers",
+        type=positive_int,
+        default=1,
+        metavar="K",
+        help="train the teams the experiment needs in K local processes, in parallel (default 1)",
+    )
+    p.add_argument(
+        "--dask-scheduler",
+        metavar="tcp://HOST:PORT",
+        help="train them as tasks on this Dask distributed cluster instead (the cluster extra)",
+    )
     p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("report", help="write docs/results.md from the recorded results")

@@ -31,6 +31,7 @@ from typing import Any, TypedDict
 import numpy as np
 
 from shared.core.files import atomic_write
+from shared.tools.runner import Job, directory_files, run_jobs
 
 EXPERIMENTS = ("fig4", "fig5", "fig6", "fig7", "fig8", "fig9", "fig10", "fig11", "fig12", "fig13", "marl")
 PLANNERS = ("fhpe", "fhpe-sa", "milp", "d-milp")
@@ -45,7 +46,15 @@ def machine() -> dict[str, Any]:
     }
 
 
+# While an experiment is planned (``plan``), its figure function runs without training or
+# evaluating: the teams it needs that are not cached are collected here as jobs, cells are
+# placeholders, and nothing is written.
+_PLAN: list[Job] | None = None
+
+
 def _write(out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+    if _PLAN is not None:
+        return
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / f"{name}.json", json.dumps({**data, "rows": rows}, indent=1) + "\n")
     if rows:
@@ -172,34 +181,71 @@ def _snapshot(
 ) -> Path:
     """A cached team (beta = 1: PG) trained with EM-estimated beliefs in the world of ``sensor_for``.
     A cached snapshot whose stored training configuration differs (an older default) is retrained."""
-    from shared.core.graph import builtin_graph
-    from shared.core.models import uniform_walk
-    from shared.learning.config import TrainConfig
-    from shared.learning.snapshot import save_snapshot
-    from shared.learning.train import train
-
     tag = "".join(
         f"-{k}{v}" for k, v in (("", variant if variant != "cepg" else ""), ("fn", eta_fn), ("fp", eta_fp)) if v
     )
-    path = root / "snapshots" / f"{env}-N{robots}-beta{beta}-{episodes}-s{seed}{tag}"
-    g = builtin_graph(env)
+    rel = f"snapshots/{env}-N{robots}-beta{beta}-{episodes}-s{seed}{tag}"
+    args = (rel, env, robots, beta, episodes, seed, variant, eta_fn, eta_fp)
+    if not _cached(root / rel, _cepg_config(*args[1:])[1]):
+        noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
+        label = f"training {'PG' if beta == 1 else variant.upper()} {env} N={robots}{noise}, {episodes:,} episodes"
+        _obtain(root, Job(rel, label, _train_cepg, args, weight=episodes))
+    return root / rel
+
+
+def _cepg_config(
+    env: str, robots: int, beta: float, episodes: int, seed: int, variant: str, eta_fn: float, eta_fp: float
+) -> tuple[Any, dict[str, Any]]:
+    """The TrainConfig of a cached CE-PG team and the configuration its snapshot records."""
+    from shared.core.graph import builtin_graph
+    from shared.learning.config import TrainConfig
+
     cfg = TrainConfig(
-        robots=robots,
-        episodes=episodes,
-        beta=[beta],
-        seed=seed,
-        variant=variant,
-        **_em_schedule(episodes),
+        robots=robots, episodes=episodes, beta=[beta], seed=seed, variant=variant, **_em_schedule(episodes)
     )
-    config = {**cfg.to_dict(), "map": g.name}
-    if _cached(path, config):
-        return path
+    return cfg, {**cfg.to_dict(), "map": builtin_graph(env).name}
+
+
+def _train_cepg(
+    rel: str,
+    env: str,
+    robots: int,
+    beta: float,
+    episodes: int,
+    seed: int,
+    variant: str,
+    eta_fn: float,
+    eta_fp: float,
+) -> dict[str, bytes]:
+    """A job (shared/tools/runner.py): train a CE-PG team, return its snapshot's files."""
+    import tempfile
+
+    from shared.core.graph import builtin_graph
+    from shared.core.models import uniform_walk
+    from shared.learning.snapshot import save_snapshot
+    from shared.learning.train import train
+
+    g = builtin_graph(env)
+    cfg, config = _cepg_config(env, robots, beta, episodes, seed, variant, eta_fn, eta_fp)
     sensor = sensor_for(variant, eta_fn, eta_fp)
-    noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
-    _say(f"  training {'PG' if beta == 1 else variant.upper()} {env} N={robots}{noise}, {episodes:,} episodes")
     res = train(g, uniform_walk(g), sensor, cfg)
-    save_snapshot(path, res.policy, g, res.model, sensor, variant, [beta] * robots, config, res.summary)
-    return path
+    with tempfile.TemporaryDirectory() as tmp:
+        save_snapshot(Path(tmp) / rel, res.policy, g, res.model, sensor, variant, [beta] * robots, config, res.summary)
+        return directory_files(Path(tmp) / rel, Path(tmp))
+
+
+def _obtain(root: Path, job: Job) -> None:
+    """Run a training job now, in this process, or collect it while planning."""
+    if _PLAN is not None:
+        _PLAN.append(job)
+        return
+    import torch
+
+    threads = torch.get_num_threads()
+    try:
+        run_jobs([job], root, say=_say)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _marl_snapshot(
@@ -215,42 +261,76 @@ def _marl_snapshot(
 ) -> Path:
     """A cached team of a MARL baseline (``episodes`` None: the method's default budget), with
     EM-estimated beliefs as CE-PG's, retrained when its stored configuration differs."""
+    args = (env, robots, algorithm, episodes, seed, eta_fn, eta_fp, overrides)
+    _cfg, _hyper, rel, config = _marl_config(*args)
+    if not _cached(root / rel, config):
+        noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
+        extra = f" ({', '.join(overrides)})" if overrides else ""
+        label = f"training {algorithm.upper()} {env} N={robots}{noise}{extra}, {config['episodes']:,} episodes"
+        _obtain(root, Job(rel, label, _train_marl, args, weight=config["episodes"]))
+    return root / rel
+
+
+def _marl_config(
+    env: str,
+    robots: int,
+    algorithm: str,
+    episodes: int | None,
+    seed: int,
+    eta_fn: float,
+    eta_fp: float,
+    overrides: tuple[str, ...],
+) -> tuple[Any, Any, str, dict[str, Any]]:
+    """A MARL team's TrainConfig, hyperparameters, snapshot path (relative) and recorded configuration."""
     from shared.core.graph import builtin_graph
-    from shared.core.models import uniform_walk
     from shared.learning.config import TrainConfig
-    from shared.learning.marl import hyperparameters, train_marl
-    from shared.learning.snapshot import save_snapshot
+    from shared.learning.marl import hyperparameters
 
     hyper = hyperparameters(algorithm, list(overrides), episodes=episodes)
     if hasattr(hyper, "warmup"):
         hyper.warmup = min(hyper.warmup, hyper.episodes // 4)  # small runs learn for most of their budget
     tag = "".join(f"-{k}{v}" for k, v in (("fn", eta_fn), ("fp", eta_fp)) if v)
     tag += "".join(f"-{o.replace('=', '')}" for o in overrides)
-    path = root / "snapshots" / f"{env}-N{robots}-{algorithm}-{hyper.episodes}-s{seed}{tag}"
-    g = builtin_graph(env)
-    cfg = TrainConfig(
-        robots=robots,
-        algorithm=algorithm,
-        seed=seed,
-        **_em_schedule(hyper.episodes),
-    )
+    rel = f"snapshots/{env}-N{robots}-{algorithm}-{hyper.episodes}-s{seed}{tag}"
+    cfg = TrainConfig(robots=robots, algorithm=algorithm, seed=seed, **_em_schedule(hyper.episodes))
     config = {
         **cfg.to_dict(),
         "episodes": hyper.episodes,
         "batch": hyper.envs,
         "lr": [hyper.lr],
         "hyperparameters": hyper.to_dict(),
-        "map": g.name,
+        "map": builtin_graph(env).name,
     }
-    if _cached(path, config):
-        return path
+    return cfg, hyper, rel, config
+
+
+def _train_marl(
+    env: str,
+    robots: int,
+    algorithm: str,
+    episodes: int | None,
+    seed: int,
+    eta_fn: float,
+    eta_fp: float,
+    overrides: tuple[str, ...],
+) -> dict[str, bytes]:
+    """A job (shared/tools/runner.py): train a MARL baseline, return its snapshot's files."""
+    import tempfile
+
+    from shared.core.graph import builtin_graph
+    from shared.core.models import uniform_walk
+    from shared.learning.marl import train_marl
+    from shared.learning.snapshot import save_snapshot
+
+    cfg, hyper, rel, config = _marl_config(env, robots, algorithm, episodes, seed, eta_fn, eta_fp, overrides)
+    g = builtin_graph(env)
     sensor = sensor_for("cepg", eta_fn, eta_fp)
-    noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
-    extra = f" ({', '.join(overrides)})" if overrides else ""
-    _say(f"  training {algorithm.upper()} {env} N={robots}{noise}{extra}, {hyper.episodes:,} episodes")
     res = train_marl(algorithm, g, uniform_walk(g), sensor, cfg, hyper)
-    save_snapshot(path, res.policy, g, res.model, sensor, "cepg", [], config, res.summary, algorithm=algorithm)
-    return path
+    with tempfile.TemporaryDirectory() as tmp:
+        save_snapshot(
+            Path(tmp) / rel, res.policy, g, res.model, sensor, "cepg", [], config, res.summary, algorithm=algorithm
+        )
+        return directory_files(Path(tmp) / rel, Path(tmp))
 
 
 def _learned(
@@ -259,15 +339,30 @@ def _learned(
     """seed -> searcher for a learned method (pg, cepg, cepg+, c-cepg, or a MARL baseline),
     training it if not cached."""
     from shared.core.graph import builtin_graph
-    from shared.learning.snapshot import load_snapshot
 
     g = builtin_graph(env)
     if method in MARL:
-        snap = load_snapshot(_marl_snapshot(root, env, robots, method, b.marl_train, 0, eta_fn, eta_fp), g)
+        snap = _load(_marl_snapshot(root, env, robots, method, b.marl_train, 0, eta_fn, eta_fp), g)
         return _flown(snap, g, sensor_for("cepg", eta_fn, eta_fp), robots)
     variant, beta = LEARNED[method]
-    snap = load_snapshot(_snapshot(root, env, robots, beta, b.train, 0, variant, eta_fn, eta_fp), g)
+    snap = _load(_snapshot(root, env, robots, beta, b.train, 0, variant, eta_fn, eta_fp), g)
     return _flown(snap, g, sensor_for(variant, eta_fn, eta_fp), robots)
+
+
+def _load(path: Path, g: Any) -> Any:
+    """A cached team's snapshot (None while planning: it may not be trained yet)."""
+    from shared.learning.snapshot import load_snapshot
+
+    return None if _PLAN is not None else load_snapshot(path, g)
+
+
+def _summary(path: Path) -> dict[str, Any]:
+    """A cached team's training summary (a stand-in while planning)."""
+    from shared.core.snapshot import read_meta
+
+    if _PLAN is not None:
+        return {"episodes": 0, "wall_seconds": 0.0, "episodes_per_second": 0.0, "learning_curve": []}
+    return dict(read_meta(path)["summary"])
 
 
 def _flown(snap: Any, g: Any, sensor: Any, robots: int) -> Callable[[int], Any]:
@@ -311,6 +406,9 @@ def _cell(
 
     g = builtin_graph(env)
     sensor = sensor or Sensor()
+    if _PLAN is not None:  # planning: no evaluation, a placeholder row
+        nan = float("nan")
+        return {"map": env, "robots": robots, "method": method, "mean_capture_time": nan, "ci95_halfwidth": nan}
     t0 = time.perf_counter()
     batched = method not in PLANNERS  # planners plan one episode at a time
     res = evaluate(
@@ -427,6 +525,8 @@ def fig7(root: Path, b: Budget) -> Path:
 
 
 def _plot_fig7(out: Path, rows: list[dict[str, Any]]) -> None:
+    if _PLAN is not None:
+        return
     import matplotlib
 
     matplotlib.use("Agg")
@@ -455,6 +555,8 @@ def _plot_fig7(out: Path, rows: list[dict[str, Any]]) -> None:
 
 
 def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> None:
+    if _PLAN is not None:
+        return
     import matplotlib
 
     matplotlib.use("Agg")
@@ -491,14 +593,13 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
 def fig5(root: Path, b: Budget) -> Path:
     """beta in {0.1, 0.3, 0.5, 0.7, 0.9} and 1 (PG) for a 4-robot team on OFFICE and MUSEUM (paper Fig. 5)."""
     from shared.core.graph import builtin_graph
-    from shared.learning.snapshot import load_snapshot
 
     N, rows = 4, []
     sensor = sensor_for("cepg")
     for env in ("office", "museum"):
         g = builtin_graph(env)
         for beta in (0.1, 0.3, 0.5, 0.7, 0.9, 1.0):
-            snap = load_snapshot(_snapshot(root, env, N, beta, b.train, 0), g)
+            snap = _load(_snapshot(root, env, N, beta, b.train, 0), g)
             rows.append(
                 {**_cell(env, N, "pg" if beta == 1.0 else "cepg", _flown(snap, g, sensor, N), b.episodes), "beta": beta}
             )
@@ -605,7 +706,6 @@ def fig13(root: Path, b: Budget) -> Path:
     """Robustness: a team trained for 5 robots flown by k = 1..5 of them (paper Fig. 13), against
     teams trained for k."""
     from shared.core.graph import builtin_graph
-    from shared.learning.snapshot import load_snapshot
 
     rows = []
     sensor = sensor_for("cepg")
@@ -617,7 +717,7 @@ def fig13(root: Path, b: Budget) -> Path:
                 if m == "cepg"
                 else _marl_snapshot(root, env, 5, m, b.marl_train, 0)
             )
-            five = load_snapshot(path, g)
+            five = _load(path, g)
             for k in range(1, 6):
                 rows.append(
                     {**_cell(env, k, f"{m} trained for 5", _flown(five, g, sensor, k), b.episodes), "trained_for": 5}
@@ -632,6 +732,8 @@ def fig13(root: Path, b: Budget) -> Path:
 
 
 def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None:
+    if _PLAN is not None:
+        return
     import matplotlib
 
     matplotlib.use("Agg")
@@ -664,6 +766,8 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
 
 
 def _lines(path: Path, rows: list[dict[str, Any]], key: str, value: str, ylabel: str) -> None:
+    if _PLAN is not None:
+        return
     """One line per team size N: ``value`` (with its CI) against ``key``."""
     import matplotlib
 
@@ -708,8 +812,6 @@ def marl(root: Path, b: Budget) -> Path:
     """The MARL baselines at their default budgets on OFFICE and WARD, N = 4, with learning
     curves, against random and CE-PG; and a small hyperparameter sweep on OFFICE."""
     from shared.core.graph import builtin_graph
-    from shared.core.snapshot import read_meta
-    from shared.learning.snapshot import load_snapshot
 
     N, rows, curves, sweep = 4, [], {}, []
     sensor = sensor_for("cepg")
@@ -724,7 +826,7 @@ def marl(root: Path, b: Budget) -> Path:
         )
         for m in MARL:
             path = _marl_snapshot(root, env, N, m, b.marl_train, 0)
-            summary = read_meta(path)["summary"]
+            summary = _summary(path)
             row = _cell(env, N, m, _learned(root, env, N, m, b), b.episodes, latency=True)
             row.update(
                 train_episodes=summary["episodes"],
@@ -741,7 +843,7 @@ def marl(root: Path, b: Budget) -> Path:
         episodes = b.marl_train or max(1_000, default_budget // 10)
         for overrides in [(), *MARL_SWEEP[m]]:
             path = _marl_snapshot(root, "office", N, m, episodes, 0, overrides=overrides)
-            row = _cell("office", N, m, _flown(load_snapshot(path, g), g, sensor, N), b.episodes)
+            row = _cell("office", N, m, _flown(_load(path, g), g, sensor, N), b.episodes)
             sweep.append({**row, "overrides": list(overrides) or ["defaults"], "train_episodes": episodes})
     out = root / "marl"
     setup = _setup("marl", b, robots=N, maps=list(MARL_MAPS), wall_seconds=round(time.perf_counter() - t_start, 1))
@@ -757,6 +859,8 @@ def _marl_hyper_episodes(method: str) -> int:
 
 
 def _plot_curves(path: Path, curves: dict[str, list[dict[str, Any]]]) -> None:
+    if _PLAN is not None:
+        return
     import matplotlib
 
     matplotlib.use("Agg")
@@ -790,24 +894,54 @@ RUNNERS: dict[str, Callable[[Path, Budget], Path]] = {
 }
 
 
-def run(name: str, root: Path, quick: bool, train_episodes: int | None = None) -> Path:
+def run(
+    name: str,
+    root: Path,
+    quick: bool,
+    train_episodes: int | None = None,
+    workers: int = 1,
+    scheduler: str | None = None,
+) -> Path:
     """Run one experiment (``all``: every one in turn); returns its results directory.
-    ``train_episodes`` overrides the learned teams' training budget."""
+    ``train_episodes`` overrides the learned teams' training budget. With ``workers`` > 1 or a
+    Dask ``scheduler``, the teams the experiment needs and the cache lacks are trained first, in
+    parallel (``plan``, shared/tools/runner.py); the experiment then runs on the cached teams."""
     b = (QUICK if quick else FULL).with_train(train_episodes)
+    if name != "all" and name not in EXPERIMENTS:
+        raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)}, all)")
+    if workers > 1 or scheduler:
+        run_jobs(plan(name, root, b), root, workers, scheduler, say=_say)
     if name == "all":
         for e in EXPERIMENTS:
             if e != "fig8":
                 t0 = time.perf_counter()
-                run(e, root, quick, train_episodes)
+                _run_one(e, root, b, quick)
                 _say(f"{e}: done in {time.perf_counter() - t0:.0f} s")
         return root
+    return _run_one(name, root, b, quick)
+
+
+def _run_one(name: str, root: Path, b: Budget, quick: bool) -> Path:
     if name == "fig4":
         return fig4(root, quick)
     if name == "fig8":
         return fig7(root, b).parent / "fig8"
-    if name in RUNNERS:
-        return RUNNERS[name](root, b)
-    raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)}, all)")
+    return RUNNERS[name](root, b)
+
+
+def plan(name: str, root: Path, b: Budget) -> list[Job]:
+    """The training jobs an experiment (or ``all``) needs and the cache lacks, without running
+    anything: its figure functions run with placeholder cells and write nothing."""
+    global _PLAN
+    names = [e for e in EXPERIMENTS if e not in ("fig4", "fig8")] if name == "all" else [name]
+    _PLAN = []
+    try:
+        for e in names:
+            if e in RUNNERS or e == "fig8":
+                RUNNERS["fig7" if e == "fig8" else e](root, b)
+        return list({j.key: j for j in _PLAN}.values())
+    finally:
+        _PLAN = None
 
 
 # ---------------------------------------------------------------------- report
