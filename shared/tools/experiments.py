@@ -10,7 +10,9 @@ N = 1..5, OFFICE and MUSEUM), fig8 (decision time per team step, measured in fig
 (sensor noise: capture time, false alarms), fig11 (all methods under eta_fn), fig12 and fig13
 (robustness), marl (the MARL baselines at their default budgets on OFFICE and WARD with learning
 curves, and a small hyperparameter sweep). ``all`` runs them in turn. Budgets: ``FULL`` is the
-paper's protocol, ``QUICK`` fits CI.
+paper's protocol, ``QUICK`` fits CI. With ``--workers K`` or ``--dask-scheduler``, ``plan`` first
+lists the teams an experiment needs and the cache lacks, and shared/tools/runner.py trains them
+in parallel; the experiment then runs on the cached teams.
 """
 
 from __future__ import annotations
