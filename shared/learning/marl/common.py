@@ -24,7 +24,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.modules import ProbabilisticActor
+from torchrl.modules import MultiAgentMLP, ProbabilisticActor
 
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel, identity_model
@@ -147,6 +147,21 @@ def agent_input(state: torch.Tensor, observation: torch.Tensor, *extra: torch.Te
 def mlp(inputs: int, outputs: int, hidden: int) -> nn.Sequential:
     return nn.Sequential(
         nn.Linear(inputs, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, outputs)
+    )
+
+
+def robot_mlps(inputs: int, outputs: int, robots: int, hidden: int) -> MultiAgentMLP:
+    """One MLP per robot (inputs -> hidden -> hidden -> outputs, ReLU, nothing shared), evaluated
+    for the team at once by TorchRL's MultiAgentMLP: (..., N, inputs) -> (..., N, outputs)."""
+    return MultiAgentMLP(
+        n_agent_inputs=inputs,
+        n_agent_outputs=outputs,
+        n_agents=robots,
+        centralized=False,
+        share_params=False,
+        depth=2,
+        num_cells=hidden,
+        activation_class=nn.ReLU,
     )
 
 

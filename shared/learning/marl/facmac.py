@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 from torch import nn
-from torchrl.modules import MultiAgentMLP, QMixer
+from torchrl.modules import QMixer
 
-from shared.learning.marl.common import MarlRun
+from shared.learning.marl.common import MarlRun, robot_mlps
 from shared.learning.marl.offpolicy import (
     OffPolicyHyper,
     TargetActorCritic,
@@ -50,16 +50,7 @@ class FactoredCritic(nn.Module):
 
     def __init__(self, state_size: int, obs_size: int, d: int, robots: int, hidden: int, embed: int) -> None:
         super().__init__()
-        self.utility = MultiAgentMLP(
-            n_agent_inputs=obs_size + d,
-            n_agent_outputs=1,
-            n_agents=robots,
-            centralized=False,
-            share_params=False,
-            depth=2,
-            num_cells=hidden,
-            activation_class=nn.ReLU,
-        )
+        self.utility = robot_mlps(obs_size + d, 1, robots, hidden)
         self.mixer = QMixer(state_shape=(state_size,), mixing_embed_dim=embed, n_agents=robots, device="cpu")
 
     def forward(self, state: torch.Tensor, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:

@@ -20,10 +20,9 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import DiscreteSACLoss, SoftUpdate, ValueEstimators
 
-from shared.learning.marl.common import MarlRun, agent_input
+from shared.learning.marl.common import MarlRun, agent_input, robot_mlps
 from shared.learning.marl.offpolicy import OffPolicyHyper, clip_step, mean_log_degree, run_offpolicy
 from shared.learning.train import TrainResult
 
@@ -44,16 +43,7 @@ class CentralQ(nn.Module):
     def __init__(self, inputs: int, robots: int, outputs: int, hidden: int) -> None:
         super().__init__()
         self.N = robots
-        self.net = MultiAgentMLP(
-            n_agent_inputs=inputs,
-            n_agent_outputs=outputs,
-            n_agents=robots,
-            centralized=False,
-            share_params=False,
-            depth=2,
-            num_cells=hidden,
-            activation_class=nn.ReLU,
-        )
+        self.net = robot_mlps(inputs, outputs, robots, hidden)
 
     def forward(self, state: torch.Tensor, observation: torch.Tensor, *extra: torch.Tensor) -> torch.Tensor:
         return self.net(agent_input(state, observation, *extra))
