@@ -89,7 +89,10 @@ def run_jobs(
     if workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")
     where = f"Dask scheduler {scheduler}" if scheduler else f"{workers} local process{'es' if workers > 1 else ''}"
-    say(f"{len(unique)} job(s) to run on {where}")
+    if len(unique) == 1:  # say what is running before a long job starts, not only when it ends
+        say(f"{unique[0].label} (on {where})")
+    else:
+        say(f"{len(unique)} jobs to run on {where}")
     total = sum(j.weight for j in unique)
     done_w, t0 = 0.0, time.perf_counter()
     for k, (job, files) in enumerate(_results(unique, workers, scheduler), 1):
