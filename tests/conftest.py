@@ -1,3 +1,10 @@
+import os
+import shutil
+import socket
+import subprocess
+import tempfile
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -68,3 +75,81 @@ def certificates(tmp_path):
         "server.pem",
     )
     return d / "ca.pem", d / "server.pem", d / "server-key.pem"
+
+
+# ---------------------------------------------------------------------- PostgreSQL
+def _postgres_bin() -> Path | None:
+    """The directory of the machine's PostgreSQL server programs (initdb, pg_ctl), if installed."""
+    found = sorted(Path("/usr/lib/postgresql").glob("*/bin/pg_ctl"))
+    if found:
+        return found[-1].parent
+    pg_ctl = shutil.which("pg_ctl")
+    return Path(pg_ctl).parent if pg_ctl else None
+
+
+class PostgresCluster:
+    """A throwaway PostgreSQL cluster of the machine's own PostgreSQL on a free loopback port: initdb
+    and pg_ctl run as the postgres user when we are root (initdb refuses root), trust auth on
+    loopback only. ``database()`` gives a fresh, empty database's SQLAlchemy URL."""
+
+    def __init__(self, bindir: Path) -> None:
+        self.bindir = bindir
+        self.root = Path(tempfile.mkdtemp(prefix="mures-pg-"))
+        self.port = free_port()
+        self.count = 0
+        self.as_postgres = os.geteuid() == 0
+        if self.as_postgres:
+            shutil.chown(self.root, "postgres", "postgres")
+        self._run("initdb", "-D", str(self.root / "data"), "-U", "postgres", "--auth=trust", "-E", "UTF8")
+        opts = f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1"
+        self._run("pg_ctl", "-D", str(self.root / "data"), "-o", opts, "-l", str(self.root / "log"), "-w", "start")
+        self.url = f"postgresql+psycopg://postgres@127.0.0.1:{self.port}"
+
+    def _run(self, prog: str, *args: str) -> None:
+        cmd = [str(self.bindir / prog), *args]
+        if self.as_postgres:
+            cmd = ["runuser", "-u", "postgres", "--", *cmd]
+        subprocess.run(cmd, check=True, capture_output=True, timeout=120)
+
+    def database(self) -> str:
+        import psycopg
+
+        self.count += 1
+        name = f"mures_test_{self.count}"
+        with psycopg.connect(f"host=127.0.0.1 port={self.port} user=postgres dbname=postgres", autocommit=True) as c:
+            c.execute(f"CREATE DATABASE {name}")
+        return f"{self.url}/{name}"
+
+    def stop(self) -> None:
+        try:
+            self._run("pg_ctl", "-D", str(self.root / "data"), "-m", "immediate", "stop")
+        finally:
+            shutil.rmtree(self.root, ignore_errors=True)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="session")
+def postgres():
+    """The session's PostgreSQL cluster. Skipped where PostgreSQL is not installed, unless
+    MURES_REQUIRE_POSTGRES=1 (CI), where its absence fails the tests."""
+    bindir = _postgres_bin()
+    if bindir is None:
+        if os.environ.get("MURES_REQUIRE_POSTGRES") == "1":
+            pytest.fail("PostgreSQL is not installed (apt-get install postgresql), and MURES_REQUIRE_POSTGRES=1")
+        pytest.skip("PostgreSQL is not installed (apt-get install postgresql)")
+    cluster = PostgresCluster(bindir)
+    yield cluster
+    cluster.stop()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request, tmp_path):
+    """Each backend in turn: None (the server's embedded SQLite) or a fresh PostgreSQL database."""
+    if request.param == "sqlite":
+        return None
+    return request.getfixturevalue("postgres").database()

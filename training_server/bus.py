@@ -76,7 +76,15 @@ class Bus:
         )
 
     def _events_loop(self) -> None:
+        """Mission events from the agents, and once a second the missions past their deadline."""
+        next_expiry = 0.0
         while self.running:
+            if time.monotonic() >= next_expiry:
+                next_expiry = time.monotonic() + 1.0
+                try:
+                    self.server.expire_missions()
+                except Exception:
+                    log.exception("ending timed-out missions")
             try:
                 raw = self.events_q.get(timeout=0.2)
             except queue.Empty:
@@ -129,9 +137,9 @@ class Bus:
     def _ingest(self, batch: list[zenoh.Query]) -> None:
         graph, fleet, store = self.server.graph, self.fleet, self.server.store
         rows: list[tuple[Any, ...]] = []
-        accepted: list[tuple[zenoh.Query, int | None]] = []
+        accepted: list[tuple[zenoh.Query, int, bool]] = []  # (query, row, the row's first copy in the batch)
         rejected: list[tuple[zenoh.Query, str, str]] = []
-        seen: set[tuple[str, str]] = set()
+        seen: dict[tuple[str, str], int] = {}
         for q in batch:
             key = str(q.key_expr)
             parts = key.split("/")
@@ -156,9 +164,9 @@ class Bus:
                 rejected.append((q, exc.reason, str(exc)))
                 continue
             if (ep.robot_id, ep.mission_id) in seen:  # the same record twice in one batch
-                accepted.append((q, None))
+                accepted.append((q, seen[ep.robot_id, ep.mission_id], False))
                 continue
-            seen.add((ep.robot_id, ep.mission_id))
+            seen[ep.robot_id, ep.mission_id] = len(rows)
             rows.append(
                 (
                     fleet,
@@ -171,12 +179,15 @@ class Bus:
                     json.dumps(canonical_record(ep, graph), separators=(",", ":")),  # unknown fields dropped
                 )
             )
-            accepted.append((q, len(rows) - 1))
+            accepted.append((q, len(rows) - 1, True))
         stored = store.add_episodes(rows) if rows else []
         if rejected:
             store.reject(r for _q, r, _e in rejected)
-        for q, i in accepted:
-            status = "stored" if i is not None and stored[i] else "duplicate"
+        for q, i, first in accepted:
+            if stored[i] is None:  # the database refused this row alone; the agent resends it later
+                self._reply_err(q, "server-error", "the server could not store the record; resend later")
+                continue
+            status = "stored" if stored[i] and first else "duplicate"
             try:
                 q.reply(q.key_expr, json.dumps({"status": status}).encode())
             except Exception:

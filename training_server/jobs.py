@@ -2,20 +2,23 @@
 an evaluation gate, and a new immutable policy version.
 
 A run executes in a separate process (multiprocessing "spawn": no Zenoh session or lock is
-inherited), one at a time. The process reads the episodes through its own SQLite connection,
-reports progress on a queue, polls a cancel event, and writes its snapshot under
-``<data>/staging/<run>``; the supervisor thread in the server turns a passed snapshot into the
-next version. A failed, cancelled or gated-out run leaves the current policy untouched.
+inherited), one at a time, that dies with the server (``_die_with_parent``). The process reads the
+episodes through its own database connection, reports progress on a queue, polls a cancel event,
+and writes its snapshot under ``<data>/staging/<run>`` (removed at the server's next start if it
+is killed); the supervisor thread in the server turns a passed snapshot into the next version. A
+failed, cancelled or gated-out run leaves the current policy untouched.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
 import multiprocessing as mp
+import os
 import queue
 import shutil
-import sqlite3
+import signal
 import threading
 import time
 import traceback
@@ -57,8 +60,29 @@ class TrainingParams(BaseModel):
     threads: int = Field(0, ge=0, le=1024, description="torch threads in the training process (0: torch's default)")
 
 
+def _die_with_parent(parent_pid: int) -> None:
+    """A training process must not outlive its server (a kill -9 of the server included): Linux
+    kills it when the server does (PR_SET_PDEATHSIG); elsewhere, and for a server that died before
+    this line, a watchdog thread ends it within a second of the parent's end."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        os._exit(1)
+
+    if os.getppid() != parent_pid:
+        os._exit(1)
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 def run_training(job: dict[str, Any], events: Any, cancel: Any) -> None:
     """The training process. Puts {"type": "progress"|"done"|"failed"|"cancelled", ...} on ``events``."""
+    _die_with_parent(job["server_pid"])
     try:
         events.put({"type": "done", **_train(job, events, cancel)})
     except _Cancelled:
@@ -81,6 +105,7 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     from shared.learning.config import TrainConfig
     from shared.learning.snapshot import PolicySearcher, load_snapshot, save_snapshot
     from shared.learning.train import train
+    from training_server.store import read_episode_records
 
     p = TrainingParams.model_validate(job["params"])
     if p.threads:
@@ -95,14 +120,8 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
 
     # 1. EM on the fleet's own records (robots' positions and observations only)
     say("em", message="reading episode records")
-    db = sqlite3.connect(f"file:{job['db']}?mode=ro", uri=True)
-    try:
-        rows = db.execute(
-            "SELECT record FROM episodes WHERE fleet=? ORDER BY id DESC LIMIT ?", (job["fleet"], p.max_records)
-        ).fetchall()
-    finally:
-        db.close()
-    data = collect_missions(((i, json.loads(r[0])) for i, r in enumerate(rows)), graph, fleet=job["fleet"])
+    rows = read_episode_records(job["db"], job["fleet"], p.max_records)
+    data = collect_missions(((i, json.loads(r)) for i, r in enumerate(rows)), graph, fleet=job["fleet"])
     if len(data.length) == 0:
         raise ValueError("no usable episode records: fly some missions before training")
     say("em", message=f"EM on {len(data.length)} missions ({data.used_records} records)")
@@ -248,17 +267,20 @@ class Supervisor:
         store = srv.store
         with self.lock:
             cancel = self.cancels[run_id]
+        run = store.get_run(run_id)
+        assert run is not None
+        if run["status"] != "queued":  # cancelled while it waited (the store says so already)
+            return
         if cancel.is_set():
             store.update_run(run_id, status="cancelled", finished=time.time())
             return
-        run = store.get_run(run_id)
-        assert run is not None
         parent = srv.current_version()
         staging = srv.data_dir / "staging" / run_id
         job = {
             "params": run["params"],
             "graph": srv.graph.to_json(),
-            "db": str(store.path),
+            "db": store.url,
+            "server_pid": os.getpid(),
             "fleet": srv.fleet,
             "current_path": str(srv.snapshot_dir(parent)),
             "parent": parent,

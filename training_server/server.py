@@ -1,12 +1,14 @@
 """`training-server`: the fleet's central server (docs/SPEC.md section 7; README "The fleet").
 
-    training-server (--env office|museum | --graph FILE) [--data-dir DIR] [--http HOST:PORT]
-                    [--zenoh-listen ENDPOINT] [--zenoh-config FILE] [--fleet NAME]
+    training-server (--env office|museum | --graph FILE) [--data-dir DIR] [--database-url URL]
+                    [--http HOST:PORT] [--zenoh-listen ENDPOINT] [--zenoh-config FILE] [--fleet NAME]
                     [--operator-token-file F] [--agent-token-file F] [--robots N] [--init-policy DIR]
+                    [--mission-timeout S]
 
 Embedded defaults, no other service needed: SQLite (WAL) under the data directory for episodes,
-missions, runs and versions; policy snapshots on disk; its own Zenoh session in router mode on
-tcp/127.0.0.1:7447; HTTP (the REST API under /api/v1, OpenAPI at /docs) on 127.0.0.1:8000.
+missions, runs and versions (or PostgreSQL: --database-url postgresql+psycopg://USER@HOST:PORT/DB);
+policy snapshots on disk; its own Zenoh session in router mode on tcp/127.0.0.1:7447; HTTP (the
+REST API under /api/v1, OpenAPI at /docs) on 127.0.0.1:8000.
 """
 
 from __future__ import annotations
@@ -33,11 +35,12 @@ from shared.core.graph import Graph, GraphError, builtin_graph, load_graph_file
 from shared.core.snapshot import WEIGHTS, SnapshotData, read_meta, read_snapshot
 from shared.core.wire import DEFAULT_FLEET, DEFAULT_HTTP, DEFAULT_ZENOH_ENDPOINT, check_id
 from training_server.security import ROLES, AuditLog, SignInGuard, TokenFile, endpoint_host, is_loopback, rotate
-from training_server.store import Store
+from training_server.store import DB_FILE, Store, sqlite_url
 
 log = logging.getLogger("mures.server")
 
 ARTIFACT = "policy.tar"
+MISSION_TIMEOUT_S = 1800.0  # a mission still running after this long is ended (--mission-timeout)
 
 
 class JsonFormatter(logging.Formatter):
@@ -75,9 +78,17 @@ class Server:
     """State shared by the REST API, the Zenoh bus and the training supervisor."""
 
     def __init__(
-        self, data_dir: Path, graph: Graph, fleet: str, operator_token_file: Path, agent_token_file: Path
+        self,
+        data_dir: Path,
+        graph: Graph,
+        fleet: str,
+        operator_token_file: Path,
+        agent_token_file: Path,
+        database_url: str | None = None,
+        mission_timeout: float = MISSION_TIMEOUT_S,
     ) -> None:
         self.data_dir = data_dir
+        self.mission_timeout = mission_timeout
         self.graph = graph
         self.fleet = fleet
         # re-read when rotated (training-server rotate-token); compared in constant time
@@ -89,9 +100,14 @@ class Server:
         self._lock = _lock_data_dir(data_dir)
         (data_dir / "policies").mkdir(exist_ok=True)
         (data_dir / "staging").mkdir(exist_ok=True)
-        self.store = Store(data_dir / "mures.db")
-        for f in data_dir.glob("mures.db*"):  # the database and its WAL files, also when created earlier
+        try:
+            self.store = Store(database_url or sqlite_url(data_dir))
+        except BaseException:
+            self._lock.close()
+            raise
+        for f in data_dir.glob(f"{DB_FILE}*"):  # the database and its WAL files, also when created earlier
             f.chmod(0o600)
+        self._clean_leftovers()
         self.version_lock = threading.Lock()
         self.bus: Any = None
         self.supervisor: Any = None
@@ -109,6 +125,38 @@ class Server:
         """Close the database and release the data directory's lock."""
         self.store.close()
         self._lock.close()
+
+    def _clean_leftovers(self) -> None:
+        """What a killed server left behind: training staging directories, half-copied versions
+        (``.vN.tmp``) and version directories whose publication never reached the database (they
+        were never served; the version number is given again)."""
+        known = {int(p["version"]) for p in self.store.policies()}
+        stale = list((self.data_dir / "staging").iterdir())
+        for d in (self.data_dir / "policies").iterdir():
+            name = d.name.removeprefix("v")
+            if d.name.startswith(".") or not name.isdigit() or int(name) not in known:
+                stale.append(d)
+        for d in stale:
+            shutil.rmtree(d, ignore_errors=True) if d.is_dir() else d.unlink(missing_ok=True)
+            log.warning("removed %s, left by an interrupted server", d)
+
+    # ------------------------------------------------------------------ missions
+    def expire_missions(self) -> list[str]:
+        """End the running missions past their deadline: the robots are told to stop (reason
+        "timeout") and the mission's status becomes "timed-out". Returns their ids."""
+        out = []
+        for m in self.store.expired_missions(self.fleet, time.time()):
+            msg = {"type": "stop", "mission_id": m["id"], "reason": "timeout"}
+            if self.bus is not None:
+                self.bus.publish_mission(msg)
+            if self.store.mission_event(m["id"], msg, "timed-out"):
+                log.warning(
+                    "mission %s timed out after %.0f s; its robots were told to stop",
+                    m["id"],
+                    time.time() - m["created"],
+                )
+                out.append(m["id"])
+        return out
 
     # ------------------------------------------------------------------ policy versions
     def policy_dir(self, version: int) -> Path:
@@ -312,6 +360,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--data-dir", default="mures-data", help="where the database and policies live (default ./mures-data)"
     )
     p.add_argument(
+        "--database-url",
+        metavar="URL",
+        help="the database: postgresql+psycopg://USER[:PASSWORD]@HOST:PORT/DB (default: SQLite in the data directory)",
+    )
+    p.add_argument(
+        "--mission-timeout",
+        type=float,
+        default=MISSION_TIMEOUT_S,
+        metavar="S",
+        help=f"end a mission still running after S seconds (default {MISSION_TIMEOUT_S:.0f}; "
+        "a mission may ask for less)",
+    )
+    p.add_argument(
         "--http", type=parse_hostport, default=DEFAULT_HTTP, help=f"REST API address (default {DEFAULT_HTTP})"
     )
     p.add_argument(
@@ -451,11 +512,15 @@ def _run(args: argparse.Namespace) -> int:
     data_dir.mkdir(parents=True, exist_ok=True)
     op = _token_file(data_dir / "operator.token", args.operator_token_file, "operator")
     ag = _token_file(data_dir / "agent.token", args.agent_token_file, "agent")
-    srv = Server(data_dir, graph, args.fleet, op, ag)
+    if not 0 < args.mission_timeout <= 7 * 24 * 3600:
+        raise ValueError("--mission-timeout must be more than 0 and at most a week (604800 s)")
+    srv = Server(
+        data_dir, graph, args.fleet, op, ag, database_url=args.database_url, mission_timeout=args.mission_timeout
+    )
     srv.migrate_versions()
     srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)
-    for run_id in srv.store.interrupted_runs():
-        srv.store.update_run(run_id, status="failed", finished=time.time(), error="server restarted during the run")
+    for run_id, status in srv.store.end_interrupted_runs():
+        log.warning("training run %s was interrupted by a server restart: now %s", run_id, status)
     if args.zenoh_config:
         conf = zenoh_config("router", config_file=args.zenoh_config)
     elif args.zenoh_tls_cert:
@@ -478,7 +543,7 @@ def _run(args: argparse.Namespace) -> int:
     config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False, **tls)
     http = uvicorn.Server(config)
     log.info(
-        "serving fleet %r on map %s (n=%d): %s://%s:%d/api/v1, zenoh %s, data in %s, policy version %d",
+        "serving fleet %r on map %s (n=%d): %s://%s:%d/api/v1, zenoh %s, data in %s, database %s, policy version %d",
         args.fleet,
         graph.name,
         graph.n,
@@ -487,6 +552,7 @@ def _run(args: argparse.Namespace) -> int:
         port,
         args.zenoh_config or args.zenoh_connect or args.zenoh_listen or DEFAULT_ZENOH_ENDPOINT,
         data_dir,
+        srv.store.safe_url,
         srv.current_version(),
     )
     # uvicorn handles SIGINT/SIGTERM while serving and re-raises the signal afterwards; these

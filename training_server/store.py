@@ -1,47 +1,157 @@
-"""The server's durable state: one SQLite database (WAL) under the data directory.
+"""The server's durable state, through SQLAlchemy: the embedded SQLite database (WAL) under the
+data directory by default, or PostgreSQL (``training-server --database-url
+postgresql+psycopg://USER@HOST:PORT/DB``).
 
-Tables: episodes (one row per (fleet, robot, mission), the record verbatim), rejections (counts
-by reason), missions, policies (immutable versions; the artifacts live on disk beside the
-database), training_runs, and settings (the current version). Every write commits before the
-caller acknowledges anything (synchronous=FULL), so an acknowledged episode survives a crash.
+Tables (training_server/schema.py): episodes (one row per (fleet, robot, mission), the record
+reduced to the contract), rejections (counts by reason), missions, policies (immutable versions;
+the artifacts live on disk in the data directory), training_runs, and settings (the current
+version, the map). Alembic migrates the database at start (``migrate``); a database written by
+release 0.1.0 (no alembic_version) is stamped with its revision first, so nothing is lost.
 
-One connection, guarded by a lock: the Zenoh ingest worker, the HTTP handlers and the training
-supervisor all go through it; a training process reads episodes through its own connection.
+Every write commits before the caller acknowledges anything (SQLite: synchronous=FULL), so an
+acknowledged episode survives a crash. All access goes through one lock: the Zenoh ingest
+worker, the HTTP handlers and the training supervisor share the store; a training process reads
+episodes through its own engine (``read_episode_records``).
 """
 
 from __future__ import annotations
 
 import json
-import sqlite3
+import logging
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS episodes (
-    id INTEGER PRIMARY KEY,
-    fleet TEXT NOT NULL, robot_id TEXT NOT NULL, mission_id TEXT NOT NULL,
-    policy_version INTEGER, steps INTEGER NOT NULL, captured INTEGER NOT NULL, capture_time INTEGER,
-    received REAL NOT NULL, record TEXT NOT NULL,
-    UNIQUE (fleet, robot_id, mission_id)
-);
-CREATE TABLE IF NOT EXISTS rejections (reason TEXT PRIMARY KEY, count INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS missions (
-    id TEXT PRIMARY KEY, fleet TEXT NOT NULL, created REAL NOT NULL, robots TEXT NOT NULL,
-    params TEXT NOT NULL, status TEXT NOT NULL, policy_version INTEGER, event TEXT, ended REAL
-);
-CREATE TABLE IF NOT EXISTS policies (
-    version INTEGER PRIMARY KEY, created REAL NOT NULL, sha256 TEXT NOT NULL, bytes INTEGER NOT NULL,
-    parent INTEGER, run_id TEXT, meta TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS training_runs (
-    id TEXT PRIMARY KEY, created REAL NOT NULL, started REAL, finished REAL, status TEXT NOT NULL,
-    params TEXT NOT NULL, progress TEXT, metrics TEXT, version INTEGER, error TEXT
-);
-CREATE TABLE IF NOT EXISTS settings (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-"""
+from sqlalchemy import Connection, Engine, create_engine, event, func, inspect, make_url, select, update
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.exc import (
+    ArgumentError,
+    InterfaceError,
+    InternalError,
+    NoSuchModuleError,
+    OperationalError,
+    StatementError,
+)
+from sqlalchemy.pool import StaticPool
+
+from training_server.schema import episodes, missions, policies, rejections, settings, training_runs
+
+log = logging.getLogger("mures.server.store")
+
+MIGRATIONS = Path(__file__).parent / "migrations"
+DB_FILE = "mures.db"
+
+
+def sqlite_url(data_dir: Path) -> str:
+    """The default database: ``data_dir/mures.db``."""
+    return f"sqlite:///{data_dir / DB_FILE}"
+
+
+def make_engine(url: str, *, shared_connection: bool = True) -> Engine:
+    """An engine for ``url`` (clear ValueError for a URL SQLAlchemy cannot use). SQLite: one
+    connection (``shared_connection``; callers serialise) in WAL mode with synchronous=FULL, each
+    transaction taking the write lock at BEGIN so that two writers never deadlock."""
+    try:
+        backend = make_url(url).get_backend_name()
+    except ArgumentError:
+        raise ValueError(
+            f"--database-url {url!r} is not a database URL: sqlite:///FILE or postgresql+psycopg://USER@HOST:PORT/DB"
+        ) from None
+    if backend not in ("sqlite", "postgresql"):
+        raise ValueError(f"--database-url {url!r}: only sqlite:/// and postgresql+psycopg:// databases are supported")
+    try:
+        if backend == "sqlite":
+            engine = create_engine(
+                url,
+                connect_args={"check_same_thread": False, "timeout": 10},
+                **({"poolclass": StaticPool} if shared_connection else {}),
+            )
+        else:
+            engine = create_engine(url, pool_pre_ping=True)
+    except (ArgumentError, NoSuchModuleError, ValueError) as exc:
+        raise ValueError(f"--database-url {url!r}: {exc}") from None
+    except ModuleNotFoundError as exc:
+        raise ValueError(
+            f"--database-url {url!r} needs the {exc.name} driver: write postgresql+psycopg:// (psycopg 3, "
+            "installed with the server)"
+        ) from None
+    if engine.dialect.name == "sqlite":
+
+        @event.listens_for(engine, "connect")
+        def _sqlite_connect(dbapi_conn: Any, _rec: Any) -> None:
+            dbapi_conn.isolation_level = None  # SQLAlchemy's BEGIN below, not the driver's own
+            cur = dbapi_conn.cursor()
+            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA synchronous=FULL")
+            cur.execute("PRAGMA busy_timeout=10000")
+            cur.close()
+
+        @event.listens_for(engine, "begin")
+        def _sqlite_begin(conn: Connection) -> None:
+            conn.exec_driver_sql("BEGIN IMMEDIATE" if shared_connection else "BEGIN")
+
+    return engine
+
+
+def _alembic_config(conn: Connection) -> Any:
+    from alembic.config import Config
+
+    cfg = Config()
+    cfg.set_main_option("script_location", str(MIGRATIONS))
+    cfg.attributes["connection"] = conn
+    return cfg
+
+
+def head_revision() -> str:
+    from alembic.config import Config
+    from alembic.script import ScriptDirectory
+
+    cfg = Config()
+    cfg.set_main_option("script_location", str(MIGRATIONS))
+    head = ScriptDirectory.from_config(cfg).get_current_head()
+    assert head is not None
+    return head
+
+
+def current_revision(engine: Engine) -> str | None:
+    from alembic.runtime.migration import MigrationContext
+
+    with engine.connect() as conn:
+        return MigrationContext.configure(conn).get_current_revision()
+
+
+def migrate(engine: Engine) -> tuple[str | None, str]:
+    """Bring the database to the newest schema; returns (revision before, revision now). A
+    database of release 0.1.0 (its tables, no alembic_version) is stamped 0001 first."""
+    from alembic import command
+    from alembic.util.exc import CommandError
+
+    head = head_revision()
+    with engine.begin() as conn:
+        tables = set(inspect(conn).get_table_names())
+        cfg = _alembic_config(conn)
+        before = None
+        if "alembic_version" in tables:
+            from alembic.runtime.migration import MigrationContext
+
+            before = MigrationContext.configure(conn).get_current_revision()
+        elif "episodes" in tables:
+            command.stamp(cfg, "0001")
+            before = "0001"
+        if before != head:
+            try:
+                command.upgrade(cfg, "head")
+            except CommandError as exc:
+                raise ValueError(
+                    f"the database is at schema revision {before!r}, which this server does not know "
+                    f"(newest here: {head}): a newer release wrote it ({exc})"
+                ) from None
+    if before != head:
+        log.info("database schema migrated from %s to %s", before or "empty", head)
+    return before, head
 
 
 def _j(x: Any) -> str | None:
@@ -52,238 +162,364 @@ def _unj(s: str | None) -> Any:
     return None if s is None else json.loads(s)
 
 
+def read_episode_records(url: str, fleet: str, limit: int) -> list[str]:
+    """The newest ``limit`` stored records of ``fleet`` (JSON text), through a separate engine: what
+    a training process reads."""
+    engine = make_engine(url, shared_connection=False)
+    try:
+        with engine.connect() as conn:
+            q = select(episodes.c.record).where(episodes.c.fleet == fleet).order_by(episodes.c.id.desc()).limit(limit)
+            return [r for (r,) in conn.execute(q)]
+    finally:
+        engine.dispose()
+
+
+# the errors that concern one row only (a value the database refuses; sqlite3 raises OverflowError
+# itself for an integer beyond 64 bits); anything else (disk full, connection lost) fails the
+# whole transaction and the caller's batch
+_ROW_ERRORS = (StatementError, OverflowError)
+_BATCH_ERRORS = (OperationalError, InterfaceError, InternalError)
+
+
 class Store:
-    def __init__(self, path: Path) -> None:
-        self.path = path
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.engine = make_engine(url)
+        self.dialect = self.engine.dialect.name
         self.lock = threading.Lock()
-        self.db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
-        self.db.execute("PRAGMA journal_mode=WAL")
-        self.db.execute("PRAGMA synchronous=FULL")
-        self.db.execute("PRAGMA busy_timeout=10000")
-        self.db.executescript(SCHEMA)
+        try:
+            migrate(self.engine)
+        except OperationalError as exc:
+            self.engine.dispose()
+            raise ValueError(f"cannot open the database {self.safe_url}: {exc.orig}") from None
+        except BaseException:
+            self.engine.dispose()
+            raise
+
+    @property
+    def safe_url(self) -> str:
+        """The URL without its password (for logs and errors)."""
+        return self.engine.url.render_as_string(hide_password=True)
 
     def close(self) -> None:
         with self.lock:
-            self.db.close()
+            self.engine.dispose()
+
+    @contextmanager
+    def _tx(self) -> Iterator[Connection]:
+        with self.lock, self.engine.begin() as conn:
+            yield conn
+
+    def _insert(self, table: Any) -> Any:
+        return (postgresql.insert if self.dialect == "postgresql" else sqlite.insert)(table)
 
     # ------------------------------------------------------------------ episodes
-    def add_episodes(self, rows: Iterable[tuple[str, str, str, int | None, int, bool, int | None, str]]) -> list[bool]:
+    def add_episodes(
+        self, rows: Iterable[tuple[str, str, str, int | None, int, bool, int | None, str]]
+    ) -> list[bool | None]:
         """Insert (fleet, robot, mission, policy_version, steps, captured, capture_time, record json)
-        rows in one transaction; per row True if stored, False if it was already there."""
-        out = []
+        rows in one transaction. Per row: True if stored, False if it was already there, None if
+        the database refused that row (the others are stored all the same: each row is its own
+        savepoint). A failure of the database itself raises, and nothing of the batch is kept."""
+        out: list[bool | None] = []
         now = time.time()
-        with self.lock:
-            self.db.execute("BEGIN IMMEDIATE")
-            try:
-                for fleet, robot, mission, pv, steps, captured, ct, rec in rows:
-                    cur = self.db.execute(
-                        "INSERT OR IGNORE INTO episodes (fleet, robot_id, mission_id, policy_version, steps, "
-                        "captured, capture_time, received, record) VALUES (?,?,?,?,?,?,?,?,?)",
-                        (fleet, robot, mission, pv, steps, int(captured), ct, now, rec),
-                    )
-                    out.append(cur.rowcount == 1)
-                self.db.execute("COMMIT")
-            except BaseException:
-                self.db.execute("ROLLBACK")
-                raise
+        stmt = self._insert(episodes).on_conflict_do_nothing(index_elements=["fleet", "robot_id", "mission_id"])
+        stmt = stmt.returning(episodes.c.id)  # a row back if stored (rowcount is not reliable on every driver)
+        with self._tx() as conn:
+            for fleet, robot, mission, pv, steps, captured, ct, rec in rows:
+                values = {
+                    "fleet": fleet,
+                    "robot_id": robot,
+                    "mission_id": mission,
+                    "policy_version": pv,
+                    "steps": steps,
+                    "captured": int(captured),
+                    "capture_time": ct,
+                    "received": now,
+                    "record": rec,
+                }
+                try:
+                    with conn.begin_nested():
+                        new = conn.execute(stmt, values).first()
+                    out.append(new is not None)
+                except _ROW_ERRORS as exc:
+                    if isinstance(exc, _BATCH_ERRORS):
+                        raise
+                    log.error("episode %s/%s refused by the database: %s", robot, mission, getattr(exc, "orig", exc))
+                    out.append(None)
         return out
 
     def reject(self, reasons: Iterable[str]) -> None:
-        with self.lock:
+        stmt = self._insert(rejections)
+        stmt = stmt.on_conflict_do_update(index_elements=["reason"], set_={"count": rejections.c.count + 1})
+        with self._tx() as conn:
             for r in reasons:
-                self.db.execute(
-                    "INSERT INTO rejections (reason, count) VALUES (?, 1) "
-                    "ON CONFLICT(reason) DO UPDATE SET count = count + 1",
-                    (r,),
-                )
+                conn.execute(stmt, {"reason": r, "count": 1})
 
     def episode_stats(self, fleet: str) -> dict[str, Any]:
-        with self.lock:
-            stored = self.db.execute("SELECT COUNT(*) FROM episodes WHERE fleet=?", (fleet,)).fetchone()[0]
-            missions = self.db.execute(
-                "SELECT COUNT(DISTINCT mission_id) FROM episodes WHERE fleet=?", (fleet,)
-            ).fetchone()[0]
-            rej = dict(self.db.execute("SELECT reason, count FROM rejections ORDER BY reason").fetchall())
-            byv = self.db.execute(
-                "SELECT policy_version, COUNT(*) FROM episodes WHERE fleet=? GROUP BY policy_version", (fleet,)
-            ).fetchall()
+        e = episodes.c
+        with self._tx() as conn:
+            stored = conn.execute(select(func.count()).where(e.fleet == fleet)).scalar_one()
+            n_missions = conn.execute(select(func.count(e.mission_id.distinct())).where(e.fleet == fleet)).scalar_one()
+            rej = dict(
+                conn.execute(select(rejections.c.reason, rejections.c.count).order_by(rejections.c.reason)).all()
+            )
+            byv = conn.execute(
+                select(e.policy_version, func.count()).where(e.fleet == fleet).group_by(e.policy_version)
+            ).all()
         return {
             "stored": stored,
             "rejected": rej,
-            "missions": missions,
+            "missions": n_missions,
             "by_policy_version": {str(v): c for v, c in byv},
         }
 
     def list_episodes(
         self, fleet: str, limit: int, after: int, mission_id: str | None, robot_id: str | None
     ) -> list[dict[str, Any]]:
-        q = (
-            "SELECT id, robot_id, mission_id, policy_version, steps, captured, capture_time, received "
-            "FROM episodes WHERE fleet=? AND id>?"
-        )
-        args: list[Any] = [fleet, after]
-        if mission_id:
-            q += " AND mission_id=?"
-            args.append(mission_id)
-        if robot_id:
-            q += " AND robot_id=?"
-            args.append(robot_id)
-        q += " ORDER BY id LIMIT ?"
-        args.append(limit)
-        with self.lock:
-            rows = self.db.execute(q, args).fetchall()
+        e = episodes.c
         keys = ("id", "robot_id", "mission_id", "policy_version", "steps", "captured", "capture_time", "received")
+        q = select(*(getattr(e, k) for k in keys)).where(e.fleet == fleet, e.id > after)
+        if mission_id:
+            q = q.where(e.mission_id == mission_id)
+        if robot_id:
+            q = q.where(e.robot_id == robot_id)
+        with self._tx() as conn:
+            rows = conn.execute(q.order_by(e.id).limit(limit)).all()
         return [{**dict(zip(keys, r, strict=True)), "captured": bool(r[5])} for r in rows]
 
     def get_record(self, fleet: str, robot_id: str, mission_id: str) -> dict[str, Any] | None:
-        with self.lock:
-            row = self.db.execute(
-                "SELECT record FROM episodes WHERE fleet=? AND robot_id=? AND mission_id=?",
-                (fleet, robot_id, mission_id),
-            ).fetchone()
-        return None if row is None else json.loads(row[0])
+        e = episodes.c
+        with self._tx() as conn:
+            rec = conn.execute(
+                select(e.record).where(e.fleet == fleet, e.robot_id == robot_id, e.mission_id == mission_id)
+            ).scalar_one_or_none()
+        return None if rec is None else json.loads(rec)
 
     def mission_records(self, fleet: str, mission_id: str) -> list[tuple[str, bool, int | None, int | None]]:
-        with self.lock:
-            return [
-                (r, bool(c), ct, pv)
-                for r, c, ct, pv in self.db.execute(
-                    "SELECT robot_id, captured, capture_time, policy_version FROM episodes "
-                    "WHERE fleet=? AND mission_id=?",
-                    (fleet, mission_id),
-                ).fetchall()
-            ]
+        e = episodes.c
+        with self._tx() as conn:
+            rows = conn.execute(
+                select(e.robot_id, e.captured, e.capture_time, e.policy_version).where(
+                    e.fleet == fleet, e.mission_id == mission_id
+                )
+            ).all()
+        return [(r, bool(c), ct, pv) for r, c, ct, pv in rows]
 
     # ------------------------------------------------------------------ missions
-    def add_mission(self, mission_id: str, fleet: str, robots: list[str], params: dict[str, Any], pv: int) -> None:
-        with self.lock:
-            self.db.execute(
-                "INSERT INTO missions (id, fleet, created, robots, params, status, policy_version) "
-                "VALUES (?,?,?,?,?,?,?)",
-                (mission_id, fleet, time.time(), _j(robots), _j(params), "running", pv),
+    def add_mission(
+        self,
+        mission_id: str,
+        fleet: str,
+        robots: list[str],
+        params: dict[str, Any],
+        pv: int,
+        deadline: float | None = None,
+    ) -> None:
+        with self._tx() as conn:
+            conn.execute(
+                missions.insert().values(
+                    id=mission_id,
+                    fleet=fleet,
+                    created=time.time(),
+                    robots=_j(robots),
+                    params=_j(params),
+                    status="running",
+                    policy_version=pv,
+                    deadline=deadline,
+                )
             )
 
-    def mission_event(self, mission_id: str, event: dict[str, Any], status: str) -> None:
-        with self.lock:
-            self.db.execute(
-                "UPDATE missions SET event=COALESCE(event, ?), status=?, ended=COALESCE(ended, ?) "
-                "WHERE id=? AND status='running'",
-                (_j(event), status, time.time(), mission_id),
-            )
+    def mission_event(self, mission_id: str, event: dict[str, Any], status: str) -> bool:
+        """End a running mission with ``event`` (its captured, stop or timeout message); False if it
+        was not running (the first event that ends a mission is the one kept)."""
+        m = missions.c
+        with self._tx() as conn:
+            ended = conn.execute(
+                update(missions)
+                .where(m.id == mission_id, m.status == "running")
+                .values(event=_j(event), status=status, ended=time.time())
+                .returning(m.id)
+            ).first()
+        return ended is not None
+
+    _MISSION_KEYS = ("id", "fleet", "created", "robots", "params", "status", "policy_version", "event", "ended")
+
+    def _mission(self, row: Any) -> dict[str, Any]:
+        d = dict(zip((*self._MISSION_KEYS, "deadline"), row, strict=True))
+        for k in ("robots", "params", "event"):
+            d[k] = _unj(d[k])
+        return d
+
+    def _mission_query(self) -> Any:
+        return select(*(getattr(missions.c, k) for k in (*self._MISSION_KEYS, "deadline")))
 
     def get_mission(self, mission_id: str) -> dict[str, Any] | None:
-        with self.lock:
-            row = self.db.execute(
-                "SELECT id, fleet, created, robots, params, status, policy_version, event, ended "
-                "FROM missions WHERE id=?",
-                (mission_id,),
-            ).fetchone()
-        if row is None:
-            return None
-        return {
-            "id": row[0],
-            "fleet": row[1],
-            "created": row[2],
-            "robots": _unj(row[3]),
-            "params": _unj(row[4]),
-            "status": row[5],
-            "policy_version": row[6],
-            "event": _unj(row[7]),
-            "ended": row[8],
-        }
+        with self._tx() as conn:
+            row = conn.execute(self._mission_query().where(missions.c.id == mission_id)).one_or_none()
+        return None if row is None else self._mission(row)
+
+    def list_missions(self, fleet: str, limit: int, offset: int) -> tuple[list[dict[str, Any]], int]:
+        """A page of ``fleet``'s missions, newest first, and how many there are."""
+        m = missions.c
+        with self._tx() as conn:
+            total = conn.execute(select(func.count()).select_from(missions).where(m.fleet == fleet)).scalar_one()
+            rows = conn.execute(
+                self._mission_query()
+                .where(m.fleet == fleet)
+                .order_by(m.created.desc(), m.id)
+                .limit(limit)
+                .offset(offset)
+            ).all()
+        return [self._mission(r) for r in rows], total
+
+    def running_missions(self, fleet: str) -> list[dict[str, Any]]:
+        m = missions.c
+        with self._tx() as conn:
+            rows = conn.execute(self._mission_query().where(m.fleet == fleet, m.status == "running")).all()
+        return [self._mission(r) for r in rows]
+
+    def busy_robots(self, fleet: str) -> dict[str, str]:
+        """{robot: mission} for every robot of a running mission whose record has not arrived."""
+        busy = {}
+        for mission in self.running_missions(fleet):
+            done = {r for r, *_ in self.mission_records(fleet, mission["id"])}
+            busy.update({r: mission["id"] for r in mission["robots"] if r not in done})
+        return busy
+
+    def expired_missions(self, fleet: str, now: float) -> list[dict[str, Any]]:
+        """Running missions whose deadline has passed."""
+        m = missions.c
+        with self._tx() as conn:
+            rows = conn.execute(
+                self._mission_query().where(
+                    m.fleet == fleet, m.status == "running", m.deadline.is_not(None), m.deadline < now
+                )
+            ).all()
+        return [self._mission(r) for r in rows]
 
     # ------------------------------------------------------------------ policies
     def add_policy(
         self, version: int, sha256: str, size: int, parent: int | None, run_id: str | None, meta: dict[str, Any]
     ) -> None:
-        with self.lock:
-            self.db.execute(
-                "INSERT INTO policies (version, created, sha256, bytes, parent, run_id, meta) VALUES (?,?,?,?,?,?,?)",
-                (version, time.time(), sha256, size, parent, run_id, _j(meta)),
+        with self._tx() as conn:
+            conn.execute(
+                policies.insert().values(
+                    version=version,
+                    created=time.time(),
+                    sha256=sha256,
+                    bytes=size,
+                    parent=parent,
+                    run_id=run_id,
+                    meta=_j(meta),
+                )
             )
 
     def update_policy_artifact(self, version: int, sha256: str, size: int, weights_sha256: str) -> None:
         """A version's artifact was rebuilt (format conversion): its new digest and size."""
-        with self.lock:
-            (meta,) = self.db.execute("SELECT meta FROM policies WHERE version=?", (version,)).fetchone()
+        p = policies.c
+        with self._tx() as conn:
+            meta = conn.execute(select(p.meta).where(p.version == version)).scalar_one()
             meta = {**json.loads(meta), "weights_sha256": weights_sha256}
-            self.db.execute(
-                "UPDATE policies SET sha256=?, bytes=?, meta=? WHERE version=?", (sha256, size, _j(meta), version)
-            )
+            conn.execute(update(policies).where(p.version == version).values(sha256=sha256, bytes=size, meta=_j(meta)))
+
+    _POLICY_KEYS = ("version", "created", "sha256", "bytes", "parent", "run_id", "meta")
 
     def policies(self) -> list[dict[str, Any]]:
-        with self.lock:
-            rows = self.db.execute(
-                "SELECT version, created, sha256, bytes, parent, run_id, meta FROM policies ORDER BY version"
-            ).fetchall()
-        keys = ("version", "created", "sha256", "bytes", "parent", "run_id", "meta")
-        return [{**dict(zip(keys, r, strict=True)), "meta": json.loads(r[6])} for r in rows]
+        p = policies.c
+        with self._tx() as conn:
+            rows = conn.execute(select(*(getattr(p, k) for k in self._POLICY_KEYS)).order_by(p.version)).all()
+        return [{**dict(zip(self._POLICY_KEYS, r, strict=True)), "meta": json.loads(r[6])} for r in rows]
 
     def policy(self, version: int) -> dict[str, Any] | None:
-        return next((p for p in self.policies() if p["version"] == version), None)
+        p = policies.c
+        with self._tx() as conn:
+            r = conn.execute(select(*(getattr(p, k) for k in self._POLICY_KEYS)).where(p.version == version)).first()
+        return None if r is None else {**dict(zip(self._POLICY_KEYS, r, strict=True)), "meta": json.loads(r[6])}
 
     def next_version(self) -> int:
-        with self.lock:
-            v = self.db.execute("SELECT MAX(version) FROM policies").fetchone()[0]
+        with self._tx() as conn:
+            v = conn.execute(select(func.max(policies.c.version))).scalar()
         return 1 if v is None else int(v) + 1
 
     def get_setting(self, key: str) -> str | None:
-        with self.lock:
-            row = self.db.execute("SELECT value FROM settings WHERE key=?", (key,)).fetchone()
-        return None if row is None else str(row[0])
+        with self._tx() as conn:
+            v = conn.execute(select(settings.c.value).where(settings.c.key == key)).scalar_one_or_none()
+        return None if v is None else str(v)
 
     def set_setting(self, key: str, value: str) -> None:
-        with self.lock:
-            self.db.execute(
-                "INSERT INTO settings (key, value) VALUES (?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value",
-                (key, value),
-            )
+        stmt = self._insert(settings).values(key=key, value=value)
+        stmt = stmt.on_conflict_do_update(index_elements=["key"], set_={"value": stmt.excluded.value})
+        with self._tx() as conn:
+            conn.execute(stmt)
 
     # ------------------------------------------------------------------ training runs
     def add_run(self, run_id: str, params: dict[str, Any]) -> None:
-        with self.lock:
-            self.db.execute(
-                "INSERT INTO training_runs (id, created, status, params) VALUES (?,?,?,?)",
-                (run_id, time.time(), "queued", _j(params)),
+        with self._tx() as conn:
+            conn.execute(
+                training_runs.insert().values(id=run_id, created=time.time(), status="queued", params=_j(params))
             )
 
     def update_run(self, run_id: str, **fields: Any) -> None:
-        cols = []
-        vals: list[Any] = []
-        for k, v in fields.items():
-            cols.append(f"{k}=?")
-            vals.append(_j(v) if k in ("progress", "metrics") else v)
-        with self.lock:
-            self.db.execute(f"UPDATE training_runs SET {', '.join(cols)} WHERE id=?", (*vals, run_id))
+        values = {k: (_j(v) if k in ("progress", "metrics") else v) for k, v in fields.items()}
+        with self._tx() as conn:
+            conn.execute(update(training_runs).where(training_runs.c.id == run_id).values(**values))
+
+    def request_cancel(self, run_id: str) -> str | None:
+        """An operator cancels a run: a queued one is cancelled now, a running one is marked (its
+        process stops at its next check, and a restart meanwhile keeps it cancelled). Returns
+        the run's status afterwards, None if it was neither queued nor running."""
+        r = training_runs.c
+        now = time.time()
+        with self._tx() as conn:
+            status = conn.execute(select(r.status).where(r.id == run_id)).scalar_one_or_none()
+            if status == "queued":
+                conn.execute(
+                    update(training_runs)
+                    .where(r.id == run_id)
+                    .values(status="cancelled", finished=now, cancel_requested=now)
+                )
+                return "cancelled"
+            if status == "running":
+                conn.execute(update(training_runs).where(r.id == run_id).values(cancel_requested=now))
+                return "running"
+        return None
+
+    _RUN_KEYS = ("id", "created", "started", "finished", "status", "params", "progress", "metrics", "version", "error")
 
     def get_run(self, run_id: str) -> dict[str, Any] | None:
         runs = self.runs(run_id)
         return runs[0] if runs else None
 
     def runs(self, run_id: str | None = None) -> list[dict[str, Any]]:
-        q = "SELECT id, created, started, finished, status, params, progress, metrics, version, error "
-        q += "FROM training_runs"
-        with self.lock:
-            rows = (
-                self.db.execute(q + " WHERE id=?", (run_id,)).fetchall()
-                if run_id
-                else self.db.execute(q + " ORDER BY created").fetchall()
-            )
-        keys = ("id", "created", "started", "finished", "status", "params", "progress", "metrics", "version", "error")
+        r = training_runs.c
+        q = select(*(getattr(r, k) for k in (*self._RUN_KEYS, "cancel_requested")))
+        q = q.where(r.id == run_id) if run_id else q.order_by(r.created, r.id)
+        with self._tx() as conn:
+            rows = conn.execute(q).all()
         out = []
-        for r in rows:
-            d = dict(zip(keys, r, strict=True))
+        for row in rows:
+            d = dict(zip((*self._RUN_KEYS, "cancel_requested"), row, strict=True))
             for k in ("params", "progress", "metrics"):
                 d[k] = _unj(d[k])
             out.append(d)
         return out
 
-    def interrupted_runs(self) -> list[str]:
-        """Runs left queued/running by a previous server process (they did not finish)."""
-        with self.lock:
-            return [
-                r[0]
-                for r in self.db.execute(
-                    "SELECT id FROM training_runs WHERE status IN ('queued', 'running')"
-                ).fetchall()
-            ]
+    def end_interrupted_runs(self) -> list[tuple[str, str]]:
+        """Runs left queued or running by a previous server process did not finish: each becomes
+        cancelled if an operator had asked for that, failed otherwise. Returns (run, status)."""
+        r = training_runs.c
+        now = time.time()
+        out = []
+        with self._tx() as conn:
+            rows = conn.execute(
+                select(r.id, r.cancel_requested).where(r.status.in_(("queued", "running"))).order_by(r.created)
+            ).all()
+            for run_id, cancelled in rows:
+                status = "cancelled" if cancelled is not None else "failed"
+                error = None if cancelled is not None else "server restarted during the run"
+                conn.execute(
+                    update(training_runs).where(r.id == run_id).values(status=status, finished=now, error=error)
+                )
+                out.append((run_id, status))
+        return out

@@ -1,22 +1,22 @@
-"""/api/v1/missions: start a mission, follow it, stop it."""
+"""/api/v1/missions: start a mission, list and follow them, stop one."""
 
 from __future__ import annotations
 
 import random
 import time
 import uuid
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Response
+from fastapi import APIRouter, HTTPException, Query, Response
 
 from training_server.api.deps import READ, WRITE, Srv, errors
-from training_server.api.schemas import Mission, MissionParams, MissionRequest
+from training_server.api.schemas import MAX_ID, Mission, MissionList, MissionParams, MissionRequest
 
 router = APIRouter(prefix="/missions", tags=["missions"])
 
 
-def mission_view(srv: Any, mid: str) -> Mission:
-    m = srv.store.get_mission(mid)
+def mission_view(srv: Any, mid: str, m: dict[str, Any] | None = None) -> Mission:
+    m = m or srv.store.get_mission(mid)
     if m is None:
         raise HTTPException(404, f"no mission {mid!r}")
     recs = srv.store.mission_records(srv.fleet, mid)
@@ -43,6 +43,7 @@ def mission_view(srv: Any, mid: str) -> Mission:
         policy_version=m["policy_version"],
         created=m["created"],
         ended=m["ended"],
+        deadline=m["deadline"],
         event=m["event"],
         episodes_received=got,
         outcome=outcome,
@@ -61,19 +62,35 @@ def start_mission(req: MissionRequest, response: Response, srv: Srv) -> Mission:
     missing = [r for r in robots if r not in online]
     if missing:
         raise HTTPException(409, f"robots not online: {', '.join(missing)}")
+    busy = srv.store.busy_robots(srv.fleet)
+    if any(r in busy for r in robots):
+        flying = ", ".join(f"{r} (mission {busy[r]})" for r in robots if r in busy)
+        raise HTTPException(409, f"robots busy with a running mission: {flying}; stop it or wait for it to end")
     mid = req.mission_id or f"m-{time.strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:8]}"
     if srv.store.get_mission(mid) is not None:
         raise HTTPException(409, f"mission {mid!r} exists")
+    timeout = min(req.timeout_s or srv.mission_timeout, srv.mission_timeout)
     params = {
         "seed": req.seed if req.seed is not None else random.SystemRandom().randrange(2**31),
         "max_steps": req.max_steps or 3 * srv.graph.n,
         "start_node": int(srv.graph.labels[srv.graph.start]),
     }
     pv = srv.current_version()
-    srv.store.add_mission(mid, srv.fleet, robots, params, pv)
+    srv.store.add_mission(mid, srv.fleet, robots, params, pv, deadline=time.time() + timeout)
     srv.bus.publish_mission({"type": "start", "mission_id": mid, "robots": robots, "policy_version": pv, **params})
     response.headers["Location"] = f"/api/v1/missions/{mid}"
     return mission_view(srv, mid)
+
+
+@router.get("", dependencies=READ, responses=errors(401, 422))
+def list_missions(
+    srv: Srv,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=MAX_ID, description="missions to skip (newest first)")] = 0,
+) -> MissionList:
+    """The fleet's missions, newest first, with their status and outcome."""
+    items, total = srv.store.list_missions(srv.fleet, limit, offset)
+    return MissionList(items=[mission_view(srv, m["id"], m) for m in items], total=total)
 
 
 @router.get("/{mission_id}", dependencies=READ, responses=errors(401, 404))

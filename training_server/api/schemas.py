@@ -70,6 +70,14 @@ class MissionRequest(_Request):
         default=None, ge=0, le=MAX_ID, description="mission seed (agents' and simulated world's randomness)"
     )
     max_steps: int | None = Field(default=None, ge=1, le=100_000, description="step limit (default 3n)")
+    timeout_s: float | None = Field(
+        default=None,
+        gt=0,
+        le=7 * 24 * 3600,
+        allow_inf_nan=False,
+        description="end the mission if it still runs after this long (default and upper bound: the server's "
+        "--mission-timeout)",
+    )
     mission_id: str | None = Field(default=None, pattern=ID_RE.pattern, description="default: generated")
 
 
@@ -81,17 +89,23 @@ class MissionParams(BaseModel):
 
 class Mission(BaseModel):
     id: str
-    status: Literal["running", "captured", "stopped", "completed"]
+    status: Literal["running", "captured", "stopped", "timed-out", "completed"]
     robots: list[str]
     params: MissionParams
     policy_version: int | None
     created: float
     ended: float | None
-    event: dict[str, Any] | None = Field(description="the captured or stop message that ended it")
+    deadline: float | None = Field(description="when it times out if still running (Unix time; None: never)")
+    event: dict[str, Any] | None = Field(description="the captured, stop or timeout message that ended it")
     episodes_received: list[str]
     outcome: dict[str, Any] | None = Field(
         description="from the records received: captured, capture_time, steps, policy_versions, captured_by"
     )
+
+
+class MissionList(BaseModel):
+    items: list[Mission]
+    total: int = Field(description="missions in all (page with ?offset=)")
 
 
 # ---------------------------------------------------------------------- episodes
@@ -178,6 +192,7 @@ class TrainingRun(BaseModel):
     metrics: dict[str, Any] | None
     version: int | None = Field(description="the policy version it published")
     error: str | None = Field(description="why it failed or was gated out")
+    cancel_requested: float | None = Field(None, description="when an operator asked to cancel it")
 
 
 class TrainingRunList(BaseModel):

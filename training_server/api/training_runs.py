@@ -46,8 +46,10 @@ def get_run(run_id: str, srv: Srv) -> TrainingRun:
 
 @router.post("/{run_id}/cancel", status_code=202, dependencies=WRITE, responses=errors(401, 403, 404, 409))
 def cancel_run(run_id: str, srv: Srv) -> TrainingRun:
+    """Cancel a queued run (at once) or a running one (its process stops at its next check; the run
+    stays cancelled across a server restart)."""
     r = run_view(srv, run_id)
-    if r.status not in ("queued", "running"):
+    if srv.store.request_cancel(run_id) is None:
         raise HTTPException(409, f"run {run_id!r} is {r.status}; nothing to cancel")
     srv.supervisor.cancel(run_id)
     return run_view(srv, run_id)
