@@ -165,7 +165,7 @@ def test_missions_start_follow_stop(api):
         ("/api/v1/missions", {"robots": ["bad id!"]}, "robots"),
         ("/api/v1/missions", {"colour": "red"}, "colour"),
         ("/api/v1/training-runs", '{"lr": NaN}', "lr"),
-        ("/api/v1/training-runs", {"episodes": 5.0}, "episodes"),
+        ("/api/v1/training-runs", {"episodes": 5000.5}, "episodes"),
         ("/api/v1/training-runs", {"gate": "yes"}, "gate"),
         ("/api/v1/training-runs", {"unknown": 1}, "unknown"),
     ],
@@ -262,7 +262,12 @@ def test_unknown_routes_and_methods_get_the_error_schema(api):
     r = c.get("/api/v1/nothing-here")
     assert r.status_code == 404 and r.json() == {"error": "Not Found"}
     r = c.delete("/api/v1/health")
-    assert r.status_code == 405 and "GET" in r.headers["allow"] and set(r.json()) == {"error"}
+    assert r.status_code == 405 and r.headers["allow"] == "GET" and set(r.json()) == {"error"}
+    # Allow lists every method of the path, also where two routes share it or it has a parameter
+    assert c.options("/api/v1/policies/current").headers["allow"] == "GET, POST"
+    assert c.delete("/api/v1/missions/m-1").headers["allow"] == "GET"
+    r = c.post("/api/v1/missions", content=b"\xff{", headers={**auth(OP), "Content-Type": "application/json"})
+    assert r.status_code in (400, 422) and "JSON" in r.json()["error"], r.text
 
 
 def test_openapi_documents_auth_errors_on_every_protected_route(api):

@@ -23,13 +23,24 @@ import threading
 import time
 import traceback
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from shared.learning import config as train_config
 
 log = logging.getLogger("mures.server.training")
+
+
+def _integral(v: Any) -> Any:
+    """JSON Schema counts 5.0 as an integer: such a float is taken as that integer (5.5, "5" and
+    true are still refused by the strict models)."""
+    return int(v) if isinstance(v, float) and v.is_integer() else v
+
+
+# in an integer field of a request body, after its bounds: Annotated[int, Field(ge=.., le=..), INTEGRAL]
+# (bounds before the validator, so that the OpenAPI document shows them as minimum and maximum)
+INTEGRAL = BeforeValidator(_integral)
 
 
 class TrainingParams(BaseModel):
@@ -38,8 +49,8 @@ class TrainingParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    episodes: int = Field(
-        20_000, ge=256, le=10_000_000, description="CE-PG episodes in simulation, warm-started from the current policy"
+    episodes: Annotated[int, Field(ge=256, le=10_000_000), INTEGRAL] = Field(
+        20_000, description="CE-PG episodes in simulation, warm-started from the current policy"
     )
     beta: float = Field(
         train_config.default("beta")[0], ge=0.0, le=1.0, allow_inf_nan=False, description="Eq. 9's beta (1 = PG)"
@@ -47,17 +58,23 @@ class TrainingParams(BaseModel):
     lr: float = Field(
         train_config.default("lr")[0], gt=0.0, lt=1.0, allow_inf_nan=False, description="Adam learning rate"
     )
-    seed: int = Field(train_config.default("seed"), ge=0, le=2**63 - 1, description="training and gate seed")
-    max_records: int = Field(20_000, ge=1, le=10_000_000, description="newest episode records used by EM")
-    em_max_iter: int = Field(
-        train_config.default("em_max_iter"), ge=1, le=100_000, description="EM forward-backward passes at most"
+    seed: Annotated[int, Field(ge=0, le=2**53 - 1), INTEGRAL] = Field(
+        train_config.default("seed"), description="training and gate seed"
     )
-    gate_episodes: int = Field(
-        1000, ge=1, le=1_000_000, description="evaluation episodes of the gate (the same seeds for both policies)"
+    max_records: Annotated[int, Field(ge=1, le=10_000_000), INTEGRAL] = Field(
+        20_000, description="newest episode records used by EM"
+    )
+    em_max_iter: Annotated[int, Field(ge=1, le=100_000), INTEGRAL] = Field(
+        train_config.default("em_max_iter"), description="EM forward-backward passes at most"
+    )
+    gate_episodes: Annotated[int, Field(ge=1, le=1_000_000), INTEGRAL] = Field(
+        1000, description="evaluation episodes of the gate (the same seeds for both policies)"
     )
     gate: bool = Field(True, description="publish only if the new policy is not worse than the current one")
     promote: bool = Field(True, description="make the new version current")
-    threads: int = Field(0, ge=0, le=1024, description="torch threads in the training process (0: torch's default)")
+    threads: Annotated[int, Field(ge=0, le=1024), INTEGRAL] = Field(
+        0, description="torch threads in the training process (0: torch's default)"
+    )
 
 
 def _die_with_parent(parent_pid: int) -> None:

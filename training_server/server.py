@@ -34,7 +34,17 @@ from shared.core.files import read_token, write_private
 from shared.core.graph import Graph, GraphError, builtin_graph, load_graph_file
 from shared.core.snapshot import WEIGHTS, SnapshotData, read_meta, read_snapshot
 from shared.core.wire import DEFAULT_FLEET, DEFAULT_HTTP, DEFAULT_ZENOH_ENDPOINT, check_id
-from training_server.security import ROLES, AuditLog, SignInGuard, TokenFile, endpoint_host, is_loopback, rotate
+from training_server.security import (
+    MAX_FAILURES,
+    ROLES,
+    WINDOW_S,
+    AuditLog,
+    SignInGuard,
+    TokenFile,
+    endpoint_host,
+    is_loopback,
+    rotate,
+)
 from training_server.store import DB_FILE, Store, sqlite_url
 
 log = logging.getLogger("mures.server")
@@ -86,6 +96,7 @@ class Server:
         agent_token_file: Path,
         database_url: str | None = None,
         mission_timeout: float = MISSION_TIMEOUT_S,
+        sign_in_limit: int = MAX_FAILURES,
     ) -> None:
         self.data_dir = data_dir
         self.mission_timeout = mission_timeout
@@ -93,7 +104,7 @@ class Server:
         self.fleet = fleet
         # re-read when rotated (training-server rotate-token); compared in constant time
         self.tokens = {"operator": TokenFile(operator_token_file), "agent": TokenFile(agent_token_file)}
-        self.sign_ins = SignInGuard()
+        self.sign_ins = SignInGuard(max_failures=sign_in_limit)
         self.audit = AuditLog(data_dir / "audit.jsonl")
         data_dir.mkdir(parents=True, exist_ok=True)
         data_dir.chmod(0o700)  # private: the database, tokens and policies are the fleet's
@@ -373,6 +384,14 @@ def build_parser() -> argparse.ArgumentParser:
         "a mission may ask for less)",
     )
     p.add_argument(
+        "--sign-in-limit",
+        type=int,
+        default=MAX_FAILURES,
+        metavar="N",
+        help=f"wrong tokens one address may send within {WINDOW_S:.0f} s before it is refused with 429 for a "
+        f"while (default {MAX_FAILURES})",
+    )
+    p.add_argument(
         "--http", type=parse_hostport, default=DEFAULT_HTTP, help=f"REST API address (default {DEFAULT_HTTP})"
     )
     p.add_argument(
@@ -494,6 +513,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     import uvicorn
+    import zenoh
 
     from shared.core.models import Sensor
     from shared.core.wire import zenoh_config
@@ -514,8 +534,17 @@ def _run(args: argparse.Namespace) -> int:
     ag = _token_file(data_dir / "agent.token", args.agent_token_file, "agent")
     if not 0 < args.mission_timeout <= 7 * 24 * 3600:
         raise ValueError("--mission-timeout must be more than 0 and at most a week (604800 s)")
+    if args.sign_in_limit < 1:
+        raise ValueError("--sign-in-limit must be at least 1")
     srv = Server(
-        data_dir, graph, args.fleet, op, ag, database_url=args.database_url, mission_timeout=args.mission_timeout
+        data_dir,
+        graph,
+        args.fleet,
+        op,
+        ag,
+        database_url=args.database_url,
+        mission_timeout=args.mission_timeout,
+        sign_in_limit=args.sign_in_limit,
     )
     srv.migrate_versions()
     srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)
@@ -534,7 +563,11 @@ def _run(args: argparse.Namespace) -> int:
         conf = zenoh_config("client", connect=args.zenoh_connect)
     else:
         conf = zenoh_config("router", listen=args.zenoh_listen or [DEFAULT_ZENOH_ENDPOINT])
-    srv.bus = Bus(srv, conf)
+    try:
+        srv.bus = Bus(srv, conf)
+    except zenoh.ZError as exc:
+        srv.close()
+        raise ValueError(f"cannot start Zenoh: {str(exc).split(' at /')[0]}") from None
     srv.supervisor = Supervisor(srv)
     srv.supervisor.start()
     host, port = args.http

@@ -9,6 +9,7 @@ calls never block the event loop.
 from __future__ import annotations
 
 import logging
+import re
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -36,6 +37,15 @@ def _validation_message(exc: RequestValidationError) -> str:
     return "; ".join(parts) + (f" (and {more} more)" if more > 0 else "")
 
 
+def _methods_of(app: FastAPI, path: str) -> list[str]:
+    """The methods the OpenAPI document lists for ``path`` (a literal segment or a {parameter})."""
+    methods: set[str] = set()
+    for template, ops in app.openapi().get("paths", {}).items():
+        if re.fullmatch(re.sub(r"\{[^/]+\}", "[^/]+", template), path):
+            methods |= {m.upper() for m in ops}
+    return sorted(methods)
+
+
 def create_app(srv: Any) -> FastAPI:
     """The API of ``srv`` (a training_server.server.Server, or a test double with its attributes)."""
     app = FastAPI(title="MuRES fleet training server", version="1", description=__doc__)
@@ -61,8 +71,15 @@ def create_app(srv: Any) -> FastAPI:
         return response
 
     @app.exception_handler(StarletteHTTPException)
-    def _http_error(_req: Request, exc: StarletteHTTPException) -> JSONResponse:
-        return JSONResponse({"error": str(exc.detail)}, status_code=exc.status_code, headers=exc.headers)
+    def _http_error(req: Request, exc: StarletteHTTPException) -> JSONResponse:
+        headers = dict(exc.headers or {})
+        detail = str(exc.detail)
+        if exc.status_code == 405:  # every method the path has, not only those of the first route matched
+            headers["Allow"] = ", ".join(_methods_of(app, req.url.path))
+            detail = f"{req.method} is not allowed on {req.url.path}; use {headers['Allow']}"
+        elif exc.status_code == 400 and detail == "There was an error parsing the body":
+            detail = "the request body is not valid JSON (UTF-8)"
+        return JSONResponse({"error": detail}, status_code=exc.status_code, headers=headers)
 
     @app.exception_handler(RequestValidationError)
     def _invalid(_req: Request, exc: RequestValidationError) -> JSONResponse:
@@ -85,6 +102,8 @@ def create_app(srv: Any) -> FastAPI:
                     responses = op.setdefault("responses", {})
                     if "422" in responses:
                         responses["422"] = {"description": DESCRIPTIONS[422], "content": error}
+                    if "requestBody" in op:  # a body that is not JSON at all
+                        responses["400"] = {"description": DESCRIPTIONS[400], "content": error}
                     responses["413"] = {"description": DESCRIPTIONS[413], "content": error}
             schemas = spec.get("components", {}).get("schemas", {})
             for name in ("HTTPValidationError", "ValidationError"):

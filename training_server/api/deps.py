@@ -22,7 +22,7 @@ _bearer = HTTPBearer(auto_error=False)
 
 DESCRIPTIONS = {
     304: "Not modified: the If-None-Match ETag is the artifact's",
-    400: "Bad request",
+    400: "The request body is not valid JSON",
     401: "Missing or wrong bearer token",
     403: "The agent token on an operator action",
     404: "No such resource",
@@ -55,10 +55,13 @@ def _client(request: Request) -> str:
 
 
 def role(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> int:
-    """The caller's role from its bearer token; failed sign-ins are logged and, past a limit per
-    address (training_server/security.py), refused with 429 for a while."""
+    """The caller's role from its bearer token. No token: 401. A wrong one is a failed sign-in,
+    logged; past a limit per address (training_server/security.py) the address is refused with
+    429 for a while, whatever token it sends (a right guess must not be told apart then)."""
     srv = get_server(request)
     client = _client(request)
+    if creds is None or creds.scheme.lower() != "bearer":  # no guess was made: nothing to count
+        raise HTTPException(401, "missing bearer token", headers={"WWW-Authenticate": "Bearer"})
     wait = srv.sign_ins.blocked_for(client)
     if wait > 0:
         raise HTTPException(
@@ -66,9 +69,6 @@ def role(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None,
             f"too many failed sign-ins from {client}; try again in {math.ceil(wait)} s",
             headers={"Retry-After": str(math.ceil(wait))},
         )
-    if creds is None or creds.scheme.lower() != "bearer":
-        srv.sign_ins.failed(client, "no bearer token", request.url.path)
-        raise HTTPException(401, "missing bearer token", headers={"WWW-Authenticate": "Bearer"})
     tok = creds.credentials.encode()
     if srv.tokens["operator"].matches(tok):
         request.state.who = "operator"

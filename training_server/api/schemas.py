@@ -1,8 +1,8 @@
 """The REST API's models (docs/SPEC.md section 9): requests, responses and the one error schema.
 
-Requests are strict (no "5000" for an integer, no true for a number, no NaN or infinity) and refuse
-unknown fields. Responses are the models below, so the OpenAPI document describes exactly what
-the server sends.
+Requests are strict (no "5000" or 5.5 for an integer, no true for a number, no NaN or infinity;
+5.0 is the integer 5, as in JSON Schema) and refuse unknown fields. Responses are the models
+below, so the OpenAPI document describes exactly what the server sends.
 """
 
 from __future__ import annotations
@@ -12,10 +12,13 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.core.records import ID_RE
-from training_server.jobs import TrainingParams
+from training_server.jobs import INTEGRAL, TrainingParams
 
 RobotId = Annotated[str, Field(pattern=ID_RE.pattern, description="1-128 characters of A-Z a-z 0-9 _ . -")]
-MAX_ID = 2**63 - 1  # the largest integer the database stores
+# the largest integer a request may carry (ids, seeds, versions): 2^53 - 1, the largest that JSON
+# clients holding numbers as doubles (JavaScript, schema validators) hold exactly, so that a client
+# and the server agree on which values are in range; the database's own limit (2^63 - 1) is above
+MAX_ID = 2**53 - 1
 
 
 class Error(BaseModel):
@@ -64,12 +67,18 @@ class FleetOut(BaseModel):
 # ---------------------------------------------------------------------- missions
 class MissionRequest(_Request):
     robots: list[RobotId] | None = Field(
-        default=None, description="robot ids to fly (default: every agent online)", min_length=1, max_length=256
+        default=None,
+        description="robot ids to fly, each once (default: every agent online)",
+        min_length=1,
+        max_length=256,
+        json_schema_extra={"uniqueItems": True},
     )
-    seed: int | None = Field(
-        default=None, ge=0, le=MAX_ID, description="mission seed (agents' and simulated world's randomness)"
+    seed: Annotated[int, Field(ge=0, le=MAX_ID), INTEGRAL] | None = Field(
+        default=None, description="mission seed (agents' and simulated world's randomness)"
     )
-    max_steps: int | None = Field(default=None, ge=1, le=100_000, description="step limit (default 3n)")
+    max_steps: Annotated[int, Field(ge=1, le=100_000), INTEGRAL] | None = Field(
+        default=None, description="step limit (default 3n)"
+    )
     timeout_s: float | None = Field(
         default=None,
         gt=0,
@@ -160,7 +169,7 @@ class EpisodeRecord(BaseModel):
 
 # ---------------------------------------------------------------------- policies
 class PromoteRequest(_Request):
-    version: int = Field(ge=1, le=MAX_ID)
+    version: Annotated[int, Field(ge=1, le=MAX_ID), INTEGRAL]
 
 
 class PolicyVersion(BaseModel):
