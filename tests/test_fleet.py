@@ -280,12 +280,13 @@ def test_bad_records_and_requests_get_clear_errors_and_change_nothing(fleet):
     assert samples[("mures_agents_online", ())] == 3
 
 
-def test_server_killed_loses_no_acknowledged_episode(tmp_path):
+def test_server_killed_loses_no_acknowledged_episode(tmp_path, database_url):
     graph = builtin_graph("office")
     logs = tmp_path / "logs"
     logs.mkdir()
     data = tmp_path / "data"
-    proc, base, endpoint = start_server(["--env", "office"], data, 2, Sensor(), logs)
+    db = ["--database-url", database_url] if database_url else []
+    proc, base, endpoint = start_server(["--env", "office"], data, 2, Sensor(), logs, db)
     acked = []
     try:
         with zenoh.open(zenoh_config("client", connect=[endpoint])) as s:
@@ -315,7 +316,7 @@ def test_server_killed_loses_no_acknowledged_episode(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert len(acked) == 200
-    proc, base, _ = start_server(["--env", "office"], data, 2, Sensor(), logs)
+    proc, base, _ = start_server(["--env", "office"], data, 2, Sensor(), logs, db)
     try:
         api = ApiClient(base, read_token(data / "operator.token"))
         assert api.get("/api/v1/episodes/stats")["stored"] == 200
