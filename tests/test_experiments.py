@@ -227,3 +227,28 @@ def test_teams_trained_by_local_processes_and_by_a_dask_cluster_give_the_same_ro
     assert experiments.plan("fig6", tmp_path / "dask", tiny) == []  # resumes: every team is cached
     with pytest.raises(ValueError, match="cannot reach the Dask scheduler at tcp://"):
         experiments.run("fig6", tmp_path / "nowhere", quick=True, scheduler=f"tcp://127.0.0.1:{free_port()}")
+
+
+def test_fig5_pairs_each_beta_with_pg_of_the_same_training_seed(tmp_path):
+    """The paired difference and its two CIs, on capture times made up so that the answer is known:
+    beta 0.5 is PG minus 1 on every episode of seed 0 and minus 3 on seed 1."""
+    import numpy as np
+    from scipy.stats import t as student_t
+
+    from shared.tools import experiments as ex
+
+    rng = np.random.default_rng(0)
+    b = ex.replace(ex.QUICK, seeds=(0, 1), episodes=400)
+    pg = {s: rng.integers(5, 40, 400).astype(float) for s in (0, 1)}
+    times = {(1.0, s): pg[s] for s in (0, 1)}
+    times |= {(0.5, 0): pg[0] - 1, (0.5, 1): pg[1] - 3}
+    row = ex._beta_row("office", 4, 0.5, b, times)
+    assert row["training_seeds"] == [0, 1] and row["train_episodes"] == b.train
+    assert row["diff_to_pg"] == -2.0 and row["diff_to_pg_per_seed"] == [-1.0, -3.0]
+    assert row["diff_to_pg_ci95_seeds"] == round(float(student_t.ppf(0.975, 1) * np.std([-1, -3], ddof=1) / 2**0.5), 3)
+    assert 0 < row["diff_to_pg_ci95_episodes"] < 0.1  # the episodes differ by 1 or 3: little spread
+    assert row["mean_capture_time"] == round(float(np.concatenate([pg[0] - 1, pg[1] - 3]).mean()), 3)
+    pg_row = ex._beta_row("office", 4, 1.0, b, times)
+    assert "diff_to_pg" not in pg_row and pg_row["method"] == "pg"
+    text = "\n".join(ex._beta_reading([row, pg_row]))
+    assert "| 0.5 | -2.00 |" in text and "no beta < 1 captures sooner" in text  # the seeds' CI includes 0

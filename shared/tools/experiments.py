@@ -126,12 +126,13 @@ class Budget:
     milp_limit: float  # HiGHS time limit per solve, seconds
     teams: tuple[int, ...]  # team sizes N of the sweeps (fig6, fig9, fig10)
     marl_train: int | None = None  # training episodes per MARL baseline; None: each method's default budget
+    seeds: tuple[int, ...] = (0,)  # training seeds of fig5's teams (the other figures: seed 0)
 
     def with_train(self, episodes: int | None) -> Budget:
         return self if episodes is None else replace(self, train=episodes, marl_train=episodes)
 
 
-FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5))
+FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5), seeds=(0, 1, 2))
 QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4), marl_train=1_000)
 MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.MARL_ALGORITHMS
 SEED = 1  # evaluation seed of every cell (training seeds: 0)
@@ -398,10 +399,12 @@ def _cell(
     sensor: Any = None,
     withdraw_at: list[int | None] | None = None,
     latency: bool = False,
+    times: bool = False,
 ) -> dict[str, Any]:
     """One evaluated cell: capture time and false alarms (mean, 95% CI) over ``episodes`` seeded
     episodes; with ``latency``, the decision time per team step, one episode at a time (batch 1,
-    so batching does not hide the per-step latency; the simulator's step included)."""
+    so batching does not hide the per-step latency; the simulator's step included); with
+    ``times``, the (episodes,) capture times under "capture_times" (for paired comparisons)."""
     from shared.core.graph import builtin_graph
     from shared.core.models import Sensor, uniform_walk
     from shared.engine.evaluate import evaluate, mean_ci95
@@ -451,6 +454,8 @@ def _cell(
             row["decision_ms"] = round((time.perf_counter() - t1) / max(1.0, float(one.capture_time.sum())) * 1e3, 4)
         else:  # planners already ran one episode at a time
             row["decision_ms"] = round(wall / max(1.0, float(res.capture_time.sum())) * 1e3, 4)
+    if times:
+        row["capture_times"] = np.asarray(res.capture_time, dtype=np.float64)
     return row
 
 
@@ -592,23 +597,81 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
 
 
 # ---------------------------------------------------------------------- fig5, fig6
+BETAS = (0.1, 0.3, 0.5, 0.7, 0.9, 1.0)
+
+
 def fig5(root: Path, b: Budget) -> Path:
-    """beta in {0.1, 0.3, 0.5, 0.7, 0.9} and 1 (PG) for a 4-robot team on OFFICE and MUSEUM (paper Fig. 5)."""
+    """beta in {0.1, 0.3, 0.5, 0.7, 0.9} and 1 (PG) for a 4-robot team on OFFICE and MUSEUM (paper
+    Fig. 5), a team per training seed of ``b.seeds``. Every team is flown on the same evaluation
+    episodes (seed SEED), so a beta's team and the PG team of the same training seed meet the same
+    target paths: their difference is paired episode by episode. Each row: the capture time pooled
+    over the seeds' episodes, each seed's mean, and the paired difference to beta = 1 with two 95%
+    CIs, over the pooled episodes (evaluation noise only) and over the training seeds (Student t,
+    S - 1 degrees of freedom: what another training run would give)."""
     from shared.core.graph import builtin_graph
 
     N, rows = 4, []
     sensor = sensor_for("cepg")
     for env in ("office", "museum"):
         g = builtin_graph(env)
-        for beta in (0.1, 0.3, 0.5, 0.7, 0.9, 1.0):
-            snap = _load(_snapshot(root, env, N, beta, b.train, 0), g)
-            rows.append(
-                {**_cell(env, N, "pg" if beta == 1.0 else "cepg", _flown(snap, g, sensor, N), b.episodes), "beta": beta}
-            )
+        times: dict[tuple[float, int], np.ndarray] = {}
+        for beta in BETAS:
+            for s in b.seeds:
+                snap = _load(_snapshot(root, env, N, beta, b.train, s), g)
+                cell = _cell(
+                    env, N, "pg" if beta == 1.0 else "cepg", _flown(snap, g, sensor, N), b.episodes, times=True
+                )
+                times[beta, s] = cell.pop("capture_times", np.zeros(0))
+        for beta in BETAS:
+            rows.append(_beta_row(env, N, beta, b, times))
+        _say(
+            f"fig5: {env}: " + ", ".join(f"beta {r['beta']} {r['mean_capture_time']:.2f}" for r in rows[-len(BETAS) :])
+        )
     out = root / "fig5"
-    _write(out, "fig5", _setup("fig5", b, robots=N), rows)
+    _write(out, "fig5", _setup("fig5", b, robots=N, training_seeds=list(b.seeds)), rows)
     _bars(out / "fig5.png", rows, "beta", "capture time (steps), N = 4")
     return out
+
+
+def _beta_row(env: str, N: int, beta: float, b: Budget, times: dict[tuple[float, int], np.ndarray]) -> dict[str, Any]:
+    """fig5's row of one beta from the capture times of every (beta, training seed) team."""
+    from scipy.stats import t as student_t
+
+    from shared.engine.evaluate import mean_ci95
+
+    nan = float("nan")
+    row: dict[str, Any] = {
+        "map": env,
+        "robots": N,
+        "method": "pg" if beta == 1.0 else "cepg",
+        "beta": beta,
+        "train_episodes": b.train,
+        "training_seeds": list(b.seeds),
+        "episodes": b.episodes,
+        "seed": SEED,
+    }
+    if _PLAN is not None:
+        return {**row, "mean_capture_time": nan, "ci95_halfwidth": nan}
+    pooled = np.concatenate([times[beta, s] for s in b.seeds])
+    m, h = mean_ci95(pooled)
+    row.update(
+        mean_capture_time=round(m, 3),
+        ci95_halfwidth=round(h, 3),
+        per_seed_mean=[round(float(times[beta, s].mean()), 3) for s in b.seeds],
+    )
+    if beta != 1.0:
+        diffs = [times[beta, s] - times[1.0, s] for s in b.seeds]  # same episodes, same target paths
+        dm, dh = mean_ci95(np.concatenate(diffs))
+        seed_means = np.array([d.mean() for d in diffs])
+        S = len(seed_means)
+        sh = float(student_t.ppf(0.975, S - 1) * seed_means.std(ddof=1) / np.sqrt(S)) if S > 1 else nan
+        row.update(
+            diff_to_pg=round(dm, 3),
+            diff_to_pg_ci95_episodes=round(dh, 3),
+            diff_to_pg_ci95_seeds=round(sh, 3),
+            diff_to_pg_per_seed=[round(float(x), 3) for x in seed_means],
+        )
+    return row
 
 
 def fig6(root: Path, b: Budget) -> Path:
@@ -1143,6 +1206,8 @@ def report(root: Path, out: Path) -> Path:
                     cells.append("—" if r is None else _fmt(r[value], r[half], r["episodes"]))
                 lines.append(f"| {lab} | " + " | ".join(cells) + " |")
             lines.append("")
+            if fig == "fig5":
+                lines += _beta_reading(sel)
         lines += [f"![{fig}]({rel}/{fig}/{fig}.png)", ""]
     lines += _marl_report(root, rel)
     missing = [e for e in EXPERIMENTS if e != "fig8" and not (root / e).exists()]
@@ -1151,6 +1216,38 @@ def report(root: Path, out: Path) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(out, "\n".join(lines))
     return out
+
+
+def _beta_reading(rows: list[dict[str, Any]]) -> list[str]:
+    """fig5's paired differences to beta = 1 on one map, and what they say."""
+    diffs = [r for r in rows if "diff_to_pg" in r]
+    if not diffs:
+        return []
+    seeds = diffs[0].get("training_seeds", [0])
+    out = [
+        f"Paired difference to beta = 1 (PG) of the same training seed (negative: CE-PG captures sooner), "
+        f"training seeds {seeds}, each team on the same {diffs[0]['episodes']} episodes; 95% CI over the "
+        "pooled episodes, and over the training seeds (Student t):",
+        "",
+        "| beta | difference | CI (episodes) | CI (seeds) | per seed |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for r in diffs:
+        out.append(
+            f"| {r['beta']} | {r['diff_to_pg']:+.2f} | ± {r['diff_to_pg_ci95_episodes']:.2f} | "
+            f"± {r['diff_to_pg_ci95_seeds']:.2f} | {', '.join(f'{x:+.2f}' for x in r['diff_to_pg_per_seed'])} |"
+        )
+    sig = [r["beta"] for r in diffs if r["diff_to_pg"] + r["diff_to_pg_ci95_seeds"] < 0]
+    worse = [r["beta"] for r in diffs if r["diff_to_pg"] - r["diff_to_pg_ci95_seeds"] > 0]
+    if len(seeds) > 1:
+        out += [
+            "",
+            "Across training seeds, "
+            + (f"beta in {sig} captures sooner than PG" if sig else "no beta < 1 captures sooner than PG")
+            + (f"; beta in {worse} captures later" if worse else "")
+            + " (95% CI over seeds excludes 0).",
+        ]
+    return [*out, ""]
 
 
 def _plateau(curve: list[dict[str, Any]], window: int = 10, within: float = 0.10) -> tuple[int, float] | None:
