@@ -368,11 +368,34 @@ def _summary(path: Path) -> dict[str, Any]:
     return dict(read_meta(path)["summary"])
 
 
-def _flown(snap: Any, g: Any, sensor: Any, robots: int) -> Callable[[int], Any]:
-    """seed -> the snapshot's team flown by ``robots`` robots."""
-    from shared.learning.snapshot import PolicySearcher
+@dataclass(frozen=True)
+class _Team:
+    """seed -> a snapshot's team flown by ``robots`` robots; it also says how the team was trained,
+    for the rows (``trained``)."""
 
-    return lambda s: PolicySearcher(snap, g, sensor, robots, seed=s)
+    snap: Any
+    g: Any
+    sensor: Any
+    robots: int
+
+    def __call__(self, seed: int) -> Any:
+        from shared.learning.snapshot import PolicySearcher
+
+        return PolicySearcher(self.snap, self.g, self.sensor, self.robots, seed=seed)
+
+    def trained(self) -> dict[str, Any]:
+        """The episodes the team was trained for (as run: a budget is rounded up to whole batches)
+        and its training seed, from the snapshot itself."""
+        meta = self.snap.meta if self.snap is not None else {}
+        return {
+            "train_episodes": meta.get("summary", {}).get("episodes", meta.get("training", {}).get("episodes")),
+            "training_seeds": [meta["training"]["seed"]] if "seed" in meta.get("training", {}) else [],
+        }
+
+
+def _flown(snap: Any, g: Any, sensor: Any, robots: int) -> _Team:
+    """seed -> the snapshot's team flown by ``robots`` robots."""
+    return _Team(snap, g, sensor, robots)
 
 
 def _reference(env: str, robots: int, method: str, sensor: Any, **kw: Any) -> Callable[[int], Any]:
@@ -439,6 +462,7 @@ def _cell(
         "detection": sensor.detection,
         "episodes": episodes,
         "seed": seed,
+        **(make.trained() if isinstance(make, _Team) else {"train_episodes": None, "training_seeds": []}),
         "mean_capture_time": round(s["mean_capture_time"], 3),
         "ci95_halfwidth": round(s["ci95_halfwidth"], 3),
         "censored_fraction": round(s["censored_fraction"], 4),
@@ -883,12 +907,7 @@ def marl(root: Path, b: Budget) -> Path:
     t_start = time.perf_counter()
     for env in MARL_MAPS:
         rows.append(_cell(env, N, "random", _reference(env, N, "random", sensor), b.episodes, latency=True))
-        rows.append(
-            {
-                **_cell(env, N, "cepg", _learned(root, env, N, "cepg", b), b.episodes, latency=True),
-                "train_episodes": b.train,
-            }
-        )
+        rows.append(_cell(env, N, "cepg", _learned(root, env, N, "cepg", b), b.episodes, latency=True))
         for m in MARL:
             path = _marl_snapshot(root, env, N, m, b.marl_train, 0)
             summary = _summary(path)
@@ -1302,7 +1321,7 @@ def _marl_report(root: Path, rel: str) -> list[str]:
                 else f"{100 * (1 - r['mean_capture_time'] / rnd['mean_capture_time']):+.0f} %"
             )
             reach = _plateau(d["learning_curves"].get(f"{env}/{r['method']}", []))
-            trained = f"{r['train_episodes']:,}" if "train_episodes" in r else "—"
+            trained = "—" if r.get("train_episodes") is None else f"{r['train_episodes']:,}"
             lines.append(
                 f"| {env.upper()} | {r['method']} | {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], r['episodes'])} "
                 f"| {vs} | {trained} "
