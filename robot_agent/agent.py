@@ -177,6 +177,10 @@ class PolicyStore:
         self.version = version
 
 
+class AgentStop(Exception):
+    """A reason to stop the agent (exit status 2) that retrying cannot fix."""
+
+
 class Agent:
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
@@ -197,6 +201,18 @@ class Agent:
         self.in_mission = False
 
     # ------------------------------------------------------------------ HTTP
+    def _refused(self, exc: ApiError) -> None:
+        """A server that refuses this agent's token will not change its mind: stop (exit 2), with
+        the reason, instead of retrying while showing as online."""
+        if exc.status in (401, 403):
+            why = exc.body.get("error") if isinstance(exc.body, dict) else exc.body
+            hint = (
+                "this agent has no --token-file; give it the agent token (or its own robot token)"
+                if self.api.token is None
+                else f"check --token-file {self.args.token_file}: the server refuses it"
+            )
+            raise AgentStop(f"the server answered {exc.status} ({why}): {hint}")
+
     def fetch_map(self) -> Graph:
         cache = self.state / "map.json"
         while not self.stop.is_set():
@@ -208,6 +224,8 @@ class Agent:
                 atomic_write(cache, json.dumps(data).encode())
                 return graph
             except (OSError, ApiError, ValueError) as exc:
+                if isinstance(exc, ApiError):
+                    self._refused(exc)
                 if cache.exists():
                     log.warning("server unreachable (%s); using the cached map", exc)
                     return graph_from_dict(json.loads(cache.read_text(encoding="utf-8")), str(cache))
@@ -239,6 +257,8 @@ class Agent:
             self.policies.install(version, tar_path, sha)
             log.info("policy version %s -> %d (%s)", old, version, reason)
         except (OSError, ApiError, ValueError, KeyError, TypeError) as exc:
+            if isinstance(exc, ApiError):
+                self._refused(exc)
             have = self.policies.version
             log.warning("policy update failed (%s); keeping version %s", exc, have)
 
@@ -425,6 +445,10 @@ class Agent:
                 backend.end()
             except Exception as exc:
                 log.warning("backend end(): %s", exc)
+        if not steps:  # not even z_0: there is no record to make (an empty one would be refused)
+            log.error("mission %s: no step was recorded, so no record is sent", mid)
+            self.journal.finish()
+            return
         rec = self._record(header, steps, end)
         self.outbox.put(rec)  # durable before it is sent
         self.journal.finish()
@@ -556,7 +580,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, on_signal)
     try:
         return agent.run()
-    except ValueError as exc:
+    except (ValueError, AgentStop) as exc:
         print(f"robot-agent: error: {exc}", file=sys.stderr)
         return 2
 

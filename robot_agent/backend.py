@@ -92,6 +92,11 @@ class SimBackend:
             if msg.get("ended"):
                 raise MissionOver
             return int(msg["z"])
+        if self.t == 0:
+            raise BackendError(
+                f"no simulated world answers on {key} (waited {self.timeout:.0f} s): the sim backend needs one; "
+                "start it with `mures world` (or run the whole fleet with `mures fleet-sim`)"
+            )
         raise BackendError(f"the simulated world did not answer step t={self.t} within {self.timeout:.0f} s")
 
     def end(self) -> None:

@@ -394,3 +394,56 @@ def test_cancelled_run_leaves_the_current_policy(fleet):
     with pytest.raises(ApiError) as exc:
         fleet.api.post(f"/api/v1/training-runs/{run['id']}/cancel")
     assert exc.value.status == 409
+
+
+def test_the_fleet_by_hand_as_the_readme_shows(tmp_path):
+    """A server, `mures world` and two `robot-agent --backend sim` started by hand, a mission started
+    with the operator token: it completes. Without a world an agent says so and sends nothing; an
+    agent with a wrong token stops at once with a clear message."""
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    data = tmp_path / "data"
+    proc, base, endpoint = start_server(["--env", "office"], data, 2, Sensor(), logs)
+    procs: list[subprocess.Popen] = []
+
+    def agent(robot: str, token: Path) -> subprocess.Popen:
+        cmd = [sys.executable, "-m", "robot_agent.agent", "--robot-id", robot, "--server", base]
+        cmd += ["--zenoh-connect", endpoint, "--token-file", str(token), "--state-dir", str(tmp_path / robot)]
+        log = open(logs / f"{robot}.log", "w")  # noqa: SIM115 - owned by the process
+        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+
+    try:
+        api = ApiClient(base, read_token(data / "operator.token"))
+        bad = tmp_path / "wrong.token"
+        bad.write_text("not-the-token\n")
+        assert agent("r9", bad).wait(60) == 2
+        out = (logs / "r9.log").read_text()
+        assert "the server answered 401" in out and "--token-file" in out, out
+        procs += [agent(r, data / "agent.token") for r in ("r1", "r2")]
+        wait_until(lambda: len(api.get("/api/v1/fleet")["agents"]) == 2, 60, "the agents")
+        # no world yet: the robot says so and sends no record (an empty one would be refused)
+        m1 = api.post("/api/v1/missions", {"robots": ["r1"]})
+        wait_until(lambda: "no simulated world answers" in (logs / "r1.log").read_text(), 60, "r1 to give up")
+        assert "mures world" in (logs / "r1.log").read_text()
+        api.post(f"/api/v1/missions/{m1['id']}/stop")
+        world_log = open(logs / "world.log", "w")  # noqa: SIM115 - owned by the process
+        cmd = [str(Path(sys.executable).with_name("mures")), "world", "--env", "office", "--zenoh-connect", endpoint]
+        procs.append(subprocess.Popen(cmd, stdout=world_log, stderr=subprocess.STDOUT))
+        wait_until(lambda: "simulating fleet 'default'" in (logs / "world.log").read_text(), 60, "the world")
+        m2 = api.post("/api/v1/missions", {"robots": ["r1", "r2"], "seed": 3})
+        got = wait_until(
+            lambda: (r := api.get(f"/api/v1/missions/{m2['id']}"))["status"] == "completed" and r, 90, "m2"
+        )
+        assert got["episodes_received"] == ["r1", "r2"]
+        assert api.get("/api/v1/episodes/stats") | {"by_policy_version": None} == {
+            "stored": 2,
+            "rejected": {},
+            "missions": 1,
+            "by_policy_version": None,
+        }
+    finally:
+        for p in procs:
+            p.send_signal(signal.SIGTERM)
+            p.wait(30)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(30)

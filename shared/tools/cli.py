@@ -496,6 +496,46 @@ def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------- world
+def cmd_world(args: argparse.Namespace) -> int:
+    """The simulated world alone, for agents started by hand with ``--backend sim``: it owns the
+    hidden target of every mission the server starts and answers the agents' detections."""
+    import threading
+
+    import zenoh
+
+    from shared.core.wire import DEFAULT_ZENOH_ENDPOINT, check_id, zenoh_config
+    from shared.tools.world import World
+
+    graph, target, sensor = _world(args, "node")
+    try:
+        check_id("fleet", args.fleet)
+        connect = args.zenoh_connect or [DEFAULT_ZENOH_ENDPOINT]
+        conf = zenoh_config("client", connect=connect, config_file=args.zenoh_config)
+        session = zenoh.open(conf)
+    except (ValueError, zenoh.ZError) as exc:
+        raise CliError(f"world: {str(exc).split(' at /')[0]}") from None
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_a: stop.set())
+    signal.signal(signal.SIGINT, lambda *_a: stop.set())
+    world = World(
+        session, args.fleet, graph, target, sensor, step_timeout=args.step_timeout, step_delay=args.step_delay
+    )
+    print(
+        f"world: simulating fleet {args.fleet!r} on {graph.name} (n={graph.n}), target {args.target}, sensor "
+        f"eta_fn={sensor.eta_fn} eta_fp={sensor.eta_fp} {sensor.detection}; connected to "
+        f"{args.zenoh_config or ', '.join(connect)}; Ctrl-C stops it",
+        file=sys.stderr,
+        flush=True,
+    )
+    try:
+        stop.wait()
+    finally:
+        world.close()
+        session.close()
+    return 0
+
+
 # ---------------------------------------------------------------------- experiments, report
 def cmd_experiment(args: argparse.Namespace) -> int:
     from shared.tools.experiments import run
@@ -592,6 +632,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--agent-token-file", metavar="FILE", help="with --server: the agent token (default --token-file)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_fleet_sim)
+
+    p = sub.add_parser(
+        "world", help="the simulated world alone (the target, the detections) for agents run by hand with --backend sim"
+    )
+    _add_map_args(p)
+    p.add_argument(
+        "--zenoh-connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="the fleet's router (repeatable; default the server's own, tcp/127.0.0.1:7447)",
+    )
+    p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file instead (TLS, credentials)")
+    p.add_argument("--fleet", default="default", help="fleet name (default 'default')")
+    p.add_argument("--eta-fn", type=_eta, default=0.0, help="false-negative rate, in [0, 0.5] (default 0)")
+    p.add_argument("--eta-fp", type=_eta, default=0.0, help="false-positive rate, in [0, 0.5] (default 0)")
+    p.add_argument("--detection", choices=DETECTIONS, default=None, help="detection set D(p) (default node)")
+    p.add_argument("--target", default="uniform", metavar="MODEL", help="uniform (default), lazy:STAY or a model.json")
+    p.add_argument("--step-timeout", type=float, default=10.0, help="withdraw a robot silent this long (s, default 10)")
+    p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step (s, default 0)")
+    p.set_defaults(func=cmd_world)
 
     p = sub.add_parser("experiment", help="regenerate one of the paper's figures as data and a plot")
     p.add_argument("name", help="fig4 .. fig13 (fig8 comes with fig7), marl (the MARL baselines), or all")
