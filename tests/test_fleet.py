@@ -102,13 +102,19 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
     t0 = time.perf_counter()
     fleet.api.get("/api/v1/episodes/stats")
     assert time.perf_counter() - t0 < 2.0
-    done = wait_until(
-        lambda: (r := fleet.api.get(f"/api/v1/training-runs/{run['id']}"))["status"] not in ("queued", "running") and r,
-        600,
-        "the training run",
-        every=0.5,
-    )
+    seen = []
+
+    def finished():
+        r = fleet.api.get(f"/api/v1/training-runs/{run['id']}")
+        seen.append((r["progress"] or {}).get("message"))
+        return r["status"] not in ("queued", "running") and r
+
+    done = wait_until(finished, 600, "the training run", every=0.2)
     assert done["status"] == "succeeded", done
+    # progress during EM, and the episodes the run trains said up front (whole batches of 256)
+    assert any(m and m.startswith("EM pass") for m in seen), seen
+    assert "training 30,208 episodes (30,000 asked, rounded up to whole batches of 256)" in seen
+    assert done["metrics"]["train"]["episodes"] == 30_208
     assert done["version"] == 2 and fleet.api.get("/api/v1/policies/current")["version"] == 2
     assert done["metrics"]["em"]["missions"] >= 360
     after = _fly_many(fleet, range(1000, 1060))  # the same seeds: the same target paths

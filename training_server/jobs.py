@@ -50,7 +50,9 @@ class TrainingParams(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
 
     episodes: Annotated[int, Field(ge=256, le=10_000_000), INTEGRAL] = Field(
-        20_000, description="CE-PG episodes in simulation, warm-started from the current policy"
+        20_000,
+        description="CE-PG episodes in simulation, warm-started from the current policy (run in whole batches of "
+        f"{train_config.default('batch')}: a number in between is rounded up, and the run says so)",
     )
     beta: float = Field(
         train_config.default("beta")[0], ge=0.0, le=1.0, allow_inf_nan=False, description="Eq. 9's beta (1 = PG)"
@@ -142,7 +144,21 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     if len(data.length) == 0:
         raise ValueError("no usable episode records: fly some missions before training")
     say("em", message=f"EM on {len(data.length)} missions ({data.used_records} records)")
-    est = em(graph, data, init=uniform_walk(graph), max_iter=p.em_max_iter, tol=1e-5)
+    last_em = [time.perf_counter()]
+
+    def em_progress(iteration: int, loglik: float) -> None:
+        if time.perf_counter() - last_em[0] >= 0.5:
+            last_em[0] = time.perf_counter()
+            say(
+                "em",
+                iteration=iteration,
+                max_iter=p.em_max_iter,
+                message=f"EM pass {iteration} (log-likelihood {loglik:.1f})",
+            )
+        if cancel.is_set():
+            raise _Cancelled
+
+    est = em(graph, data, init=uniform_walk(graph), max_iter=p.em_max_iter, tol=1e-5, progress=em_progress)
     model = est.model
     em_info = {
         "missions": len(data.length),
@@ -164,6 +180,14 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
         belief="true",
         seed=p.seed,
         hidden=current.policy.H,
+    )
+    planned = -(-p.episodes // cfg.batch) * cfg.batch  # whole batches
+    say(
+        "train",
+        episodes=0,
+        total=planned,
+        message=f"training {planned:,} episodes"
+        + (f" ({p.episodes:,} asked, rounded up to whole batches of {cfg.batch})" if planned != p.episodes else ""),
     )
     last = [0.0]
 
