@@ -1,7 +1,7 @@
 """`robot-agent`: one robot's agent process (README "The fleet").
 
     robot-agent --robot-id ID --server URL --zenoh-connect ENDPOINT [--fleet NAME]
-                [--token-file F] [--state-dir DIR] [--backend sim|MODULE:CLASS] [--telemetry]
+                [--token-file F] [--state-dir DIR] [--backend sim|MODULE:CLASS] [--no-telemetry]
 
 The agent connects to the fleet over Zenoh, declares its liveliness token, waits for missions on
 ``mures/<fleet>/missions/*``, flies each with the committed policy and its own belief filter
@@ -60,6 +60,8 @@ from shared.core.wire import (
 log = logging.getLogger("mures.agent")
 
 END_WAIT_S = 10.0  # how long to wait for the end message after the world said the mission is over
+TELEMETRY_HZ = 5  # live state messages a second at most, during a mission
+IDLE_BEAT_S = 5.0  # and one every this many seconds between missions
 
 
 def mission_seed(seed: int, index: int) -> int:
@@ -199,6 +201,9 @@ class Agent:
         self.graph: Graph | None = None
         self.policies: PolicyStore | None = None
         self.in_mission = False
+        self.telemetry_pub: Any = None
+        self.last_telemetry = 0.0
+        self.last_node: int | None = None
 
     # ------------------------------------------------------------------ HTTP
     def _refused(self, exc: ApiError) -> None:
@@ -263,6 +268,22 @@ class Agent:
             log.warning("policy update failed (%s); keeping version %s", exc, have)
 
     # ------------------------------------------------------------------ Zenoh
+    def telemetry(self, msg: dict[str, Any], force: bool = False, belief: Any = None) -> None:
+        """Live state on mures/<fleet>/telemetry/<id> (docs/SPEC.md section 6), at most TELEMETRY_HZ
+        a second (``force``: now); during a mission with the robot's own belief, rounded. Best
+        effort: a lost message is replaced by the next one."""
+        now = time.monotonic()
+        if self.telemetry_pub is None or (not force and now - self.last_telemetry < 1.0 / TELEMETRY_HZ):
+            return
+        self.last_telemetry = now
+        out = {**msg, "policy_version": self.policies.version if self.policies else None, "ts": round(time.time(), 3)}
+        if belief is not None:
+            out["belief"] = [round(float(x), 4) for x in np.asarray(belief)]
+        try:
+            self.telemetry_pub.put(json.dumps(out).encode())
+        except Exception as exc:  # never let telemetry stop a mission
+            log.debug("telemetry: %s", exc)
+
     def _on_control(self, sample: Any) -> None:  # callback: queue only
         msg = parse_message(sample.payload.to_bytes())
         if msg is not None:
@@ -394,7 +415,6 @@ class Agent:
         steps: list[dict[str, int]] = []
         end: dict[str, Any] | None = None
         decide_us: list[float] = []
-        pub = self.session.declare_publisher(telemetry_key(self.fleet, self.robot_id)) if self.args.telemetry else None
         self.in_mission = True
         log.info("mission %s: robot %d of %d, policy version %s", mid, index + 1, len(robots), self.policies.version)
         self.journal.begin(header)
@@ -416,19 +436,11 @@ class Agent:
                     break
                 goal = int(graph.labels[agent.act(p)])  # a_t ~ pi_i(. | onehot(p_t), b_t), Algorithm 1
                 decide_us.append((time.perf_counter() - t0) * 1e6)
-                if pub is not None:
-                    pub.put(
-                        json.dumps(
-                            {
-                                "mission_id": mid,
-                                "t": t,
-                                "node": node,
-                                "z": z,
-                                "goal": goal,
-                                "decide_us": round(decide_us[-1], 1),
-                            }
-                        ).encode()
-                    )
+                self.telemetry(
+                    {"state": "mission", "mission_id": mid, "t": t, "node": node, "z": z, "goal": goal},
+                    force=t == 0,
+                    belief=agent.belief,
+                )
                 node = int(backend.move(goal))
                 if node not in graph.index:
                     raise BackendError(f"backend reports node {node}, which is not on the map")
@@ -439,8 +451,8 @@ class Agent:
             log.error("mission %s aborted: %s", mid, exc)
         finally:
             self.in_mission = False
-            if pub is not None:
-                pub.undeclare()
+            if steps:
+                self.last_node = steps[-1]["node"]
             try:
                 backend.end()
             except Exception as exc:
@@ -509,7 +521,13 @@ class Agent:
                 self.args.backend, graph=self.graph, robot_id=self.robot_id, session=self.session, fleet=self.fleet
             )
             log.info("robot %s up in fleet %r with policy version %s", self.robot_id, self.fleet, self.policies.version)
+            if self.args.telemetry:
+                self.telemetry_pub = self.session.declare_publisher(telemetry_key(self.fleet, self.robot_id))
+            idle_beat = 0.0
             while not self.stop.is_set():
+                if time.monotonic() - idle_beat >= IDLE_BEAT_S:  # between missions: alive, idle, where
+                    idle_beat = time.monotonic()
+                    self.telemetry({"state": "idle", "node": self.last_node}, force=True)
                 try:
                     msg = self.control.get(timeout=0.5)
                 except queue.Empty:
@@ -527,6 +545,8 @@ class Agent:
                 if self.session is not None:
                     self.flush_once(timeout=3.0)
             sub.undeclare()
+            if self.telemetry_pub is not None:
+                self.telemetry_pub.undeclare()
             token.undeclare()
             self.session.close()
         log.info("robot %s stopped (%d records waiting in the outbox)", self.robot_id, len(self.outbox.pending()))
@@ -554,7 +574,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--state-dir", help="outbox, journal and policies (default ./mures-agent-<robot_id>)")
     p.add_argument("--backend", default="sim", help="sim (fleet simulator) or MODULE:CLASS (robot_agent/backend.py)")
-    p.add_argument("--telemetry", action="store_true", help="publish per-step state on mures/<fleet>/telemetry/<id>")
+    p.add_argument(
+        "--telemetry",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help=f"publish live state on mures/<fleet>/telemetry/<id>: each step (at most {TELEMETRY_HZ} a second) "
+        f"with the robot's belief, and every {IDLE_BEAT_S:.0f} s between missions (default on)",
+    )
     p.add_argument("--log-level", default="INFO")
     return p
 

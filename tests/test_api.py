@@ -30,11 +30,20 @@ class FakeBus:
 
     def __init__(self) -> None:
         self.online: dict[str, float] = {}
+        self.gone: dict[str, float] = {}  # robots that dropped off: when last heard of
+        self.live: dict[str, dict[str, Any]] = {}  # robot -> last telemetry
         self.published: list[dict[str, Any]] = []
         self.stats = {"ingest_batches": 3, "ingest_seconds": 0.25}
 
     def agents_online(self) -> dict[str, float]:
         return dict(self.online)
+
+    def agents(self) -> dict[str, dict[str, Any]]:
+        heard = {**self.gone, **self.online}
+        return {
+            r: {"online": r in self.online, "since": self.online.get(r), "last_seen": t, "live": self.live.get(r)}
+            for r, t in sorted(heard.items())
+        }
 
     def publish_mission(self, msg: dict[str, Any]) -> None:
         self.published.append(msg)
@@ -442,3 +451,30 @@ def test_interrupted_runs_end_failed_or_cancelled_and_leftovers_are_removed(api,
         assert srv2.store.next_version() == 2 and srv2.current_version() == 1
     finally:
         srv2.close()
+
+
+def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(api):
+    srv, c = api
+    srv.bus.online = {"r1": 1.0, "r2": 2.0}
+    srv.bus.gone = {"r3": 3.0}
+    m = c.post("/api/v1/missions", json={"robots": ["r1"], "mission_id": "m-f"}, headers=auth(OP)).json()
+    srv.bus.live = {
+        "r1": {"state": "mission", "mission_id": m["id"], "t": 7, "node": 43, "policy_version": 1},
+        "r2": {"state": "idle", "node": 12, "policy_version": 1},
+    }
+    f = c.get("/api/v1/fleet", headers=auth(AG)).json()
+    by = {a["robot_id"]: a for a in f["agents"]}
+    assert f["online"] == 2 and list(by) == ["r1", "r2", "r3"]
+    assert by["r1"] | {"since": 0, "last_seen": 0} == {
+        "robot_id": "r1",
+        "online": True,
+        "since": 0,
+        "last_seen": 0,
+        "state": "flying",
+        "mission_id": "m-f",
+        "step": 7,
+        "node": 43,
+        "policy_version": 1,
+    }
+    assert by["r2"]["state"] == "idle" and by["r2"]["node"] == 12 and by["r2"]["mission_id"] is None
+    assert by["r3"]["state"] == "offline" and by["r3"]["online"] is False and by["r3"]["since"] is None

@@ -426,7 +426,7 @@ def test_the_fleet_by_hand_as_the_readme_shows(tmp_path):
         out = (logs / "r9.log").read_text()
         assert "the server answered 401" in out and "--token-file" in out, out
         procs += [agent(r, data / "agent.token") for r in ("r1", "r2")]
-        wait_until(lambda: len(api.get("/api/v1/fleet")["agents"]) == 2, 60, "the agents")
+        wait_until(lambda: api.get("/api/v1/fleet")["online"] == 2, 60, "the agents")
         # no world yet: the robot says so and sends no record (an empty one would be refused)
         m1 = api.post("/api/v1/missions", {"robots": ["r1"]})
         wait_until(lambda: "no simulated world answers" in (logs / "r1.log").read_text(), 60, "r1 to give up")
@@ -441,6 +441,22 @@ def test_the_fleet_by_hand_as_the_readme_shows(tmp_path):
             lambda: (r := api.get(f"/api/v1/missions/{m2['id']}"))["status"] == "completed" and r, 90, "m2"
         )
         assert got["episodes_received"] == ["r1", "r2"]
+        # telemetry is on by default: the fleet view knows where each robot is and what it runs
+        last = {r: api.get(f"/api/v1/episodes/{r}/{m2['id']}")["steps"][-1]["node"] for r in ("r1", "r2")}
+        f = wait_until(
+            lambda: (
+                (x := api.get("/api/v1/fleet"))
+                and all(a["state"] == "idle" and a["node"] == last[a["robot_id"]] for a in x["agents"] if a["online"])
+                and x
+            ),
+            30,
+            "the agents' telemetry",
+        )
+        assert {a["robot_id"]: (a["state"], a["policy_version"]) for a in f["agents"]} == {
+            "r1": ("idle", 1),
+            "r2": ("idle", 1),
+            "r9": ("offline", None),
+        }
         assert api.get("/api/v1/episodes/stats") | {"by_policy_version": None} == {
             "stored": 2,
             "rejected": {},

@@ -99,9 +99,13 @@ def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, 
         try:
             tok = r1.liveliness().declare_token(agent_key("default", "r1"))
             fake = r1.liveliness().declare_token(agent_key("default", "r2"))  # r1 posing as r2
-            wait_until(lambda: [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"]] == ["r1"], 10, "r1 online")
+            wait_until(
+                lambda: [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"] if a["online"]] == ["r1"],
+                10,
+                "r1 online",
+            )
             time.sleep(1.0)
-            assert [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"]] == ["r1"]
+            assert [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"] if a["online"]] == ["r1"]
 
             def rec(robot, mission):
                 return make_record(
@@ -168,7 +172,11 @@ def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, 
             stderr=open(logs / "agent-r2.log", "wb"),  # noqa: SIM115 - owned by the process
         )
         try:
-            wait_until(lambda: [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"]] == ["r2"], 60, "r2 online")
+            wait_until(
+                lambda: [a["robot_id"] for a in api.get("/api/v1/fleet")["agents"] if a["online"]] == ["r2"],
+                60,
+                "r2 online",
+            )
             current = tmp_path / "agent-r2" / "policies" / "current.json"  # it comes online, then pulls
             wait_until(current.exists, 60, "r2 to install the policy")
             assert json.loads(current.read_text())["version"] == 1

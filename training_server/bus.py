@@ -18,7 +18,7 @@ from typing import Any
 import zenoh
 
 from shared.core.records import MAX_RECORD_BYTES, RecordError, canonical_record, parse_record
-from shared.core.wire import agent_key, episode_key, mission_key, parse_message
+from shared.core.wire import agent_key, episode_key, mission_key, parse_message, telemetry_key
 
 log = logging.getLogger("mures.server.bus")
 
@@ -33,6 +33,8 @@ class Bus:
         self.ingest_q: queue.Queue[Any] = queue.Queue()
         self.events_q: queue.Queue[Any] = queue.Queue()
         self.online: dict[str, float] = {}
+        self.last_seen: dict[str, float] = {}  # every robot ever online: when it was last heard of
+        self.live: dict[str, dict[str, Any]] = {}  # robot -> its last telemetry message
         self.online_lock = threading.Lock()
         self.running = True
         self.stats = {"ingest_batches": 0, "ingest_seconds": 0.0}
@@ -44,6 +46,7 @@ class Bus:
         self.alive_sub = self.session.liveliness().declare_subscriber(
             agent_key(self.fleet, "*"), self._on_alive, history=True
         )
+        self.telemetry_sub = self.session.declare_subscriber(telemetry_key(self.fleet, "*"), self._on_telemetry)
         self.threads = [
             threading.Thread(target=self._ingest_loop, name="ingest", daemon=True),
             threading.Thread(target=self._events_loop, name="mission-events", daemon=True),
@@ -55,18 +58,53 @@ class Bus:
     def _on_alive(self, sample: zenoh.Sample) -> None:
         robot = str(sample.key_expr).rsplit("/", 1)[-1]
         with self.online_lock:
+            self.last_seen[robot] = time.time()
             if sample.kind == zenoh.SampleKind.PUT:
                 self.online.setdefault(robot, time.time())
             else:
                 self.online.pop(robot, None)
 
     def _on_mission(self, sample: zenoh.Sample) -> None:
-        self.events_q.put(sample.payload.to_bytes())
+        self.events_q.put(("mission", "", sample.payload.to_bytes()))
+
+    def _on_telemetry(self, sample: zenoh.Sample) -> None:
+        self.events_q.put(("telemetry", str(sample.key_expr), sample.payload.to_bytes()))
 
     # ---------------------------------------------------------------- workers
     def agents_online(self) -> dict[str, float]:
         with self.online_lock:
             return dict(self.online)
+
+    def agents(self) -> dict[str, dict[str, Any]]:
+        """Every robot heard of since the server started: online (since when) or not, when last
+        heard of, and its last telemetry."""
+        with self.online_lock:
+            return {
+                r: {
+                    "online": r in self.online,
+                    "since": self.online.get(r),
+                    "last_seen": self.last_seen[r],
+                    "live": self.live.get(r),
+                }
+                for r in sorted(self.last_seen)
+            }
+
+    def _telemetry(self, key: str, raw: bytes) -> None:
+        """Keep a robot's last live state, if it is one (docs/SPEC.md section 6); others are dropped."""
+        robot = key.rsplit("/", 1)[-1]
+        try:
+            msg = json.loads(raw) if len(raw) <= 1 << 20 else None
+        except ValueError:
+            msg = None
+        if not isinstance(msg, dict) or msg.get("state") not in ("mission", "idle"):
+            return
+        keep = {k: msg.get(k) for k in ("state", "mission_id", "t", "node", "z", "goal", "policy_version", "ts")}
+        belief = msg.get("belief")
+        if isinstance(belief, list) and len(belief) == self.server.graph.n:
+            keep["belief"] = belief
+        with self.online_lock:
+            self.live[robot] = {**keep, "received": time.time()}
+            self.last_seen[robot] = time.time()
 
     def publish_mission(self, msg: dict[str, Any]) -> None:
         self.session.put(
@@ -86,8 +124,11 @@ class Bus:
                 except Exception:
                     log.exception("ending timed-out missions")
             try:
-                raw = self.events_q.get(timeout=0.2)
+                kind, key, raw = self.events_q.get(timeout=0.2)
             except queue.Empty:
+                continue
+            if kind == "telemetry":
+                self._telemetry(key, raw)
                 continue
             msg = parse_message(raw)
             if msg is None or msg["type"] == "start":
@@ -202,7 +243,7 @@ class Bus:
         self.running = False
         for t in self.threads:
             t.join(2)
-        for ent in (self.alive_sub, self.missions_sub, self.queryable, self.publisher):
+        for ent in (self.alive_sub, self.telemetry_sub, self.missions_sub, self.queryable, self.publisher):
             try:
                 ent.undeclare()
             except Exception:

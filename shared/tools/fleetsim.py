@@ -102,7 +102,7 @@ class Fleet:
             return None
 
     def online(self) -> list[str]:
-        return [a["robot_id"] for a in self.api.get("/api/v1/fleet")["agents"]]
+        return [a["robot_id"] for a in self.api.get("/api/v1/fleet")["agents"] if a["online"]]
 
     def fly(self, robots: list[str], seed: int, timeout: float = 120.0, **extra: Any) -> dict[str, Any]:
         """Start a mission and wait until every robot's record is stored."""

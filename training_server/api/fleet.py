@@ -1,4 +1,6 @@
-"""GET /api/v1/fleet: the agents online (from their liveliness tokens)."""
+"""GET /api/v1/fleet: every robot heard of since the server started: online or dropped off (from
+its liveliness token), flying or idle (from the running missions), and where it is and what policy
+it runs (from its telemetry)."""
 
 from __future__ import annotations
 
@@ -12,9 +14,24 @@ router = APIRouter(tags=["fleet"], dependencies=READ, responses=errors(401))
 
 @router.get("/fleet")
 def fleet(srv: Srv) -> FleetOut:
-    online = srv.bus.agents_online()
-    return FleetOut(
-        fleet=srv.fleet,
-        online=len(online),
-        agents=[Agent(robot_id=r, since=s) for r, s in sorted(online.items())],
-    )
+    heard = srv.bus.agents()
+    busy = srv.store.busy_robots(srv.fleet)
+    agents = []
+    for robot, a in heard.items():
+        live = a["live"] or {}
+        mission = busy.get(robot)
+        same = live.get("state") == "mission" and live.get("mission_id") == mission
+        agents.append(
+            Agent(
+                robot_id=robot,
+                online=a["online"],
+                since=a["since"],
+                last_seen=a["last_seen"],
+                state="offline" if not a["online"] else "flying" if mission else "idle",
+                mission_id=mission,
+                step=live.get("t") if same else None,
+                node=live.get("node"),
+                policy_version=live.get("policy_version"),
+            )
+        )
+    return FleetOut(fleet=srv.fleet, online=sum(a.online for a in agents), agents=agents)

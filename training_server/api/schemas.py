@@ -55,13 +55,22 @@ class MapOut(BaseModel):
 
 class Agent(BaseModel):
     robot_id: str
-    since: float = Field(description="when its liveliness token appeared (Unix time)")
+    online: bool = Field(description="its liveliness token is declared now; false: it dropped off")
+    since: float | None = Field(description="when its liveliness token appeared (Unix time); null when offline")
+    last_seen: float = Field(description="when it was last heard of (token or telemetry, Unix time)")
+    state: Literal["flying", "idle", "offline"] = Field(
+        description="flying: a running mission awaits its record; idle: online and free"
+    )
+    mission_id: str | None = Field(description="the running mission it is flying")
+    step: int | None = Field(description="its last reported step t in that mission (telemetry)")
+    node: int | None = Field(description="its last reported node (telemetry)")
+    policy_version: int | None = Field(description="the policy version it last reported running (telemetry)")
 
 
 class FleetOut(BaseModel):
     fleet: str
     online: int
-    agents: list[Agent]
+    agents: list[Agent] = Field(description="every robot heard of since the server started, online or not")
 
 
 # ---------------------------------------------------------------------- missions
