@@ -166,9 +166,9 @@ def _rows(path):
 
 @pytest.mark.slow
 def test_teams_trained_by_local_processes_and_by_a_dask_cluster_give_the_same_rows(tmp_path, monkeypatch):
-    """fig6 at a tiny budget, its six teams trained three ways: in this process, by two local
-    worker processes, and as tasks on a Dask cluster (a scheduler and two workers started here on
-    loopback): the same rows; a finished run leaves nothing to train."""
+    """fig6 at a tiny budget, its six teams trained and its six cells evaluated three ways: in this
+    process, by two local worker processes, and as tasks on a Dask cluster (a scheduler and two
+    workers started here on loopback): the same rows; a finished run leaves nothing to do."""
     import os
     import subprocess
     import sys
@@ -186,6 +186,14 @@ def test_teams_trained_by_local_processes_and_by_a_dask_cluster_give_the_same_ro
 
     experiments.run("fig6", tmp_path / "pool", quick=True, workers=2)
     assert _rows(tmp_path / "pool" / "fig6" / "fig6.json") == expected
+    # the cells too were evaluated by the workers, and are cached: a run again (or one resumed
+    # after a kill) evaluates nothing
+    assert len(list((tmp_path / "pool" / "cells").glob("*.json"))) == 6
+    evaluate = experiments._evaluate_cell
+    monkeypatch.setattr(experiments, "_evaluate_cell", lambda **kw: pytest.fail(f"evaluated again: {kw}"))
+    experiments.run("fig6", tmp_path / "pool", quick=True)
+    assert _rows(tmp_path / "pool" / "fig6" / "fig6.json") == expected
+    monkeypatch.setattr(experiments, "_evaluate_cell", evaluate)
 
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import hashlib
 import json
 import math
 import os
@@ -52,6 +53,10 @@ def machine() -> dict[str, Any]:
 # evaluating: the teams it needs that are not cached are collected here as jobs, cells are
 # placeholders, and nothing is written.
 _PLAN: list[Job] | None = None
+# Evaluated cells are cached as JSON under <results>/cells/ (set by ``run`` and ``plan``): a killed
+# run resumes from the cells it finished, and cells can be evaluated by the parallel runner too.
+_CELLS: Path | None = None
+CELL_VERSION = 1  # bump when evaluation itself changes: cached cells are then evaluated again
 
 
 def _write(out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]]) -> None:
@@ -338,25 +343,15 @@ def _train_marl(
 
 def _learned(
     root: Path, env: str, robots: int, method: str, b: Budget, eta_fn: float = 0.0, eta_fp: float = 0.0
-) -> Callable[[int], Any]:
+) -> _Team:
     """seed -> searcher for a learned method (pg, cepg, cepg+, c-cepg, or a MARL baseline),
     training it if not cached."""
-    from shared.core.graph import builtin_graph
-
-    g = builtin_graph(env)
     if method in MARL:
-        snap = _load(_marl_snapshot(root, env, robots, method, b.marl_train, 0, eta_fn, eta_fp), g)
-        return _flown(snap, g, sensor_for("cepg", eta_fn, eta_fp), robots)
+        path = _marl_snapshot(root, env, robots, method, b.marl_train, 0, eta_fn, eta_fp)
+        return _flown(path, env, sensor_for("cepg", eta_fn, eta_fp), robots)
     variant, beta = LEARNED[method]
-    snap = _load(_snapshot(root, env, robots, beta, b.train, 0, variant, eta_fn, eta_fp), g)
-    return _flown(snap, g, sensor_for(variant, eta_fn, eta_fp), robots)
-
-
-def _load(path: Path, g: Any) -> Any:
-    """A cached team's snapshot (None while planning: it may not be trained yet)."""
-    from shared.learning.snapshot import load_snapshot
-
-    return None if _PLAN is not None else load_snapshot(path, g)
+    path = _snapshot(root, env, robots, beta, b.train, 0, variant, eta_fn, eta_fp)
+    return _flown(path, env, sensor_for(variant, eta_fn, eta_fp), robots)
 
 
 def _summary(path: Path) -> dict[str, Any]:
@@ -368,55 +363,97 @@ def _summary(path: Path) -> dict[str, Any]:
     return dict(read_meta(path)["summary"])
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Team:
-    """seed -> a snapshot's team flown by ``robots`` robots; it also says how the team was trained,
-    for the rows (``trained``)."""
+    """seed -> the team of the cached snapshot at ``path`` flown by ``robots`` robots (loaded when
+    first flown); it says how the team was trained (``trained``) and what it is (``describe``)."""
 
-    snap: Any
-    g: Any
+    path: Path
+    env: str
     sensor: Any
     robots: int
+    _snap: Any = None
+
+    def ready(self) -> bool:
+        return (self.path / "policy.json").exists()
+
+    def _loaded(self) -> Any:
+        if self._snap is None:
+            from shared.core.graph import builtin_graph
+            from shared.learning.snapshot import load_snapshot
+
+            self._snap = load_snapshot(self.path, builtin_graph(self.env))
+        return self._snap
 
     def __call__(self, seed: int) -> Any:
+        from shared.core.graph import builtin_graph
         from shared.learning.snapshot import PolicySearcher
 
-        return PolicySearcher(self.snap, self.g, self.sensor, self.robots, seed=seed)
+        return PolicySearcher(self._loaded(), builtin_graph(self.env), self.sensor, self.robots, seed=seed)
 
     def trained(self) -> dict[str, Any]:
         """The episodes the team was trained for (as run: a budget is rounded up to whole batches)
         and its training seed, from the snapshot itself."""
-        meta = self.snap.meta if self.snap is not None else {}
+        from shared.core.snapshot import read_meta
+
+        meta = read_meta(self.path)
         return {
             "train_episodes": meta.get("summary", {}).get("episodes", meta.get("training", {}).get("episodes")),
             "training_seeds": [meta["training"]["seed"]] if "seed" in meta.get("training", {}) else [],
         }
 
+    def describe(self) -> dict[str, Any]:
+        from shared.core.snapshot import read_meta
 
-def _flown(snap: Any, g: Any, sensor: Any, robots: int) -> _Team:
-    """seed -> the snapshot's team flown by ``robots`` robots."""
-    return _Team(snap, g, sensor, robots)
+        return {"team": self.path.name, "weights": read_meta(self.path)["weights"]["sha256"]}
 
 
-def _reference(env: str, robots: int, method: str, sensor: Any, **kw: Any) -> Callable[[int], Any]:
+def _flown(path: Path, env: str, sensor: Any, robots: int) -> _Team:
+    """seed -> the cached snapshot's team flown by ``robots`` robots."""
+    return _Team(path, env, sensor, robots)
+
+
+@dataclass(frozen=True)
+class _Reference:
+    """seed -> random, greedy or a planner (true model, all robots' observations)."""
+
+    env: str
+    robots: int
+    method: str
+    sensor: Any
+    kw: tuple[tuple[str, Any], ...] = ()
+
+    def ready(self) -> bool:
+        return True
+
+    def __call__(self, seed: int) -> Any:
+        from shared.core.graph import builtin_graph
+        from shared.core.models import uniform_walk
+        from shared.planners import make_baseline
+        from shared.registry import make_searcher
+
+        g = builtin_graph(self.env)
+        if self.method in ("random", "greedy"):
+            return make_searcher(self.method, g, uniform_walk(g), self.sensor, seed)
+        return make_baseline(self.method, g, uniform_walk(g), self.sensor, self.robots, seed, **dict(self.kw))
+
+    def trained(self) -> dict[str, Any]:
+        return {"train_episodes": None, "training_seeds": []}
+
+    def describe(self) -> dict[str, Any]:
+        return {"reference": self.method, "kw": dict(self.kw)}
+
+
+def _reference(env: str, robots: int, method: str, sensor: Any, **kw: Any) -> _Reference:
     """seed -> searcher for random, greedy and the planners (true model, all robots' observations)."""
-    from shared.core.graph import builtin_graph
-    from shared.core.models import uniform_walk
-    from shared.planners import make_baseline
-    from shared.registry import make_searcher
-
-    g = builtin_graph(env)
-    model = uniform_walk(g)
-    if method in ("random", "greedy"):
-        return lambda s: make_searcher(method, g, model, sensor, s)
-    return lambda s: make_baseline(method, g, model, sensor, robots, s, **kw)
+    return _Reference(env, robots, method, sensor, tuple(sorted(kw.items())))
 
 
 def _cell(
     env: str,
     robots: int,
     method: str,
-    make: Callable[[int], Any],
+    make: _Team | _Reference,
     episodes: int,
     seed: int = SEED,
     sensor: Any = None,
@@ -427,22 +464,98 @@ def _cell(
     """One evaluated cell: capture time and false alarms (mean, 95% CI) over ``episodes`` seeded
     episodes; with ``latency``, the decision time per team step, one episode at a time (batch 1,
     so batching does not hide the per-step latency; the simulator's step included); with
-    ``times``, the (episodes,) capture times under "capture_times" (for paired comparisons)."""
+    ``times``, the (episodes,) capture times under "capture_times" (for paired comparisons).
+
+    A cell is evaluated once: its row is cached under <results>/cells/ by what determines it (the
+    map, N, the method and its team's weights or the planner's settings, the sensor, the episodes
+    and seed, a withdrawal). While planning, a cell whose team exists becomes a job for the
+    parallel runner (``_cell_job``) and a placeholder row is returned."""
+    from shared.core.models import Sensor
+
+    sensor = sensor or Sensor()
+    nan = float("nan")
+    placeholder = {"map": env, "robots": robots, "method": method, "mean_capture_time": nan, "ci95_halfwidth": nan}
+    if not make.ready():  # planning: its team is not trained yet
+        return placeholder
+    args = {
+        "env": env,
+        "robots": robots,
+        "method": method,
+        "episodes": episodes,
+        "seed": seed,
+        "sensor": sensor.to_json(),
+        "withdraw_at": withdraw_at,
+        "latency": latency,
+    }
+    what = {**args, "make": make.describe(), "version": CELL_VERSION}
+    key = hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:20]
+    cached = None if _CELLS is None else _CELLS / f"{key}.json"
+    if cached is not None and cached.exists():
+        row = json.loads(cached.read_text())
+    elif _PLAN is not None:
+        files = None
+        if isinstance(make, _Team):  # the worker gets the snapshot's files, not this process's objects
+            files = directory_files(make.path, make.path)
+            make = _Team(make.path, make.env, make.sensor, make.robots)
+        label = f"evaluating {method} {env} N={robots} ({episodes} episodes)"
+        _PLAN.append(Job(f"cell-{key}", label, _cell_job, (key, args, make, files), weight=_cell_cost(method, args)))
+        return placeholder
+    else:
+        row = _evaluate_cell(make=make, **args)
+        if cached is not None:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(cached, json.dumps(row).encode())
+    out = {k: v for k, v in row.items() if k != "capture_times"}
+    if times:
+        out["capture_times"] = np.asarray(row["capture_times"], dtype=np.float64)
+    return out
+
+
+def _cell_cost(method: str, args: dict[str, Any]) -> float:
+    """A cell's expected cost in the unit of the training jobs' weights (episodes of training,
+    about 2,000 a second here), for the runner's ETA."""
+    steps = 20 * args["episodes"]
+    per_step = {"milp": 0.3, "d-milp": 0.3 * args["robots"], "fhpe": 0.2, "fhpe-sa": 0.05}.get(method, 1e-4)
+    return 2000 * steps * per_step
+
+
+def _cell_job(key: str, args: dict[str, Any], make: Any, files: dict[str, bytes] | None) -> dict[str, bytes]:
+    """A cell evaluated by a worker: a team's snapshot comes as its files (no shared file system)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        if files is not None:
+            for rel, data in files.items():
+                (Path(tmp) / rel).write_bytes(data)
+            make = _Team(Path(tmp), make.env, make.sensor, make.robots)
+        row = _evaluate_cell(make=make, **args)
+    return {f"cells/{key}.json": json.dumps(row).encode()}
+
+
+def _evaluate_cell(
+    env: str,
+    robots: int,
+    method: str,
+    make: _Team | _Reference,
+    episodes: int,
+    seed: int,
+    sensor: dict[str, Any],
+    withdraw_at: list[int | None] | None,
+    latency: bool,
+) -> dict[str, Any]:
+    """A cell's row (``_cell``), with its capture times."""
     from shared.core.graph import builtin_graph
     from shared.core.models import Sensor, uniform_walk
     from shared.engine.evaluate import evaluate, mean_ci95
 
     g = builtin_graph(env)
-    sensor = sensor or Sensor()
-    if _PLAN is not None:  # planning: no evaluation, a placeholder row
-        nan = float("nan")
-        return {"map": env, "robots": robots, "method": method, "mean_capture_time": nan, "ci95_halfwidth": nan}
+    sens = Sensor(**sensor)
     t0 = time.perf_counter()
     batched = method not in PLANNERS  # planners plan one episode at a time
     res = evaluate(
         g,
         uniform_walk(g),
-        sensor,
+        sens,
         robots,
         make,
         episodes=episodes,
@@ -457,12 +570,12 @@ def _cell(
         "map": env,
         "robots": robots,
         "method": method,
-        "eta_fn": sensor.eta_fn,
-        "eta_fp": sensor.eta_fp,
-        "detection": sensor.detection,
+        "eta_fn": sens.eta_fn,
+        "eta_fp": sens.eta_fp,
+        "detection": sens.detection,
         "episodes": episodes,
         "seed": seed,
-        **(make.trained() if isinstance(make, _Team) else {"train_episodes": None, "training_seeds": []}),
+        **make.trained(),
         "mean_capture_time": round(s["mean_capture_time"], 3),
         "ci95_halfwidth": round(s["ci95_halfwidth"], 3),
         "censored_fraction": round(s["censored_fraction"], 4),
@@ -474,12 +587,11 @@ def _cell(
     if latency:
         if batched:
             t1 = time.perf_counter()
-            one = evaluate(g, uniform_walk(g), sensor, robots, make, episodes=3, seed=seed + 99, chunk=1)
+            one = evaluate(g, uniform_walk(g), sens, robots, make, episodes=3, seed=seed + 99, chunk=1)
             row["decision_ms"] = round((time.perf_counter() - t1) / max(1.0, float(one.capture_time.sum())) * 1e3, 4)
         else:  # planners already ran one episode at a time
             row["decision_ms"] = round(wall / max(1.0, float(res.capture_time.sum())) * 1e3, 4)
-    if times:
-        row["capture_times"] = np.asarray(res.capture_time, dtype=np.float64)
+    row["capture_times"] = [int(x) for x in res.capture_time]
     return row
 
 
@@ -632,19 +744,15 @@ def fig5(root: Path, b: Budget) -> Path:
     over the seeds' episodes, each seed's mean, and the paired difference to beta = 1 with two 95%
     CIs, over the pooled episodes (evaluation noise only) and over the training seeds (Student t,
     S - 1 degrees of freedom: what another training run would give)."""
-    from shared.core.graph import builtin_graph
 
     N, rows = 4, []
     sensor = sensor_for("cepg")
     for env in ("office", "museum"):
-        g = builtin_graph(env)
         times: dict[tuple[float, int], np.ndarray] = {}
         for beta in BETAS:
             for s in b.seeds:
-                snap = _load(_snapshot(root, env, N, beta, b.train, s), g)
-                cell = _cell(
-                    env, N, "pg" if beta == 1.0 else "cepg", _flown(snap, g, sensor, N), b.episodes, times=True
-                )
+                team = _flown(_snapshot(root, env, N, beta, b.train, s), env, sensor, N)
+                cell = _cell(env, N, "pg" if beta == 1.0 else "cepg", team, b.episodes, times=True)
                 times[beta, s] = cell.pop("capture_times", np.zeros(0))
         for beta in BETAS:
             rows.append(_beta_row(env, N, beta, b, times))
@@ -794,22 +902,19 @@ def fig12(root: Path, b: Budget) -> Path:
 def fig13(root: Path, b: Budget) -> Path:
     """Robustness: a team trained for 5 robots flown by k = 1..5 of them (paper Fig. 13), against
     teams trained for k."""
-    from shared.core.graph import builtin_graph
 
     rows = []
     sensor = sensor_for("cepg")
     for env in ("office", "museum"):
-        g = builtin_graph(env)
         for m in ("cepg", *MARL):
             path = (
                 _snapshot(root, env, 5, 0.5, b.train, 0)
                 if m == "cepg"
                 else _marl_snapshot(root, env, 5, m, b.marl_train, 0)
             )
-            five = _load(path, g)
             for k in range(1, 6):
                 rows.append(
-                    {**_cell(env, k, f"{m} trained for 5", _flown(five, g, sensor, k), b.episodes), "trained_for": 5}
+                    {**_cell(env, k, f"{m} trained for 5", _flown(path, env, sensor, k), b.episodes), "trained_for": 5}
                 )
                 rows.append(
                     {**_cell(env, k, f"{m} trained for k", _learned(root, env, k, m, b), b.episodes), "trained_for": k}
@@ -900,7 +1005,6 @@ MARL_MAPS = ("office", "ward")  # the paper's OFFICE and our WARD
 def marl(root: Path, b: Budget) -> Path:
     """The MARL baselines at their default budgets on OFFICE and WARD, N = 4, with learning
     curves, against random and CE-PG; and a small hyperparameter sweep on OFFICE."""
-    from shared.core.graph import builtin_graph
 
     N, rows, curves, sweep = 4, [], {}, []
     sensor = sensor_for("cepg")
@@ -921,13 +1025,12 @@ def marl(root: Path, b: Budget) -> Path:
             curves[f"{env}/{m}"] = summary["learning_curve"]
             took = f"{summary['episodes']:,} episodes, {summary['wall_seconds']:.0f} s"
             _say(f"  marl: {env} {m} {row['mean_capture_time']:.2f} ({took})")
-    g = builtin_graph("office")
     for m in MARL:
         default_budget = _marl_hyper_episodes(m)
         episodes = b.marl_train or max(1_000, default_budget // 10)
         for overrides in [(), *MARL_SWEEP[m]]:
             path = _marl_snapshot(root, "office", N, m, episodes, 0, overrides=overrides)
-            row = _cell("office", N, m, _flown(_load(path, g), g, sensor, N), b.episodes)
+            row = _cell("office", N, m, _flown(path, "office", sensor, N), b.episodes)
             sweep.append({**row, "overrides": list(overrides) or ["defaults"], "train_episodes": episodes})
     out = root / "marl"
     setup = _setup("marl", b, robots=N, maps=list(MARL_MAPS), wall_seconds=round(time.perf_counter() - t_start, 1))
@@ -994,7 +1097,11 @@ def run(
     if name != "all" and name not in EXPERIMENTS:
         raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)}, all)")
     if workers > 1 or scheduler:
-        run_jobs(plan(name, root, b), root, workers, scheduler, say=_say)
+        for _round in range(3):  # the teams (and the planners' cells), then the learned teams' cells
+            jobs = plan(name, root, b)
+            if not jobs:
+                break
+            run_jobs(jobs, root, workers, scheduler, say=_say)
     if name == "all":
         for e in EXPERIMENTS:
             if e != "fig8":
@@ -1006,26 +1113,33 @@ def run(
 
 
 def _run_one(name: str, root: Path, b: Budget, quick: bool) -> Path:
+    global _CELLS
     if name == "fig4":
         return fig4(root, quick)
-    if name == "fig8":
-        return fig7(root, b).parent / "fig8"
-    return RUNNERS[name](root, b)
+    _CELLS = root / "cells"
+    try:
+        if name == "fig8":
+            return fig7(root, b).parent / "fig8"
+        return RUNNERS[name](root, b)
+    finally:
+        _CELLS = None
 
 
 def plan(name: str, root: Path, b: Budget) -> list[Job]:
-    """The training jobs an experiment (or ``all``) needs and the cache lacks, without running
-    anything: its figure functions run with placeholder cells and write nothing."""
-    global _PLAN
+    """The jobs an experiment (or ``all``) needs and the caches lack, without running anything:
+    the teams to train, and the cells to evaluate whose teams exist (a cell of a team still to be
+    trained comes up in the next plan); the figure functions run with placeholder cells and write
+    nothing."""
+    global _PLAN, _CELLS
     names = [e for e in EXPERIMENTS if e not in ("fig4", "fig8")] if name == "all" else [name]
-    _PLAN = []
+    _PLAN, _CELLS = [], root / "cells"
     try:
         for e in names:
             if e in RUNNERS or e == "fig8":
                 RUNNERS["fig7" if e == "fig8" else e](root, b)
         return list({j.key: j for j in _PLAN}.values())
     finally:
-        _PLAN = None
+        _PLAN, _CELLS = None, None
 
 
 # ---------------------------------------------------------------------- report
