@@ -10,9 +10,10 @@ N = 1..5, OFFICE and MUSEUM), fig8 (decision time per team step, measured in fig
 (sensor noise: capture time, false alarms), fig11 (all methods under eta_fn), fig12 and fig13
 (robustness), marl (the MARL baselines at their default budgets on OFFICE and WARD with learning
 curves, and a small hyperparameter sweep). ``all`` runs them in turn. Budgets: ``FULL`` is the
-paper's protocol, ``QUICK`` fits CI. With ``--workers K`` or ``--dask-scheduler``, ``plan`` first
-lists the teams an experiment needs and the cache lacks, and shared/tools/runner.py trains them
-in parallel; the experiment then runs on the cached teams.
+paper's protocol, ``QUICK`` fits CI. Every evaluated cell is cached under ``results/cells/``. With
+``--workers K`` or ``--dask-scheduler``, ``plan`` lists the jobs an experiment needs and the caches
+lack (teams to train, cells to evaluate whose teams exist), shared/tools/runner.py runs them in
+parallel, round after round, and the experiment then runs on the cached teams and cells.
 """
 
 from __future__ import annotations
