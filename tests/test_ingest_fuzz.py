@@ -82,7 +82,7 @@ def test_generated_records_are_stored_once_or_rejected_with_their_reason(tmp_pat
         stats = api.get("/api/v1/episodes/stats")
         assert stats["stored"] == len(stored)
         assert stats["rejected"] == dict(rejected)
-        assert sum(sent.values()) >= examples and sent["invalid"] > examples // 4 and len(stored) > examples // 10
+        assert sum(sent.values()) >= examples and sent["invalid"] > examples // 4 and len(stored) > examples // 20
         for (robot, mission), payload in random.Random(0).sample(sorted(stored.items()), min(100, len(stored))):
             want = canonical_record(parse_record(json.loads(payload), GRAPH, "default"), GRAPH)
             assert api.get(f"/api/v1/episodes/{robot}/{mission}") == want
