@@ -438,11 +438,17 @@ def test_interrupted_runs_end_failed_or_cancelled_and_leftovers_are_removed(api,
     (srv.data_dir / "staging" / "run-x").mkdir()
     (srv.data_dir / "staging" / "run-x" / "weights.safetensors").write_bytes(b"partial")
     (srv.data_dir / "policies" / ".v2.tmp").mkdir()
-    (srv.data_dir / "policies" / "v7").mkdir()  # copied, but its row never committed: never served
+    (srv.data_dir / "policies" / "v2").mkdir()  # copied, but its row never committed: never served
     srv.close()
-    srv2 = Server(
+    reopen = lambda: Server(  # noqa: E731
         srv.data_dir, srv.graph, "default", tmp_path / "op.token", tmp_path / "agent.token", database_url=database_url
     )
+    (srv.data_dir / "policies" / "v7").mkdir()  # not the next version: another database's, so refuse
+    with pytest.raises(ValueError, match=r"policy versions the database .* does not know \(v7\)"):
+        reopen()
+    assert (srv.data_dir / "policies" / "v2").is_dir()  # nothing deleted
+    (srv.data_dir / "policies" / "v7").rmdir()
+    srv2 = reopen()
     try:
         assert sorted(srv2.store.end_interrupted_runs()) == [("a", "failed"), ("b", "failed"), ("c", "cancelled")]
         assert srv2.store.get_run("c")["status"] == "cancelled" and srv2.store.get_run("a")["error"]

@@ -139,14 +139,26 @@ class Server:
 
     def _clean_leftovers(self) -> None:
         """What a killed server left behind: training staging directories, half-copied versions
-        (``.vN.tmp``) and version directories whose publication never reached the database (they
-        were never served; the version number is given again)."""
+        (``.vN.tmp``) and the directory of the one version whose publication never reached the
+        database (the next number; never served, and the number is given again). Other version
+        directories the database does not know mean that the data directory and the database do
+        not belong together (a wrong --database-url): the server refuses to start, deleting
+        nothing."""
         known = {int(p["version"]) for p in self.store.policies()}
         stale = list((self.data_dir / "staging").iterdir())
+        strangers: list[Path] = []
         for d in (self.data_dir / "policies").iterdir():
             name = d.name.removeprefix("v")
-            if d.name.startswith(".") or not name.isdigit() or int(name) not in known:
+            if d.name.startswith("."):
                 stale.append(d)
+            elif name.isdigit() and int(name) not in known:
+                (stale if int(name) == max(known, default=0) + 1 else strangers).append(d)
+        if strangers:
+            raise ValueError(
+                f"the data directory {self.data_dir} holds policy versions the database "
+                f"{self.store.safe_url} does not know ({', '.join(sorted(d.name for d in strangers))}): "
+                "is --database-url the one this data directory was used with?"
+            )
         for d in stale:
             shutil.rmtree(d, ignore_errors=True) if d.is_dir() else d.unlink(missing_ok=True)
             log.warning("removed %s, left by an interrupted server", d)
