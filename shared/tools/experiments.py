@@ -750,13 +750,15 @@ def fig5(root: Path, b: Budget) -> Path:
     sensor = sensor_for("cepg")
     for env in ("office", "museum"):
         times: dict[tuple[float, int], np.ndarray] = {}
+        trained: dict[float, Any] = {}  # the episodes the teams ran (whole batches), as the cells say
         for beta in BETAS:
             for s in b.seeds:
                 team = _flown(_snapshot(root, env, N, beta, b.train, s), env, sensor, N)
                 cell = _cell(env, N, "pg" if beta == 1.0 else "cepg", team, b.episodes, times=True)
                 times[beta, s] = cell.pop("capture_times", np.zeros(0))
+                trained[beta] = cell.get("train_episodes", b.train)
         for beta in BETAS:
-            rows.append(_beta_row(env, N, beta, b, times))
+            rows.append({**_beta_row(env, N, beta, b, times), "train_episodes": trained[beta]})
         _say(
             f"fig5: {env}: " + ", ".join(f"beta {r['beta']} {r['mean_capture_time']:.2f}" for r in rows[-len(BETAS) :])
         )
