@@ -5,11 +5,13 @@ be the one Error schema."""
 
 from __future__ import annotations
 
+import io
 import re
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
@@ -288,8 +290,12 @@ def test_openapi_documents_auth_errors_on_every_protected_route(api):
                 assert "401" not in op["responses"], (method, path)
                 continue
             assert "401" in op["responses"], (method, path)
-            # 403: an operator action with the agent token, or a robot's token on another robot's records
-            scoped = path in ("/api/v1/episodes", "/api/v1/episodes/{robot_id}/{mission_id}")
+            # 403: an operator action with the agent token, or a robot's token on other robots' records
+            scoped = path in (
+                "/api/v1/episodes",
+                "/api/v1/episodes/{robot_id}/{mission_id}",
+                "/api/v1/missions/{mission_id}/export.mcap",
+            )
             assert ("403" in op["responses"]) == (method == "post" or scoped), (method, path)
             assert "HTTPValidationError" not in str(op["responses"]), (method, path)
 
@@ -484,3 +490,53 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
     }
     assert by["r2"]["state"] == "idle" and by["r2"]["node"] == 12 and by["r2"]["mission_id"] is None
     assert by["r3"]["state"] == "offline" and by["r3"]["online"] is False and by["r3"]["since"] is None
+
+
+def test_a_mission_exported_as_mcap_reads_back(api):
+    """The MCAP export read back with the mcap library: each robot's steps as recorded, its belief
+    recomputed from its own record (the version's belief model), the map and the outcome."""
+    import json
+
+    from mcap.reader import make_reader
+
+    from shared.core.belief import BeliefFilter
+    from shared.core.snapshot import read_snapshot
+
+    srv, c = api
+    srv.bus.online = {"r1": 1.0, "r2": 2.0}
+    m = c.post("/api/v1/missions", json={"robots": ["r1", "r2"], "mission_id": "m-x"}, headers=auth(OP)).json()
+    for r in ("r1", "r2"):
+        _store_episode(srv, robot=r, mission="m-x")
+    r = c.get("/api/v1/missions/m-x/export.mcap", headers=auth(AG))
+    assert r.status_code == 200 and r.headers["content-type"] == "application/octet-stream"
+    assert 'filename="m-x.mcap"' in r.headers["content-disposition"]
+    reader = make_reader(io.BytesIO(r.content))
+    got: dict[str, list] = {}
+    for schema, channel, message in reader.iter_messages():
+        assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+        got.setdefault(channel.topic, []).append((message.log_time, json.loads(message.data)))
+    assert sorted(got) == ["/map", "/mission/outcome", "/robots/r1/belief", "/robots/r1/state",
+                           "/robots/r2/belief", "/robots/r2/state"]  # fmt: skip
+    assert got["/map"][0][1]["nodes"] == [int(v) for v in srv.graph.labels]
+    rec = c.get("/api/v1/episodes/r1/m-x", headers=auth(AG)).json()
+    assert [(s["t"], s["node"], s["z"]) for _, s in got["/robots/r1/state"]] == [
+        (s["t"], s["node"], s["z"]) for s in rec["steps"]
+    ]
+    t0 = int(m["created"] * 1e9)
+    assert [t for t, _ in got["/robots/r1/state"]] == [t0 + s["t"] * 1_000_000_000 for s in rec["steps"]]
+    bf = BeliefFilter(srv.graph, read_snapshot(srv.snapshot_dir(1), srv.graph).model, Sensor())
+    g = srv.graph
+    want = [bf.reset(g.index[s["node"]], s["z"]).copy() if k == 0 else bf.update(g.index[s["node"]], s["z"]).copy()
+            for k, s in enumerate(rec["steps"])]  # fmt: skip
+    beliefs = [b["belief"] for _, b in got["/robots/r1/belief"]]
+    assert np.allclose(beliefs, want, atol=1e-6) and all(abs(sum(b) - 1) < 1e-4 for b in beliefs)
+    view = c.get("/api/v1/missions/m-x", headers=auth(AG)).json()
+    assert got["/mission/outcome"][0][1] == {
+        "mission_id": "m-x",
+        "status": view["status"],
+        "captured": True,
+        "capture_time": 1,
+        "captured_by": view["outcome"].get("captured_by"),  # the world's captured message names it
+    }
+    assert c.get("/api/v1/missions/nope/export.mcap", headers=auth(AG)).status_code == 404
+    assert c.get("/api/v1/missions/m-x/export.mcap").status_code == 401

@@ -7,7 +7,7 @@ import time
 import uuid
 from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Query, Response
+from fastapi import APIRouter, HTTPException, Query, Request, Response
 
 from training_server.api.deps import READ, WRITE, Srv, errors
 from training_server.api.schemas import MAX_ID, Mission, MissionList, MissionParams, MissionRequest
@@ -96,6 +96,32 @@ def list_missions(
 @router.get("/{mission_id}", dependencies=READ, responses=errors(401, 404))
 def get_mission(mission_id: str, srv: Srv) -> Mission:
     return mission_view(srv, mission_id)
+
+
+@router.get(
+    "/{mission_id}/export.mcap",
+    dependencies=READ,
+    response_class=Response,
+    responses={
+        200: {"content": {"application/octet-stream": {}}, "description": "the MCAP file"},
+        **errors(401, 403, 404),
+    },
+)
+def export_mission(mission_id: str, request: Request, srv: Srv) -> Response:
+    """The mission as an MCAP file for Foxglove: the map, each robot's states and its own belief
+    per step (recomputed from its record), the outcome (training_server/export.py)."""
+    from training_server.export import mission_mcap
+
+    if getattr(request.state, "robot", None) is not None:
+        raise HTTPException(403, "a robot's own token reads its own records only; the export holds every robot's")
+    m = mission_view(srv, mission_id)
+    records = {r: srv.store.get_record(srv.fleet, r, mission_id) for r in m.episodes_received}
+    data = mission_mcap(srv, m, {r: rec for r, rec in records.items() if rec is not None})
+    return Response(
+        data,
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="{mission_id}.mcap"'},
+    )
 
 
 @router.post("/{mission_id}/stop", dependencies=WRITE, responses=errors(401, 403, 404))
