@@ -1093,18 +1093,19 @@ def run(
     scheduler: str | None = None,
 ) -> Path:
     """Run one experiment (``all``: every one in turn); returns its results directory.
-    ``train_episodes`` overrides the learned teams' training budget. With ``workers`` > 1 or a
-    Dask ``scheduler``, the teams the experiment needs and the cache lacks are trained first, in
-    parallel (``plan``, shared/tools/runner.py); the experiment then runs on the cached teams."""
+    ``train_episodes`` overrides the learned teams' training budget. The teams the experiment
+    needs and the cache lacks are trained first and its cells evaluated (``plan``, round after
+    round: a cell needs its team), as jobs of shared/tools/runner.py: in this process, in
+    ``workers`` local processes, or on a Dask ``scheduler``'s cluster, each with one torch thread,
+    so the numbers are the same every way; the experiment then runs on the cached teams and cells."""
     b = (QUICK if quick else FULL).with_train(train_episodes)
     if name != "all" and name not in EXPERIMENTS:
         raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)}, all)")
-    if workers > 1 or scheduler:
-        for _round in range(3):  # the teams (and the planners' cells), then the learned teams' cells
-            jobs = plan(name, root, b)
-            if not jobs:
-                break
-            run_jobs(jobs, root, workers, scheduler, say=_say)
+    for _round in range(3):  # the teams (and the planners' cells), then the learned teams' cells
+        jobs = plan(name, root, b)
+        if not jobs:
+            break
+        run_jobs(jobs, root, workers, scheduler, say=_say)  # a progress line per job, with an ETA
     if name == "all":
         for e in EXPERIMENTS:
             if e != "fig8":

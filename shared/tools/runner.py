@@ -44,8 +44,10 @@ def _call(job: Job) -> dict[str, bytes]:
     return job.fn(*job.args)
 
 
-def _results(jobs: list[Job], workers: int, scheduler: str | None) -> Iterator[tuple[Job, dict[str, bytes]]]:
-    """(job, files) as the jobs finish."""
+def _results(
+    jobs: list[Job], workers: int, scheduler: str | None, starting: Callable[[Job], None] = lambda _j: None
+) -> Iterator[tuple[Job, dict[str, bytes]]]:
+    """(job, files) as the jobs finish; in this process, ``starting`` is told of each job first."""
     if scheduler:
         try:
             from distributed import Client, as_completed
@@ -70,8 +72,15 @@ def _results(jobs: list[Job], workers: int, scheduler: str | None) -> Iterator[t
             for fut in cf.as_completed(pending):
                 yield pending[fut], fut.result()
     else:
-        for j in jobs:
-            yield j, _call(j)
+        import torch
+
+        threads = torch.get_num_threads()
+        try:
+            for j in jobs:
+                starting(j)
+                yield j, _call(j)
+        finally:
+            torch.set_num_threads(threads)  # this process's own setting again
 
 
 def run_jobs(
@@ -95,7 +104,9 @@ def run_jobs(
         say(f"{len(unique)} jobs to run on {where}")
     total = sum(j.weight for j in unique)
     done_w, t0 = 0.0, time.perf_counter()
-    for k, (job, files) in enumerate(_results(unique, workers, scheduler), 1):
+    sequential = workers == 1 and not scheduler and len(unique) > 1
+    starting = (lambda j: say(f"{j.label} ...")) if sequential else (lambda _j: None)
+    for k, (job, files) in enumerate(_results(unique, workers, scheduler, starting), 1):
         # a snapshot's policy.json marks it complete in the cache: written last
         for rel in sorted(files, key=lambda r: (Path(r).name == "policy.json", r)):
             (root / rel).parent.mkdir(parents=True, exist_ok=True)
