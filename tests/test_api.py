@@ -540,3 +540,20 @@ def test_a_mission_exported_as_mcap_reads_back(api):
     }
     assert c.get("/api/v1/missions/nope/export.mcap", headers=auth(AG)).status_code == 404
     assert c.get("/api/v1/missions/m-x/export.mcap").status_code == 401
+
+
+def test_ids_no_database_can_hold_are_not_found_not_server_errors(api):
+    """PostgreSQL refuses NUL in text (Schemathesis found the 500 on GET /episodes): a filter that
+    cannot be an id is 422, a path id that cannot exist is 404, on both backends."""
+    _srv, c = api
+    assert c.get("/api/v1/episodes?mission_id=a%00b", headers=auth(AG)).status_code == 422
+    assert c.get("/api/v1/episodes?robot_id=%00", headers=auth(AG)).status_code == 422
+    for path in (
+        "/api/v1/missions/a%00b",
+        "/api/v1/missions/a%00b/export.mcap",
+        "/api/v1/episodes/r1/m%00",
+        "/api/v1/training-runs/x%00",
+    ):
+        assert c.get(path, headers=auth(OP)).status_code == 404, path
+    for path in ("/api/v1/training-runs/x%00/cancel", "/api/v1/missions/a%00b/stop"):
+        assert c.post(path, headers=auth(OP)).status_code == 404, path

@@ -154,6 +154,13 @@ def migrate(engine: Engine) -> tuple[str | None, str]:
     return before, head
 
 
+def _storable(*texts: str | None) -> bool:
+    """False when a text cannot be stored, so cannot be found either: PostgreSQL refuses NUL
+    characters in text (SQLite does not); every id the server stores is checked against
+    records.ID_RE, which has none. Lookups of such a text find nothing instead of failing."""
+    return not any(t is not None and "\x00" in t for t in texts)
+
+
 def _j(x: Any) -> str | None:
     return None if x is None else json.dumps(x, separators=(",", ":"))
 
@@ -278,6 +285,8 @@ class Store:
         self, fleet: str, limit: int, after: int, mission_id: str | None, robot_id: str | None
     ) -> list[dict[str, Any]]:
         e = episodes.c
+        if not _storable(fleet, mission_id, robot_id):
+            return []
         keys = ("id", "robot_id", "mission_id", "policy_version", "steps", "captured", "capture_time", "received")
         q = select(*(getattr(e, k) for k in keys)).where(e.fleet == fleet, e.id > after)
         if mission_id:
@@ -289,6 +298,8 @@ class Store:
         return [{**dict(zip(keys, r, strict=True)), "captured": bool(r[5])} for r in rows]
 
     def get_record(self, fleet: str, robot_id: str, mission_id: str) -> dict[str, Any] | None:
+        if not _storable(fleet, robot_id, mission_id):
+            return None
         e = episodes.c
         with self._tx() as conn:
             rec = conn.execute(
@@ -297,6 +308,8 @@ class Store:
         return None if rec is None else json.loads(rec)
 
     def mission_records(self, fleet: str, mission_id: str) -> list[tuple[str, bool, int | None, int | None]]:
+        if not _storable(fleet, mission_id):
+            return []
         e = episodes.c
         with self._tx() as conn:
             rows = conn.execute(
@@ -355,6 +368,8 @@ class Store:
         return select(*(getattr(missions.c, k) for k in (*self._MISSION_KEYS, "deadline")))
 
     def get_mission(self, mission_id: str) -> dict[str, Any] | None:
+        if not _storable(mission_id):
+            return None
         with self._tx() as conn:
             row = conn.execute(self._mission_query().where(missions.c.id == mission_id)).one_or_none()
         return None if row is None else self._mission(row)
@@ -471,6 +486,8 @@ class Store:
         the run's status afterwards, None if it was neither queued nor running."""
         r = training_runs.c
         now = time.time()
+        if not _storable(run_id):
+            return None
         with self._tx() as conn:
             status = conn.execute(select(r.status).where(r.id == run_id)).scalar_one_or_none()
             if status == "queued":
@@ -493,6 +510,8 @@ class Store:
 
     def runs(self, run_id: str | None = None) -> list[dict[str, Any]]:
         r = training_runs.c
+        if not _storable(run_id):
+            return []
         q = select(*(getattr(r, k) for k in (*self._RUN_KEYS, "cancel_requested")))
         q = q.where(r.id == run_id) if run_id else q.order_by(r.created, r.id)
         with self._tx() as conn:

@@ -6,6 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, Request
 
+from shared.core.records import ID_RE
 from training_server.api.deps import READ, Srv, errors, robot_scope
 from training_server.api.schemas import MAX_ID, EpisodePage, EpisodeRecord, EpisodeStats, EpisodeSummary
 
@@ -20,8 +21,8 @@ def episodes(
     after: Annotated[
         int, Query(ge=0, le=MAX_ID, description="return episodes with id > after (use next_after to page)")
     ] = 0,
-    mission_id: str | None = None,
-    robot_id: str | None = None,
+    mission_id: Annotated[str | None, Query(pattern=ID_RE.pattern, description="this mission's only")] = None,
+    robot_id: Annotated[str | None, Query(pattern=ID_RE.pattern, description="this robot's only")] = None,
 ) -> EpisodePage:
     robot_id = robot_scope(request, robot_id) or robot_id  # a robot's own token lists its own records
     items = srv.store.list_episodes(srv.fleet, limit, after, mission_id, robot_id)
