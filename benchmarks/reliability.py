@@ -714,6 +714,8 @@ def write_report(res: dict[str, Any], path: Path) -> None:
         "(tests/test_ingest_fuzz.py).",
         "",
     ]
+    if res.get("notes"):
+        lines += [res["notes"], ""]
     for db, r in res["databases"].items():
         lines += [f"## {db}", ""]
         if r.get("faults"):
