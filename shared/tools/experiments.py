@@ -73,7 +73,8 @@ def _write(out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]
 
 
 def _say(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
+    if _PLAN is None:  # a planning pass's placeholder figures are not news
+        print(text, file=sys.stderr, flush=True)
 
 
 # ---------------------------------------------------------------------- fig4
