@@ -80,3 +80,16 @@ def test_simulate_then_estimate(tmp_path):
     # records for another map are all skipped: nothing written, exit 2
     r = mures("estimate", "--env", "museum", "--episodes", str(eps), "--out", str(tmp_path / "m2.json"))
     assert r.returncode == 2 and "graph_id: 180" in r.stderr and not (tmp_path / "m2.json").exists()
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["--zenoh-connect", "nonsense"], "not a Zenoh endpoint such as tcp/127.0.0.1:7447"),
+        (["--fleet", "bad fleet!"], "fleet 'bad fleet!' must be"),
+        (["--eta-fn", "0.9"], "[0, 0.5]"),
+    ],
+)
+def test_world_refuses_bad_arguments_clearly(args, fragment):
+    r = mures("world", "--env", "office", *args)
+    assert r.returncode == 2 and fragment in r.stderr and "Traceback" not in r.stderr, r.stderr

@@ -508,6 +508,9 @@ def cmd_world(args: argparse.Namespace) -> int:
     from shared.tools.world import World
 
     graph, target, sensor = _world(args, "node")
+    for ep in args.zenoh_connect or []:
+        if "/" not in ep or not ep.split("/", 1)[0].isalnum():
+            raise CliError(f"world: --zenoh-connect {ep!r} is not a Zenoh endpoint such as tcp/127.0.0.1:7447")
     try:
         check_id("fleet", args.fleet)
         connect = args.zenoh_connect or [DEFAULT_ZENOH_ENDPOINT]
