@@ -62,6 +62,7 @@ log = logging.getLogger("mures.agent")
 END_WAIT_S = 10.0  # how long to wait for the end message after the world said the mission is over
 TELEMETRY_HZ = 5  # live state messages a second at most, during a mission
 IDLE_BEAT_S = 5.0  # and one every this many seconds between missions
+TELEMETRY_MAX_NODES = 2048  # the belief rides along on maps up to this size (a few KB a message)
 
 
 def mission_seed(seed: int, index: int) -> int:
@@ -277,7 +278,7 @@ class Agent:
             return
         self.last_telemetry = now
         out = {**msg, "policy_version": self.policies.version if self.policies else None, "ts": round(time.time(), 3)}
-        if belief is not None:
+        if belief is not None and len(belief) <= TELEMETRY_MAX_NODES:
             out["belief"] = [round(float(x), 4) for x in np.asarray(belief)]
         try:
             self.telemetry_pub.put(json.dumps(out).encode())
