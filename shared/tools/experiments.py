@@ -1380,10 +1380,10 @@ def _beta_reading(rows: list[dict[str, Any]]) -> list[str]:
     if len(seeds) > 1:
         out += [
             "",
-            "Across training seeds, "
+            "Across training seeds (a difference counts when its 95% CI over the seeds excludes 0): "
             + (f"beta in {sig} captures sooner than PG" if sig else "no beta < 1 captures sooner than PG")
             + (f"; beta in {worse} captures later" if worse else "")
-            + " (95% CI over seeds excludes 0).",
+            + ".",
         ]
     return [*out, ""]
 
