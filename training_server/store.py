@@ -96,22 +96,21 @@ def make_engine(url: str, *, shared_connection: bool = True) -> Engine:
     return engine
 
 
-def _alembic_config(conn: Connection) -> Any:
+def _alembic_config(conn: Connection | None = None) -> Any:
+    """Alembic's configuration for training_server/migrations, running on ``conn`` if given."""
     from alembic.config import Config
 
     cfg = Config()
     cfg.set_main_option("script_location", str(MIGRATIONS))
-    cfg.attributes["connection"] = conn
+    if conn is not None:
+        cfg.attributes["connection"] = conn
     return cfg
 
 
 def head_revision() -> str:
-    from alembic.config import Config
     from alembic.script import ScriptDirectory
 
-    cfg = Config()
-    cfg.set_main_option("script_location", str(MIGRATIONS))
-    head = ScriptDirectory.from_config(cfg).get_current_head()
+    head = ScriptDirectory.from_config(_alembic_config()).get_current_head()
     assert head is not None
     return head
 

@@ -249,13 +249,7 @@ def _obtain(root: Path, job: Job) -> None:
     if _PLAN is not None:
         _PLAN.append(job)
         return
-    import torch
-
-    threads = torch.get_num_threads()
-    try:
-        run_jobs([job], root, say=_say)
-    finally:
-        torch.set_num_threads(threads)
+    run_jobs([job], root, say=_say)  # in this process; the runner restores its thread count
 
 
 def _marl_snapshot(
