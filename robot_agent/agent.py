@@ -277,7 +277,12 @@ class Agent:
         if self.telemetry_pub is None or (not force and now - self.last_telemetry < 1.0 / TELEMETRY_HZ):
             return
         self.last_telemetry = now
-        out = {**msg, "policy_version": self.policies.version if self.policies else None, "ts": round(time.time(), 3)}
+        out = {
+            **msg,
+            "policy_version": self.policies.version if self.policies else None,
+            "backend": self.args.backend,
+            "ts": round(time.time(), 3),
+        }
         if belief is not None and len(belief) <= TELEMETRY_MAX_NODES:
             out["belief"] = [round(float(x), 4) for x in np.asarray(belief)]
         try:

@@ -34,6 +34,7 @@ class FakeBus:
         self.online: dict[str, float] = {}
         self.gone: dict[str, float] = {}  # robots that dropped off: when last heard of
         self.live: dict[str, dict[str, Any]] = {}  # robot -> last telemetry
+        self.truth: dict[str, dict[str, Any]] = {}  # mission -> the simulated world's last ground truth
         self.published: list[dict[str, Any]] = []
         self.stats = {"ingest_batches": 3, "ingest_seconds": 0.25}
 
@@ -46,6 +47,9 @@ class FakeBus:
             r: {"online": r in self.online, "since": self.online.get(r), "last_seen": t, "live": self.live.get(r)}
             for r, t in sorted(heard.items())
         }
+
+    def truth_of(self, mission_id: str) -> dict[str, Any] | None:
+        return self.truth.get(mission_id)
 
     def publish_mission(self, msg: dict[str, Any]) -> None:
         self.published.append(msg)

@@ -18,7 +18,7 @@ from typing import Any
 import zenoh
 
 from shared.core.records import MAX_RECORD_BYTES, RecordError, canonical_record, parse_record
-from shared.core.wire import agent_key, episode_key, mission_key, parse_message, telemetry_key
+from shared.core.wire import agent_key, episode_key, mission_key, parse_message, telemetry_key, truth_key
 
 log = logging.getLogger("mures.server.bus")
 
@@ -35,6 +35,7 @@ class Bus:
         self.online: dict[str, float] = {}
         self.last_seen: dict[str, float] = {}  # every robot ever online: when it was last heard of
         self.live: dict[str, dict[str, Any]] = {}  # robot -> its last telemetry message
+        self.truth: dict[str, dict[str, Any]] = {}  # mission -> the simulated world's last ground truth
         self.online_lock = threading.Lock()
         self.running = True
         self.stats = {"ingest_batches": 0, "ingest_seconds": 0.0}
@@ -47,6 +48,7 @@ class Bus:
             agent_key(self.fleet, "*"), self._on_alive, history=True
         )
         self.telemetry_sub = self.session.declare_subscriber(telemetry_key(self.fleet, "*"), self._on_telemetry)
+        self.truth_sub = self.session.declare_subscriber(truth_key(self.fleet, "*"), self._on_truth)
         self.threads = [
             threading.Thread(target=self._ingest_loop, name="ingest", daemon=True),
             threading.Thread(target=self._events_loop, name="mission-events", daemon=True),
@@ -69,6 +71,9 @@ class Bus:
 
     def _on_telemetry(self, sample: zenoh.Sample) -> None:
         self.events_q.put(("telemetry", str(sample.key_expr), sample.payload.to_bytes()))
+
+    def _on_truth(self, sample: zenoh.Sample) -> None:
+        self.events_q.put(("truth", str(sample.key_expr), sample.payload.to_bytes()))
 
     # ---------------------------------------------------------------- workers
     def agents_online(self) -> dict[str, float]:
@@ -98,13 +103,38 @@ class Bus:
             msg = None
         if not isinstance(msg, dict) or msg.get("state") not in ("mission", "idle"):
             return
-        keep = {k: msg.get(k) for k in ("state", "mission_id", "t", "node", "z", "goal", "policy_version", "ts")}
+        keep = {
+            k: msg.get(k) for k in ("state", "mission_id", "t", "node", "z", "goal", "policy_version", "backend", "ts")
+        }
         belief = msg.get("belief")
         if isinstance(belief, list) and len(belief) == self.server.graph.n:
             keep["belief"] = belief
         with self.online_lock:
             self.live[robot] = {**keep, "received": time.time()}
             self.last_seen[robot] = time.time()
+
+    def _truth(self, key: str, raw: bytes) -> None:
+        """Keep the simulated world's last ground truth of a mission (fleet-sim's debugging overlay)."""
+        try:
+            msg = json.loads(raw) if len(raw) <= 1 << 20 else None
+        except ValueError:
+            msg = None
+        if not isinstance(msg, dict) or not isinstance(msg.get("target"), int) or not isinstance(msg.get("t"), int):
+            return
+        robots = msg.get("robots") if isinstance(msg.get("robots"), dict) else {}
+        with self.online_lock:
+            self.truth[key.rsplit("/", 1)[-1]] = {
+                "t": msg["t"],
+                "target": msg["target"],
+                "robots": robots,
+                "received": time.time(),
+            }
+            while len(self.truth) > 64:  # the newest missions only
+                self.truth.pop(next(iter(self.truth)))
+
+    def truth_of(self, mission_id: str) -> dict[str, Any] | None:
+        with self.online_lock:
+            return self.truth.get(mission_id)
 
     def publish_mission(self, msg: dict[str, Any]) -> None:
         self.session.put(
@@ -129,6 +159,9 @@ class Bus:
                 continue
             if kind == "telemetry":
                 self._telemetry(key, raw)
+                continue
+            if kind == "truth":
+                self._truth(key, raw)
                 continue
             msg = parse_message(raw)
             if msg is None or msg["type"] == "start":
@@ -243,7 +276,14 @@ class Bus:
         self.running = False
         for t in self.threads:
             t.join(2)
-        for ent in (self.alive_sub, self.telemetry_sub, self.missions_sub, self.queryable, self.publisher):
+        for ent in (
+            self.alive_sub,
+            self.telemetry_sub,
+            self.truth_sub,
+            self.missions_sub,
+            self.queryable,
+            self.publisher,
+        ):
             try:
                 ent.undeclare()
             except Exception:

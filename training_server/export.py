@@ -83,12 +83,10 @@ def mission_mcap(srv: Any, mission: Any, records: dict[str, dict[str, Any]]) -> 
             if st["node"] in pos:
                 state["x"], state["y"] = pos[st["node"]]
             messages.append((t0 + st["t"] * STEP_NS, f"/robots/{robot}/state", "mures.RobotState", state))
-        bf = _belief_filter(srv, rec, snaps)
-        if bf is None:
+        beliefs = recomputed_beliefs(srv, rec, snaps)
+        if beliefs is None:
             continue
-        for k, st in enumerate(steps):
-            p = g.index[st["node"]]
-            b = bf.reset(p, st["z"]) if k == 0 else bf.update(p, st["z"])
+        for k, (st, b) in enumerate(zip(steps, beliefs, strict=True)):
             belief = {"robot_id": robot, "t": st["t"], "belief": [round(float(x), 6) for x in b]}
             if k == 0:
                 belief["nodes"] = [int(v) for v in g.labels]
@@ -131,6 +129,19 @@ def mission_mcap(srv: Any, mission: Any, records: dict[str, dict[str, Any]]) -> 
         )
     w.finish()
     return buf.getvalue()
+
+
+def recomputed_beliefs(srv: Any, rec: dict[str, Any], cache: dict[int, Any]) -> list[Any] | None:
+    """The robot's belief b_t (an (n,) array in the map's row order) after each step of its record,
+    from that record alone (Eq. 1); None when the policy version it flew is not on this server."""
+    bf = _belief_filter(srv, rec, cache)
+    if bf is None:
+        return None
+    out = []
+    for k, st in enumerate(rec["steps"]):
+        p = srv.graph.index[st["node"]]
+        out.append(bf.reset(p, st["z"]) if k == 0 else bf.update(p, st["z"]))
+    return out
 
 
 def _belief_filter(srv: Any, rec: dict[str, Any], cache: dict[int, Any]) -> BeliefFilter | None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import ctypes
 import json
 import logging
+import math
 import multiprocessing as mp
 import os
 import queue
@@ -247,6 +248,9 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     }
 
 
+CURVE_POINTS = 400  # a run's learning curve keeps at most this many points
+
+
 class Supervisor:
     """Runs queued training runs one at a time, each in its own process."""
 
@@ -334,6 +338,7 @@ class Supervisor:
         self.current_proc = proc
         proc.start()
         result: dict[str, Any] | None = None
+        curve: list[list[float]] = []  # the learning curve: [episodes, mean capture time of the batches]
         while result is None:
             try:
                 ev = events.get(timeout=0.5)
@@ -346,17 +351,30 @@ class Supervisor:
                 else:
                     continue
             if ev["type"] == "progress":
-                store.update_run(run_id, progress={k: v for k, v in ev.items() if k != "type"})
+                point = {k: v for k, v in ev.items() if k != "type"}
+                if isinstance(point.get("mean_capture_time"), float) and not math.isfinite(point["mean_capture_time"]):
+                    del point["mean_capture_time"]  # no finished episode in the batch yet: no figure
+                if point.get("phase") == "train" and isinstance(point.get("mean_capture_time"), float):
+                    curve.append([point["episodes"], point["mean_capture_time"]])
+                    if len(curve) > CURVE_POINTS:  # long runs: every other point
+                        curve[:] = curve[::2]
+                store.update_run(run_id, progress={**point, "curve": curve})
             else:
                 result = ev
         proc.join(10)
         self.current_proc = None
         now = time.time()
         if result["type"] == "cancelled":
-            store.update_run(run_id, status="cancelled", finished=now)
+            store.update_run(run_id, status="cancelled", finished=now, progress={"phase": "cancelled", "curve": curve})
             log.info("training run %s cancelled", run_id)
         elif result["type"] == "failed":
-            store.update_run(run_id, status="failed", finished=now, error=result["error"])
+            store.update_run(
+                run_id,
+                status="failed",
+                finished=now,
+                error=result["error"],
+                progress={"phase": "failed", "curve": curve},
+            )
             log.warning("training run %s failed: %s", run_id, result["error"])
         elif not result["passed"]:
             g = result["metrics"]["gate"]
@@ -365,6 +383,7 @@ class Supervisor:
                 status="failed",
                 finished=now,
                 metrics=result["metrics"],
+                progress={"phase": "gated out", "curve": curve},
                 error=f"evaluation gate: new policy {g['new']['mean_capture_time']:.2f} steps, "
                 f"current {g['current']['mean_capture_time']:.2f}; current policy kept",
             )
@@ -379,7 +398,7 @@ class Supervisor:
                 finished=now,
                 metrics=result["metrics"],
                 version=version,
-                progress={"phase": "done"},
+                progress={"phase": "done", "curve": curve},
             )
             log.info("training run %s succeeded: version %d", run_id, version)
         shutil.rmtree(staging, ignore_errors=True)

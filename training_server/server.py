@@ -122,6 +122,7 @@ class Server:
         self.version_lock = threading.Lock()
         self.bus: Any = None
         self.supervisor: Any = None
+        self.is_stopping: Any = lambda: False  # main() points it at uvicorn's should_exit
         self.started = time.time()
         map_id = self.store.get_setting("graph_id")
         if map_id is None:
@@ -585,8 +586,11 @@ def _run(args: argparse.Namespace) -> int:
     host, port = args.http
     app = create_app(srv)
     tls = {"ssl_certfile": args.tls_cert, "ssl_keyfile": args.tls_key} if args.tls_cert else {}
-    config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False, **tls)
+    config = uvicorn.Config(
+        app, host=host, port=port, log_level="warning", access_log=False, timeout_graceful_shutdown=5, **tls
+    )
     http = uvicorn.Server(config)
+    srv.is_stopping = lambda: http.should_exit  # the console's event streams end when the server stops
     log.info(
         "serving fleet %r on map %s (n=%d): %s://%s:%d/api/v1, zenoh %s, data in %s, database %s, policy version %d",
         args.fleet,

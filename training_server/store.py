@@ -25,7 +25,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Connection, Engine, create_engine, event, func, inspect, make_url, select, update
+from sqlalchemy import Connection, Engine, case, create_engine, event, func, inspect, make_url, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import (
     ArgumentError,
@@ -392,6 +392,45 @@ class Store:
         with self._tx() as conn:
             rows = conn.execute(self._mission_query().where(m.fleet == fleet, m.status == "running")).all()
         return [self._mission(r) for r in rows]
+
+    def mission_outcomes(self, fleet: str) -> list[dict[str, Any]]:
+        """Every mission of ``fleet`` whose records arrived: its status, step limit and stop reason,
+        the policy versions its robots flew, whether some robot captured and the first capture time."""
+        e, m = episodes.c, missions.c
+        first_capture = func.min(case((e.captured == 1, e.capture_time), else_=None))
+        with self._tx() as conn:
+            per = conn.execute(
+                select(
+                    e.mission_id,
+                    func.min(e.policy_version),
+                    func.max(e.policy_version),
+                    func.max(e.captured),
+                    first_capture,
+                )
+                .where(e.fleet == fleet)
+                .group_by(e.mission_id)
+            ).all()
+            info = {
+                mid: (status, _unj(params), _unj(ev))
+                for mid, status, params, ev in conn.execute(
+                    select(m.id, m.status, m.params, m.event).where(m.fleet == fleet)
+                ).all()
+            }
+        out = []
+        for mid, v_lo, v_hi, captured, ct in per:
+            status, params, ev = info.get(mid, (None, {}, None))
+            out.append(
+                {
+                    "mission_id": mid,
+                    "status": status,
+                    "max_steps": (params or {}).get("max_steps"),
+                    "stop_reason": (ev or {}).get("reason"),
+                    "policy_version": v_lo if v_lo == v_hi else None,  # None: robots flew different versions
+                    "captured": bool(captured),
+                    "capture_time": ct,
+                }
+            )
+        return out
 
     def busy_robots(self, fleet: str) -> dict[str, str]:
         """{robot: mission} for every robot of a running mission whose record has not arrived."""

@@ -53,6 +53,11 @@ def sim_key(fleet: str, mission: str = "*", robot: str = "*") -> str:
     return f"mures/{fleet}/sim/{mission}/{robot}"
 
 
+def truth_key(fleet: str, mission: str = "*") -> str:
+    """The simulated world's ground truth per step (fleet-sim only; a debugging overlay)."""
+    return f"mures/{fleet}/truth/{mission}"
+
+
 def check_id(kind: str, value: str) -> str:
     if not isinstance(value, str) or not ID_RE.match(value):
         raise ValueError(f"{kind} {value!r} must be 1-128 characters of A-Z a-z 0-9 _ . -")

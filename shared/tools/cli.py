@@ -429,10 +429,27 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------- fleet-sim
+def _count(text: str) -> int:
+    """A whole number >= 0 (argparse type)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {v}")
+    return v
+
+
 def cmd_fleet_sim(args: argparse.Namespace) -> int:
     from shared.core.http import ApiError
     from shared.tools.fleetsim import run_fleet_sim
 
+    if args.missions is None:
+        if not args.serve:
+            raise CliError("fleet-sim: give --missions N, or --serve to keep the fleet up for the console")
+        args.missions = 0
+    elif args.missions == 0 and not args.serve:
+        raise CliError("fleet-sim: --missions must be at least 1 (0 only with --serve)")
     graph, target, sensor = _world(args, "node")
     graph_args = ["--env", args.env] if args.env else ["--graph", str(Path(args.graph).resolve())]
     if args.server and not (args.zenoh_connect and args.token_file):
@@ -454,6 +471,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             retrain,
             Path(args.workdir) if args.workdir else None,
             quiet=args.json,
+            serve=args.serve,
             server=args.server,
             zenoh_connect=args.zenoh_connect,
             token_file=args.token_file,
@@ -623,7 +641,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("fleet-sim", help="run server, simulated world and N robot agents on loopback; fly missions")
     _add_world_args(p)
-    p.add_argument("--missions", type=positive_int, required=True, help="missions to fly")
+    p.add_argument("--missions", type=_count, default=None, help="missions to fly (0 with --serve)")
+    p.add_argument(
+        "--serve",
+        action="store_true",
+        help="then keep the fleet up for the operator console (http://HOST:PORT/) until Ctrl-C",
+    )
     p.add_argument("--retrain-every", type=int, default=0, metavar="K", help="retrain over HTTP every K missions")
     p.add_argument("--retrain-episodes", type=positive_int, default=20_000, help="CE-PG episodes per retrain")
     p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")

@@ -262,6 +262,34 @@ def launch(
     return fleet
 
 
+def _serve(fleet: Fleet, robots: int) -> None:
+    """Keep server, world and agents up, saying where the console is, until SIGINT or SIGTERM."""
+    server_dir = fleet.workdir / "server"
+    op = server_dir / "operator.token" if fleet.server is not None else None
+    print(
+        f"fleet-sim: {robots} robots ready. Console: {fleet.api.base}/ ; sign in with the operator token"
+        + (f" ({op})" if op else "")
+        + f" or the agent token ({fleet.agent_token_file}) for a read-only view. Ctrl-C stops.",
+        file=sys.stderr,
+        flush=True,
+    )
+
+    def interrupt(*_a: Any) -> None:
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        while True:
+            if fleet.server is not None and fleet.server.poll() is not None:
+                print(f"fleet-sim: the server exited ({fleet.server.returncode})", file=sys.stderr)
+                return
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        print("fleet-sim: stopping", file=sys.stderr, flush=True)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def run_fleet_sim(
     graph: Graph,
     graph_args: list[str],
@@ -274,9 +302,11 @@ def run_fleet_sim(
     retrain_params: dict[str, Any],
     workdir: Path | None,
     quiet: bool,
+    serve: bool = False,
     **launch_kw: Any,
 ) -> dict[str, Any]:
-    """Fly ``missions`` missions and return the summary (see ``mures fleet-sim``)."""
+    """Fly ``missions`` missions and return the summary (see ``mures fleet-sim``); with ``serve``,
+    then keep the fleet up for the operator console until Ctrl-C (or SIGTERM)."""
     say = (lambda *_a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     tmp = None
     if workdir is None:
@@ -329,6 +359,8 @@ def run_fleet_sim(
                     f"fleet-sim: run {r['id']} {r['status']}"
                     + (f": version {r['version']}" if r["version"] else f" ({r['error']})")
                 )
+        if serve:
+            _serve(fleet, robots)
         stats = fleet.api.get("/api/v1/episodes/stats")
     finally:
         fleet.close()

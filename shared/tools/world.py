@@ -27,7 +27,7 @@ import zenoh
 
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
-from shared.core.wire import mission_key, parse_message, sim_key
+from shared.core.wire import mission_key, parse_message, sim_key, truth_key
 
 log = logging.getLogger("mures.world")
 
@@ -188,6 +188,7 @@ class World:
         (_in0, in1), (_out0, out1) = self.sensor.likelihoods()
         captured_by = None
         replies = []
+        replies_by_robot: dict[str, dict[str, Any]] = {}
         for robot in m.robots:  # fixed order: deterministic draws
             if robot not in m.reports:
                 continue
@@ -198,9 +199,11 @@ class World:
             if z and seen and captured_by is None:
                 captured_by = robot
             replies.append((q, z))
+            replies_by_robot[robot] = {"node": int(self.graph.labels[row]), "z": z, "seen": bool(seen)}
         for q, z in replies:
             q.reply(q.key_expr, json.dumps({"z": z}).encode())
             q.drop()  # finalise: the robot's get() returns now
+        self._publish_truth(mid, m, replies_by_robot)
         now = time.monotonic()
         self.step_seconds.append(now - m.waiting_since)
         if m.t > 0:
@@ -213,6 +216,16 @@ class World:
             self._end(mid, {"type": "captured", "mission_id": mid, "t": t, "captured_by": captured_by})
         elif t >= m.max_steps or not m.active:
             self._end(mid, {"type": "stop", "mission_id": mid, "reason": "step limit" if m.active else "no robots"})
+
+    def _publish_truth(self, mid: str, m: _Mission, robots: dict[str, dict[str, Any]]) -> None:
+        """The step's ground truth on mures/<fleet>/truth/<mission> for the console's debugging
+        overlay: the target's node e_t and, per robot, z_t and whether e_t was in D(p_t) (a z_t = 1
+        without it is a false alarm). Best effort: nothing in the mission waits for it."""
+        msg = {"mission_id": mid, "t": m.t, "target": int(self.graph.labels[m.target]), "robots": robots}
+        try:
+            self.session.put(truth_key(self.fleet, mid), json.dumps(msg).encode())
+        except Exception:
+            log.debug("truth for %s not published", mid, exc_info=True)
 
     def _end(self, mid: str, publish: dict[str, Any] | None) -> None:
         m = self.missions[mid]

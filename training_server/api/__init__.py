@@ -18,7 +18,8 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from training_server.api import episodes, fleet, health, maps, metrics, missions, policies, training_runs
+from training_server import console
+from training_server.api import episodes, fleet, health, live, maps, metrics, missions, policies, training_runs
 from training_server.api.deps import DESCRIPTIONS
 from training_server.api.limits import BodyLimit
 
@@ -51,9 +52,10 @@ def create_app(srv: Any) -> FastAPI:
     app = FastAPI(title="MuRES fleet training server", version="1", description=__doc__)
     app.state.server = srv
     app.state.metrics = metrics.registry_for(srv)
-    for module in (health, maps, fleet, missions, episodes, policies, training_runs):
+    for module in (health, maps, fleet, live, missions, episodes, policies, training_runs):
         app.include_router(module.router, prefix=API_PREFIX)
     app.include_router(metrics.router)
+    console.mount(app)
     app.add_middleware(BodyLimit)
 
     @app.middleware("http")
@@ -75,7 +77,7 @@ def create_app(srv: Any) -> FastAPI:
         headers = dict(exc.headers or {})
         detail = str(exc.detail)
         if exc.status_code == 405:  # every method the path has, not only those of the first route matched
-            headers["Allow"] = ", ".join(_methods_of(app, req.url.path))
+            headers["Allow"] = ", ".join(_methods_of(app, req.url.path)) or headers.get("Allow", "GET")
             detail = f"{req.method} is not allowed on {req.url.path}; use {headers['Allow']}"
         elif exc.status_code == 400 and detail == "There was an error parsing the body":
             detail = "the request body is not valid JSON (UTF-8)"

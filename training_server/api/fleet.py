@@ -4,6 +4,8 @@ it runs (from its telemetry)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter
 
 from training_server.api.deps import READ, Srv, errors
@@ -14,6 +16,10 @@ router = APIRouter(tags=["fleet"], dependencies=READ, responses=errors(401))
 
 @router.get("/fleet")
 def fleet(srv: Srv) -> FleetOut:
+    return fleet_view(srv)
+
+
+def fleet_view(srv: Any) -> FleetOut:
     heard = srv.bus.agents()
     busy = srv.store.busy_robots(srv.fleet)
     agents = []
@@ -32,6 +38,8 @@ def fleet(srv: Srv) -> FleetOut:
                 step=live.get("t") if same else None,
                 node=live.get("node"),
                 policy_version=live.get("policy_version"),
+                z=live.get("z") if same else None,
+                backend=live.get("backend"),
             )
         )
     return FleetOut(fleet=srv.fleet, online=sum(a.online for a in agents), agents=agents)

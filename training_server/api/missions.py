@@ -10,7 +10,15 @@ from typing import Annotated, Any
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 
 from training_server.api.deps import READ, WRITE, Srv, errors
-from training_server.api.schemas import MAX_ID, Mission, MissionList, MissionParams, MissionRequest
+from training_server.api.schemas import (
+    MAX_ID,
+    Mission,
+    MissionList,
+    MissionParams,
+    MissionReplay,
+    MissionRequest,
+    RobotReplay,
+)
 
 router = APIRouter(prefix="/missions", tags=["missions"])
 
@@ -122,6 +130,31 @@ def export_mission(mission_id: str, request: Request, srv: Srv) -> Response:
         media_type="application/octet-stream",
         headers={"Content-Disposition": f'attachment; filename="{mission_id}.mcap"'},
     )
+
+
+@router.get("/{mission_id}/replay", dependencies=READ, responses=errors(401, 403, 404))
+def replay_mission(mission_id: str, request: Request, srv: Srv) -> MissionReplay:
+    """The mission step by step from its stored records: each robot's positions and observations,
+    and its own belief after each step recomputed from its record alone (Eq. 1) with the belief
+    model of the version it flew (null when that version is gone)."""
+    from training_server.export import recomputed_beliefs
+
+    if getattr(request.state, "robot", None) is not None:
+        raise HTTPException(403, "a robot's own token reads its own records only; a replay holds every robot's")
+    m = mission_view(srv, mission_id)
+    robots: dict[str, RobotReplay] = {}
+    cache: dict[int, Any] = {}
+    for r in m.episodes_received:
+        rec = srv.store.get_record(srv.fleet, r, mission_id)
+        if rec is None:
+            continue
+        beliefs = recomputed_beliefs(srv, rec, cache)
+        robots[r] = RobotReplay(
+            policy_version=rec.get("policy_version"),
+            steps=rec["steps"],
+            belief=None if beliefs is None else [[round(float(x), 4) for x in b] for b in beliefs],
+        )
+    return MissionReplay(mission=m, nodes=[int(v) for v in srv.graph.labels], robots=robots)
 
 
 @router.post("/{mission_id}/stop", dependencies=WRITE, responses=errors(401, 403, 404))

@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any
 
+import numpy as np
 from fastapi import APIRouter, Header, HTTPException, Path, Response
 from fastapi.responses import FileResponse
 
 from training_server.api.deps import READ, WRITE, Srv, errors
-from training_server.api.schemas import MAX_ID, PolicyList, PolicyVersion, PromoteRequest
+from training_server.api.schemas import (
+    MAX_ID,
+    PerformanceOut,
+    PolicyList,
+    PolicyVersion,
+    PromoteRequest,
+    TargetModelOut,
+    VersionPerformance,
+)
 
 router = APIRouter(prefix="/policies", tags=["policies"])
 
@@ -49,9 +59,86 @@ def promote(req: PromoteRequest, srv: Srv) -> PolicyVersion:
     return policy_view(srv, req.version)
 
 
+@router.get("/performance", dependencies=READ, responses=errors(401))
+def performance(srv: Srv) -> PerformanceOut:
+    """Capture time per policy version from the fleet's own missions, with its 95 % CI. A mission
+    counts when some robot captured the target or it ran to its step limit (which a miss counts);
+    missions stopped or timed out early, or flown with mixed versions, are left out."""
+    from shared.engine.evaluate import mean_ci95
+
+    times: dict[int, list[float]] = {}
+    caught: dict[int, int] = {}
+    excluded = 0
+    for o in srv.store.mission_outcomes(srv.fleet):
+        v = o["policy_version"]
+        if v is not None and o["captured"] and o["capture_time"] is not None:
+            times.setdefault(v, []).append(float(o["capture_time"]))
+            caught[v] = caught.get(v, 0) + 1
+        elif v is not None and o["stop_reason"] == "step limit" and o["max_steps"]:
+            times.setdefault(v, []).append(float(o["max_steps"]))
+        else:
+            excluded += 1
+    items = []
+    for v in sorted(times):
+        mean, half = mean_ci95(times[v])
+        items.append(
+            VersionPerformance(
+                version=v,
+                missions=len(times[v]),
+                captured=caught.get(v, 0),
+                mean_capture_time=round(mean, 4),
+                ci95=None if math.isnan(half) else round(half, 4),
+            )
+        )
+    return PerformanceOut(items=items, excluded=excluded)
+
+
 @router.get("/{version}", dependencies=READ, responses=errors(401, 404, 422))
 def get_policy(version: Version, srv: Srv) -> PolicyVersion:
     return policy_view(srv, version)
+
+
+@router.get("/{version}/model", dependencies=READ, responses=errors(401, 404, 422))
+def target_model(version: Version, srv: Srv) -> TargetModelOut:
+    """The version's estimated target model: Gamma_hat per node over its closed neighbourhood, b0,
+    and Gamma_hat's stationary distribution (where the target tends to be)."""
+    from shared.core.snapshot import SnapshotError, read_snapshot
+
+    if srv.store.policy(version) is None:
+        raise HTTPException(404, f"no policy version {version}")
+    try:
+        model = read_snapshot(srv.snapshot_dir(version), srv.graph).model
+    except (OSError, SnapshotError, ValueError) as exc:
+        raise HTTPException(404, f"policy version {version} has no readable snapshot on this server ({exc})") from None
+    g = srv.graph
+    gamma = model.dense()
+    labels = [int(v) for v in g.labels]
+    moves = {
+        str(labels[u]): {str(labels[int(v)]): round(float(gamma[u, v]), 6) for v in g.closed(u) if gamma[u, v] > 0}
+        for u in range(g.n)
+    }
+    pi = stationary(gamma)
+    return TargetModelOut(
+        version=version,
+        nodes=labels,
+        b0=[round(float(x), 6) for x in model.b0],
+        moves=moves,
+        stationary=[round(float(x), 6) for x in pi],
+    )
+
+
+def stationary(gamma: np.ndarray, iterations: int = 1000) -> np.ndarray:
+    """(n,) pi with pi = Gamma^T pi (the target's long-run distribution), by power iteration from
+    uniform; for a periodic or reducible Gamma, the average of the last two iterates (a fixed point)."""
+    pi = np.full(len(gamma), 1.0 / len(gamma))
+    for _ in range(iterations):
+        nxt = gamma.T @ pi
+        nxt /= nxt.sum()
+        if float(np.abs(nxt - pi).sum()) < 1e-12:
+            return nxt
+        pi = nxt
+    avg = 0.5 * (pi + gamma.T @ pi)
+    return avg / avg.sum()
 
 
 @router.get(

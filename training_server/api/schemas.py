@@ -53,6 +53,11 @@ class MapOut(BaseModel):
     graph_id: str
 
 
+class MapLayout(BaseModel):
+    positions: dict[str, list[float]] = Field(description="node label -> [x, y] in [0, 1], y down (screen)")
+    source: Literal["file", "automatic"] = Field(description="the graph file's positions, or a force-directed layout")
+
+
 class Agent(BaseModel):
     robot_id: str
     online: bool = Field(description="its liveliness token is declared now; false: it dropped off")
@@ -65,12 +70,31 @@ class Agent(BaseModel):
     step: int | None = Field(description="its last reported step t in that mission (telemetry)")
     node: int | None = Field(description="its last reported node (telemetry)")
     policy_version: int | None = Field(description="the policy version it last reported running (telemetry)")
+    z: int | None = Field(None, description="its last observation z_t in that mission (1: it detected the target)")
+    backend: str | None = Field(None, description="its robot backend (sim, or MODULE:CLASS), from its telemetry")
 
 
 class FleetOut(BaseModel):
     fleet: str
     online: int
     agents: list[Agent] = Field(description="every robot heard of since the server started, online or not")
+
+
+class WhoAmI(BaseModel):
+    role: Literal["operator", "agent"] = Field(description="operator: may act; agent: reads only")
+    who: str = Field(description='"operator", "agent" or "robot:<id>" (a robot\'s own token)')
+
+
+class Alert(BaseModel):
+    kind: Literal["robot-lost", "run-failed", "run-gated-out", "ingest-rejections"]
+    level: Literal["warning", "error"]
+    subject: str = Field(description="the robot, the training run, or 'ingest'")
+    since: float | None = Field(description="Unix time it began")
+    text: str
+
+
+class AlertList(BaseModel):
+    items: list[Alert]
 
 
 # ---------------------------------------------------------------------- missions
@@ -124,6 +148,20 @@ class Mission(BaseModel):
 class MissionList(BaseModel):
     items: list[Mission]
     total: int = Field(description="missions in all (page with ?offset=)")
+
+
+class RobotReplay(BaseModel):
+    policy_version: int | None
+    steps: list[Step] = Field(description="as recorded")
+    belief: list[list[float]] | None = Field(
+        description="b_t after each step, n floats in the map's node order; null when its policy version is gone"
+    )
+
+
+class MissionReplay(BaseModel):  # (RobotReplay is rebuilt below, after Step)
+    mission: Mission
+    nodes: list[int] = Field(description="the map's node labels, the order of every belief")
+    robots: dict[str, RobotReplay]
 
 
 # ---------------------------------------------------------------------- episodes
@@ -193,6 +231,31 @@ class PolicyVersion(BaseModel):
     artifact: str
 
 
+class TargetModelOut(BaseModel):
+    """A version's estimated target model (Gamma_hat, b0), learned by EM from the fleet's records."""
+
+    version: int
+    nodes: list[int]
+    b0: list[float] = Field(description="initial target distribution, in the order of nodes")
+    moves: dict[str, dict[str, float]] = Field(description="Gamma_hat: node -> {next node: probability}")
+    stationary: list[float] = Field(
+        description="where the target tends to be in the long run (Gamma_hat's fixed point)"
+    )
+
+
+class VersionPerformance(BaseModel):
+    version: int
+    missions: int = Field(description="missions counted: captured, or ended at their step limit")
+    captured: int
+    mean_capture_time: float | None = Field(description="mean over the missions counted (a miss counts its step limit)")
+    ci95: float | None = Field(description="half-width of the 95 % CI of that mean (normal approximation)")
+
+
+class PerformanceOut(BaseModel):
+    items: list[VersionPerformance]
+    excluded: int = Field(description="missions not counted: stopped, timed out, or flown with mixed versions")
+
+
 class PolicyList(BaseModel):
     current: int
     items: list[PolicyVersion]
@@ -215,3 +278,7 @@ class TrainingRun(BaseModel):
 
 class TrainingRunList(BaseModel):
     items: list[TrainingRun]
+
+
+RobotReplay.model_rebuild()
+MissionReplay.model_rebuild()

@@ -1,0 +1,130 @@
+"""What the console's live view shows, computed once for every browser watching: the fleet (each
+robot's last telemetry with its mission state), the server's status, and the alerts.
+
+Each is cached for a short while (FLEET_EVERY, STATUS_EVERY), so twenty browsers cost the database
+what one does. Thread-safe: the event streams call it from FastAPI's thread pool.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from typing import Any
+
+FLEET_EVERY = 0.2  # s: the live view's update period (5 Hz, the agents' telemetry rate)
+STATUS_EVERY = 1.0  # s
+REJECTION_WINDOW = 60.0  # s: "ingest rejections rising" means some in the last minute
+RUN_ALERT_AGE = 24 * 3600.0  # s: failed or gated-out runs are alerts for a day
+
+
+class Hub:
+    def __init__(self, srv: Any) -> None:
+        self.srv = srv
+        self.lock = threading.Lock()
+        self._fleet: tuple[float, dict[str, Any]] = (0.0, {})
+        self._status: tuple[float, dict[str, Any]] = (0.0, {})
+        self._rejections: deque[tuple[float, int]] = deque()  # (when, rejected in all)
+
+    # ------------------------------------------------------------------ fleet
+    def fleet(self) -> dict[str, Any]:
+        """GET /api/v1/fleet's body with the live extras the map draws: each robot's last
+        observation z and goal, and the simulated world's ground truth of running missions
+        (fleet-sim only)."""
+        with self.lock:
+            when, state = self._fleet
+            if time.monotonic() - when < FLEET_EVERY:
+                return state
+        from training_server.api.fleet import fleet_view
+
+        body = fleet_view(self.srv).model_dump()
+        bus = self.srv.bus
+        truth = {}
+        for a in body["agents"]:
+            mid = a["mission_id"]
+            if mid and mid not in truth:
+                t = bus.truth_of(mid)
+                if t is not None:
+                    truth[mid] = t
+        body["truth"] = truth
+        body["ts"] = time.time()
+        with self.lock:
+            self._fleet = (time.monotonic(), body)
+        return body
+
+    def belief(self, robot: str) -> dict[str, Any] | None:
+        """The robot's last reported belief {"t", "mission_id", "belief"} (None: none reported)."""
+        live = self.srv.bus.agents().get(robot, {}).get("live") or {}
+        if live.get("state") != "mission" or "belief" not in live:
+            return None
+        return {"robot_id": robot, "mission_id": live.get("mission_id"), "t": live.get("t"), "belief": live["belief"]}
+
+    # ------------------------------------------------------------------ status and alerts
+    def status(self) -> dict[str, Any]:
+        """The current policy, running missions, recent runs, episode counts and the alerts."""
+        with self.lock:
+            when, state = self._status
+            if time.monotonic() - when < STATUS_EVERY:
+                return state
+        srv = self.srv
+        stats = srv.store.episode_stats(srv.fleet)
+        runs = srv.store.runs()[:10]
+        body = {
+            "current_policy": srv.current_version(),
+            "running_missions": sorted(m["id"] for m in srv.store.running_missions(srv.fleet)),
+            "runs": [{k: r[k] for k in ("id", "status", "progress", "version", "error", "finished")} for r in runs],
+            "episodes": stats,
+            "alerts": self._alerts(stats, runs),
+        }
+        with self.lock:
+            self._status = (time.monotonic(), body)
+        return body
+
+    def alerts(self) -> list[dict[str, Any]]:
+        return list(self.status()["alerts"])
+
+    def _alerts(self, stats: dict[str, Any], runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        now = time.time()
+        out: list[dict[str, Any]] = []
+        for robot, a in self.srv.bus.agents().items():
+            if not a["online"]:
+                out.append(
+                    {
+                        "kind": "robot-lost",
+                        "level": "error",
+                        "subject": robot,
+                        "since": a["last_seen"],
+                        "text": f"robot {robot} is offline: last heard of {now - a['last_seen']:.0f} s ago",
+                    }
+                )
+        for r in runs:
+            if r["status"] != "failed" or now - (r["finished"] or now) > RUN_ALERT_AGE:
+                continue
+            gated = (r["error"] or "").startswith("evaluation gate")
+            out.append(
+                {
+                    "kind": "run-gated-out" if gated else "run-failed",
+                    "level": "warning" if gated else "error",
+                    "subject": r["id"],
+                    "since": r["finished"],
+                    "text": f"training run {r['id']} {'was gated out' if gated else 'failed'}: {r['error']}",
+                }
+            )
+        total = sum(stats["rejected"].values())
+        self._rejections.append((now, total))
+        while len(self._rejections) > 1 and now - self._rejections[1][0] >= REJECTION_WINDOW:
+            self._rejections.popleft()
+        rising = total - self._rejections[0][1]
+        if rising > 0:
+            reasons = ", ".join(f"{k} {v}" for k, v in sorted(stats["rejected"].items()) if v)
+            out.append(
+                {
+                    "kind": "ingest-rejections",
+                    "level": "warning",
+                    "subject": "ingest",
+                    "since": self._rejections[0][0],
+                    "text": f"{rising} episode records rejected in the last {now - self._rejections[0][0]:.0f} s "
+                    f"(all time by reason: {reasons})",
+                }
+            )
+        return out
