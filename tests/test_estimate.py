@@ -1,10 +1,11 @@
 import copy
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from shared.core.graph import grid_graph
+from shared.core.graph import builtin_graph, grid_graph
 from shared.core.models import Sensor, lazy_walk, uniform_walk
 from shared.core.records import RecordError, canonical_record, parse_record, read_jsonl
 from shared.engine.estimate import collect_missions, em, eq8, mean_row_tv
@@ -147,3 +148,15 @@ def test_packed_forward_backward_matches_a_plain_one_mission_at_a_time():
     assert np.allclose(xi.numpy(), counts)
     again = fb(torch.as_tensor(G), torch.as_tensor(b0))  # buffers reused: the same answer
     assert np.allclose(again[3].numpy(), counts)
+
+
+def test_em_on_one_short_mission_gives_stochastic_rows():
+    """Regression: the three records of one 45-step mission on OFFICE (from a console test's retrain)
+    made EM divide a start node's expected transitions of about 1e-306 by the 1e-300 floor, so its
+    row summed to 4e-6 and the training run failed with a ModelError. Such a row now keeps its value."""
+    g = builtin_graph("office")
+    records = json.loads((Path(__file__).parent / "data" / "em-one-mission.json").read_text())
+    data = collect_missions(enumerate(records), g, fleet="default")
+    assert len(data.length) == 1
+    est = em(g, data, init=uniform_walk(g), max_iter=300, tol=1e-5)
+    np.testing.assert_allclose(est.model.dense().sum(axis=1), 1.0, atol=1e-9)

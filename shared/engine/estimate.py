@@ -186,6 +186,9 @@ class _ForwardBackward:
         return alpha, beta, c, xi
 
 
+ROW_MASS_MIN = 1e-200  # expected transitions out of a node below this are treated as none
+
+
 def em(
     graph: Graph,
     data: MissionData,
@@ -226,7 +229,10 @@ def em(
         counts = G * xi + pseudo_count * support
         rows = counts.sum(1, keepdim=True)
         # M-step: rows stochastic on the support; a row with no expected transition keeps its value
-        G_new = torch.where(rows > 0, counts / rows.clamp_min(1e-300), G)
+        # (also one whose expected count is so small that dividing by it would not give a sum of 1:
+        # seen with one short mission, where a start node's count came out near 1e-306)
+        seen = rows > ROW_MASS_MIN
+        G_new = torch.where(seen, counts / torch.where(seen, rows, torch.ones_like(rows)), G)
         post0 = alpha[0] * beta[0]
         b0_new = (post0 / post0.sum(1, keepdim=True)).mean(0)
         return G_new, b0_new, ll

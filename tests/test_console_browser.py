@@ -1,0 +1,243 @@
+"""The operator console in a real browser: Playwright driving Chromium (Debian's package, through
+executable_path: Playwright's own download cannot reach its host here) against a fleet-sim on
+loopback (a server process, the simulated world, three robot-agent processes).
+
+One operator's session, in order: a wrong token is refused; sign in; the robots appear and move;
+start a mission, watch it finish, replay it and export it; retrain and watch the run to a new
+version; roll back; then sign in with the agent token and find every action refused.
+
+Skipped when no Chromium is installed (`.ci/run` installs it, so CI runs these)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from pathlib import Path
+
+import pytest
+
+from shared.core.files import read_token
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.tools.fleetsim import launch
+
+pytestmark = pytest.mark.slow
+
+CHROMIUM = os.environ.get("MURES_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+playwright = pytest.importorskip("playwright.sync_api")
+if CHROMIUM is None:
+    pytest.skip("no Chromium on this machine (apt-get install chromium)", allow_module_level=True)
+
+ROBOTS = 3
+WAIT_MS = 60_000
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    graph = builtin_graph("office")
+    f = launch(
+        graph,
+        ["--env", "office"],
+        uniform_walk(graph),
+        Sensor(),
+        ROBOTS,
+        tmp_path_factory.mktemp("console-fleet"),
+        step_delay=0.15,  # a visible pace
+    )
+    yield f
+    f.close()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def page(browser):
+    context = browser.new_context(viewport={"width": 1400, "height": 900}, accept_downloads=True)
+    pg = context.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.set_default_timeout(WAIT_MS)
+    yield pg
+    context.close()
+    assert errors == [], errors  # no script error on any page
+
+
+def sign_in(pg, base: str, token: str) -> None:
+    pg.goto(f"{base}/signin")
+    pg.get_by_label("Token").fill(token)
+    pg.get_by_role("button", name="Sign in").click()
+    pg.wait_for_selector("body[data-ready='1']")
+
+
+def goto(pg, url: str) -> None:
+    pg.goto(url)
+    pg.wait_for_selector("body[data-ready='1']")
+
+
+def wait_for(pred, what: str, timeout: float = WAIT_MS / 1000):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        got = pred()
+        if got:
+            return got
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_an_operators_session(fleet, page, tmp_path):
+    base = fleet.api.base
+    data = fleet.workdir / "server"
+    op_token, agent_token = read_token(data / "operator.token"), read_token(data / "agent.token")
+    pg = page
+
+    # a wrong token: a clear message, no way in
+    pg.goto(f"{base}/")
+    pg.wait_for_url("**/signin**")
+    pg.get_by_label("Token").fill("not-a-token")
+    pg.get_by_role("button", name="Sign in").click()
+    assert "not valid for this server" in pg.locator("#signin-error").inner_text()
+
+    # sign in: the fleet appears, every robot online (on the map once it reports a position)
+    sign_in(pg, base, op_token)
+    assert pg.locator("#role").inner_text() == "operator"
+    for r in ("r1", "r2", "r3"):
+        pg.wait_for_selector(f"#fleet-table tr[data-robot='{r}']")
+    assert "online" in pg.locator("#fleet-table tr[data-robot='r1'] td").nth(1).inner_text()
+
+    # a second tab keeps the live map open (sessionStorage is per tab: sign in there too) and
+    # records every node it draws r1 on
+    live = pg.context.new_page()
+    sign_in(live, base, op_token)
+    live.locator("#fleet-table tr[data-robot='r1'] td").first.click()
+    live.evaluate(
+        """() => { window.seen = new Set();
+        new MutationObserver(() => { const g = document.querySelector("svg#map g.robot[data-robot='r1']");
+          if (g) window.seen.add(g.dataset.node); }).observe(document.querySelector("svg#map"),
+          {subtree: true, childList: true, attributes: true}); }"""
+    )
+
+    # start a mission from the missions page (all robots, a step limit)
+    goto(pg, f"{base}/missions")
+    for r in ("r1", "r2", "r3"):
+        pg.wait_for_selector(f"#mission-robots input[value='{r}']")
+    pg.fill("#mission-steps", "60")
+    pg.fill("#mission-seed", "4")  # a mission of 45 steps (seeded: the same every run)
+    pg.click("#start-mission")
+    pg.wait_for_selector("#notice.ok")
+    mission = pg.locator("#missions-table tbody tr").first.get_attribute("data-mission")
+    assert mission and fleet.api.get(f"/api/v1/missions/{mission}")["params"]["max_steps"] == 60
+
+    # on the live map the robots appear and move; the selected robot's belief colours the map
+    for r in ("r1", "r2", "r3"):
+        live.wait_for_selector(f"svg#map g.robot[data-robot='{r}']")
+    wait_for(lambda: live.evaluate("() => window.seen.size") >= 3, "robot r1 drawn on three different nodes")
+    wait_for(
+        lambda: live.evaluate(
+            "() => [...document.querySelectorAll('svg#map .node')].some(c => c.getAttribute('fill') !== '#fff')"
+        ),
+        "r1's belief on the map",
+    )
+    live.close()
+
+    # watch it finish on the missions page
+    goto(pg, f"{base}/missions")
+    row = pg.locator(f"#missions-table tr[data-mission='{mission}']")
+    wait_for(lambda: row.get_attribute("data-status") in ("completed", "captured"), "the mission to end")
+    m = fleet.api.get(f"/api/v1/missions/{mission}")
+    outcome = row.locator("td.outcome").inner_text()
+    assert (f"t = {m['outcome']['capture_time']}" in outcome) if m["outcome"]["captured"] else outcome == "not captured"
+
+    # replay it: the slider walks the mission; beliefs recomputed; the MCAP export downloads
+    row.locator("a").first.click()
+    pg.wait_for_selector("body[data-ready='1']")
+    last = int(pg.locator("#replay-last").inner_text())
+    assert last == max(len(fleet.api.get(f"/api/v1/episodes/{r}/{mission}")["steps"]) for r in m["robots"]) - 1
+    pg.locator("#replay-t").fill(str(last))
+    assert pg.locator("#replay-step").inner_text() == str(last)
+    rec = fleet.api.get(f"/api/v1/episodes/r2/{mission}")
+    pg.select_option("#replay-robot", "r2")
+    node_at_end = rec["steps"][min(last, len(rec["steps"]) - 1)]["node"]
+    assert pg.locator("#replay-table tr[data-robot='r2'] td").nth(1).inner_text() == str(node_at_end)
+    with pg.expect_download() as dl:
+        pg.click("#export-mcap")
+    path = tmp_path / "m.mcap"
+    dl.value.save_as(path)
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        topics = {ch.topic for _s, ch, _m in make_reader(fh).iter_messages()}
+    assert {"/map", "/robots/r2/state", "/robots/r2/belief", "/mission/outcome"} <= topics
+
+    # retrain from the console and watch the run to a new version
+    goto(pg, f"{base}/training")
+    pg.fill("#run-episodes", "512")
+    pg.fill("#run-gate-episodes", "50")
+    pg.uncheck("#run-gate")  # publish whatever it learns: this is about the console, not the gate
+    pg.click("#start-run")
+    pg.wait_for_selector("#notice.ok")
+    run = pg.locator("#runs-table tbody tr").first
+    wait_for(lambda: run.get_attribute("data-status") in ("succeeded", "failed"), "the training run to end", 300)
+    assert run.get_attribute("data-status") == "succeeded", pg.locator("#run-error").inner_text()
+    pg.wait_for_selector("svg#curve polyline.curve-line")
+    assert "published v2" in pg.locator("#run-message").inner_text()
+    assert fleet.api.get("/api/v1/policies/current")["version"] == 2
+
+    # roll back to version 1, confirming
+    goto(pg, f"{base}/policies")
+    pg.locator("#policies-table tr[data-version='1'] button[data-action='promote']").click()
+    assert "Roll back to v1" in pg.locator("#confirm-text").inner_text()
+    pg.click("#confirm-ok")
+    pg.wait_for_selector("#policies-table tr[data-version='1'] .badge")
+    assert fleet.api.get("/api/v1/policies/current")["version"] == 1
+
+    # the agent token: a read-only view, every action refused by the server
+    pg.click("#signout")
+    sign_in(pg, base, agent_token)
+    assert pg.locator("#role").inner_text() == "read-only (agent token)"
+    goto(pg, f"{base}/missions")
+    pg.wait_for_selector("#mission-robots input[value='r1']")
+    before = fleet.api.get("/api/v1/missions")["total"]
+    pg.click("#start-mission")
+    pg.wait_for_selector("#notice:not([hidden])")
+    assert "Refused" in pg.locator("#notice").inner_text() and "operator token" in pg.locator("#notice").inner_text()
+    assert fleet.api.get("/api/v1/missions")["total"] == before
+    goto(pg, f"{base}/policies")
+    pg.locator("#policies-table tr[data-version='2'] button[data-action='promote']").click()
+    pg.click("#confirm-ok")
+    pg.wait_for_selector("#notice:not([hidden])")
+    assert "Refused" in pg.locator("#notice").inner_text()
+    assert fleet.api.get("/api/v1/policies/current")["version"] == 1
+    goto(pg, f"{base}/training")
+    pg.click("#start-run")
+    pg.wait_for_selector("#notice:not([hidden])")
+    assert "Refused" in pg.locator("#notice").inner_text()
+    assert len(fleet.api.get("/api/v1/training-runs")["items"]) == 1
+
+
+def test_a_robot_that_drops_off_is_flagged_and_alerted(fleet, page):
+    base = fleet.api.base
+    sign_in(page, base, read_token(fleet.workdir / "server" / "operator.token"))
+    page.wait_for_selector("#fleet-table tr[data-robot='r3']")
+    fleet.stop_agent("r3")
+    try:
+        cell = page.locator("#fleet-table tr[data-robot='r3'] td").nth(1)
+        wait_for(lambda: cell.inner_text() == "offline (lost)", "r3 to show as lost")
+        page.wait_for_selector(".alert[data-kind='robot-lost']")
+        assert "robot r3 is offline" in page.locator(".alert[data-kind='robot-lost']").inner_text()
+        assert page.locator("svg#map g.robot[data-robot='r3']").count() == 0
+    finally:
+        fleet.start_agent("r3")
+
+
+def test_pages_without_a_token_send_the_browser_to_sign_in(fleet, page):
+    for path in ("/", "/missions", "/policies", "/training", "/data", "/missions/x"):
+        page.goto(f"{fleet.api.base}{path}")
+        page.wait_for_url("**/signin?next=**")
+        assert Path(page.url.split("next=")[1].split("&")[0].replace("%2F", "/")).as_posix() == path
