@@ -23,6 +23,7 @@ from training_server.api.policies import stationary
 from training_server.console import PAGES
 from training_server.console.hub import Hub
 from training_server.console.layout import node_layout
+from training_server.jobs import TrainingParams
 
 
 def _mission(srv, mid, robots, version=1, status_event=None, records=None, max_steps=30, seed=0):
@@ -71,6 +72,8 @@ def test_pages_are_served_without_data_and_with_a_strict_policy(api):
         assert "<script>" not in r.text  # no inline script: the policy would block it
         assert OP not in r.text and AG not in r.text
     assert '<label for="token">Token</label>' in c.get("/signin").text
+    defaults = TrainingParams()
+    assert f'id="run-episodes" type="number" min="256" step="1" value="{defaults.episodes}"' in c.get("/training").text
     assert 'data-mission-id="m-1"' in c.get("/missions/m-1").text
     assert "&lt;x&gt;" in c.get("/missions/%3Cx%3E").text  # escaped, not markup
     js = c.get("/console/static/console.js")

@@ -6,7 +6,8 @@ One operator's session, in order: a wrong token is refused; sign in; the robots 
 start a mission, watch it finish, replay it and export it; retrain and watch the run to a new
 version; roll back; then sign in with the agent token and find every action refused.
 
-Skipped when no Chromium is installed (`.ci/run` installs it, so CI runs these)."""
+Skipped when no Chromium is installed; `.ci/run` installs it and sets MURES_REQUIRE_BROWSER=1, so
+in CI a missing browser is a failure, not a skip."""
 
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ pytestmark = pytest.mark.slow
 CHROMIUM = os.environ.get("MURES_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
 playwright = pytest.importorskip("playwright.sync_api")
 if CHROMIUM is None:
+    if os.environ.get("MURES_REQUIRE_BROWSER") == "1":  # set by .ci/run: a missing browser fails CI
+        raise RuntimeError("MURES_REQUIRE_BROWSER=1 but no chromium on PATH (apt-get install chromium)")
     pytest.skip("no Chromium on this machine (apt-get install chromium)", allow_module_level=True)
 
 ROBOTS = 3

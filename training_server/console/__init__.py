@@ -64,7 +64,9 @@ def _render(request: Request, template: str, title: str, **extra: Any) -> HTMLRe
 
 def _page(template: str, title: str) -> Any:
     def handler(request: Request) -> HTMLResponse:
-        return _render(request, template, title)
+        from training_server.jobs import TrainingParams
+
+        return _render(request, template, title, defaults=TrainingParams())  # the retrain form's defaults
 
     return handler
 
