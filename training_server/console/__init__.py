@@ -11,6 +11,7 @@ scripts, styles and connections only.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -54,7 +55,9 @@ def _render(request: Request, template: str, title: str, **extra: Any) -> HTMLRe
         "static": STATIC_PREFIX,
         **extra,
     }
+    t0 = time.perf_counter()
     response = templates.TemplateResponse(request, template, context)
+    response.headers["Server-Timing"] = f"render;dur={(time.perf_counter() - t0) * 1e3:.3f}"  # ms
     response.headers["Content-Security-Policy"] = CSP
     response.headers["X-Content-Type-Options"] = "nosniff"
     response.headers["Referrer-Policy"] = "no-referrer"

@@ -9,7 +9,9 @@
 const TOKEN_KEY = "mures.token";
 const ROLE_KEY = "mures.role";
 const TRUTH_KEY = "mures.showTruth";
+const ANIMATE_KEY = "mures.animate";
 const SVGNS = "http://www.w3.org/2000/svg";
+window.muresStats = {}; // events received per kind, for measurements
 
 // ------------------------------------------------------------------ small helpers
 const $ = (sel, root = document) => root.querySelector(sel);
@@ -134,7 +136,9 @@ function openStream(params, handlers) {
               if (line.startsWith("event: ")) event = line.slice(7);
               else if (line.startsWith("data: ")) data.push(line.slice(6));
             }
-            if (data.length && handlers[event]) handlers[event](JSON.parse(data.join("\n")));
+            if (!data.length) continue;
+            window.muresStats[event] = (window.muresStats[event] || 0) + 1; // read by benchmarks/console.py
+            if (handlers[event]) handlers[event](JSON.parse(data.join("\n")));
           }
         }
       } catch (e) {
@@ -354,6 +358,13 @@ pages.fleet = async function (ctx) {
   let selected = null;
   let fleet = null;
   let stream = null;
+  const animate = $("#animate");
+  animate.checked = sessionStorage.getItem(ANIMATE_KEY) === "1";
+  $("#map").classList.toggle("animate", animate.checked);
+  animate.addEventListener("change", () => {
+    sessionStorage.setItem(ANIMATE_KEY, animate.checked ? "1" : "0");
+    $("#map").classList.toggle("animate", animate.checked);
+  });
   const truthBox = $("#show-truth");
   truthBox.checked = sessionStorage.getItem(TRUTH_KEY) === "1";
   truthBox.addEventListener("change", () => {
@@ -370,8 +381,37 @@ pages.fleet = async function (ctx) {
   }
   view.onRobotClick = select;
 
+  const rowOf = {}; // robot -> its <tr>, updated in place (a 5 Hz redraw must not rebuild the table)
+  function row(a) {
+    let tr = rowOf[a.robot_id];
+    if (!tr) {
+      tr = el("tr", { class: "clickable", "data-robot": a.robot_id });
+      tr.append(...Array.from({ length: 8 }, () => el("td")));
+      tr.addEventListener("click", (ev) => ev.target.tagName !== "A" && select(a.robot_id));
+      rowOf[a.robot_id] = tr;
+    }
+    const cells = tr.children;
+    const set = (i, text, cls) => {
+      if (cells[i].textContent !== String(text)) cells[i].textContent = text;
+      if (cls !== undefined && cells[i].className !== cls) cells[i].className = cls;
+    };
+    set(0, a.robot_id);
+    set(1, a.online ? `online · ${a.state}` : "offline (lost)", `state-${a.online ? "online" : "offline"}`);
+    cells[2].dataset.ts = a.last_seen;
+    set(2, fmtAgo(a.last_seen));
+    if ((cells[3].dataset.mission || "") !== (a.mission_id || "")) {
+      cells[3].dataset.mission = a.mission_id || "";
+      cells[3].replaceChildren(a.mission_id ? el("a", { href: `/missions/${encodeURIComponent(a.mission_id)}` }, a.mission_id) : "—");
+    }
+    set(4, a.step ?? "—");
+    set(5, a.node ?? "—");
+    set(6, a.policy_version ?? "—");
+    set(7, a.backend ?? "—");
+    tr.classList.toggle("selected", a.robot_id === selected);
+    return tr;
+  }
+
   function draw() {
-    const rows = [];
     const robots = [];
     const truth = fleet.truth || {};
     for (const a of fleet.agents) {
@@ -380,23 +420,10 @@ pages.fleet = async function (ctx) {
       const detect = a.z === 1;
       const falseAlarm = detect && truthBox.checked && tr && t.t === a.step ? !tr.seen : false;
       if (a.node !== null && a.online) robots.push({ id: a.robot_id, node: a.node, detect, falseAlarm, selected: a.robot_id === selected });
-      const state = a.online ? a.state : "offline";
-      rows.push(
-        el(
-          "tr",
-          { class: "clickable" + (a.robot_id === selected ? " selected" : ""), "data-robot": a.robot_id, onclick: () => select(a.robot_id) },
-          el("td", {}, a.robot_id),
-          el("td", { class: `state-${a.online ? "online" : "offline"}` }, a.online ? `online · ${state}` : "offline (lost)"),
-          el("td", { "data-ts": a.last_seen }, fmtAgo(a.last_seen)),
-          el("td", {}, a.mission_id ? el("a", { href: `/missions/${encodeURIComponent(a.mission_id)}` }, a.mission_id) : "—"),
-          el("td", {}, a.step ?? "—"),
-          el("td", {}, a.node ?? "—"),
-          el("td", {}, a.policy_version ?? "—"),
-          el("td", {}, a.backend ?? "—"),
-        ),
-      );
     }
-    $("#fleet-table tbody").replaceChildren(...rows);
+    const rows = fleet.agents.map(row);
+    const body = $("#fleet-table tbody");
+    if (rows.length !== body.children.length || rows.some((r, i) => body.children[i] !== r)) body.replaceChildren(...rows);
     $("#fleet-empty").hidden = rows.length > 0;
     $("#online-count").textContent = `${fleet.online} of ${fleet.agents.length} online`;
     view.setRobots(robots);
