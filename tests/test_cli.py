@@ -93,3 +93,49 @@ def test_simulate_then_estimate(tmp_path):
 def test_world_refuses_bad_arguments_clearly(args, fragment):
     r = mures("world", "--env", "office", *args)
     assert r.returncode == 2 and fragment in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        ([], "give --missions N, or --serve"),
+        (["--missions", "0"], "0 only with --serve"),
+        (["--missions", "-1"], ">= 0"),
+    ],
+)
+def test_fleet_sim_needs_missions_or_serve(args, fragment):
+    r = mures("fleet-sim", "--env", "office", "--robots", "2", *args)
+    assert r.returncode == 2 and fragment in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.slow
+def test_fleet_sim_serve_keeps_the_console_up_until_sigterm(tmp_path):
+    """`mures fleet-sim --serve`: the fleet stays up and says where the console is; SIGTERM ends it
+    cleanly with the usual summary."""
+    import signal
+    import time
+    import urllib.request
+
+    cmd = ["fleet-sim", "--env", "office", "--robots", "2", "--missions", "1", "--serve", "--workdir", str(tmp_path)]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "shared.tools.cli", *cmd, "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        line = ""
+        deadline = time.monotonic() + 120
+        while "Console:" not in line and time.monotonic() < deadline:
+            line = proc.stderr.readline()
+        assert "Console:" in line, line
+        url = line.split("Console: ")[1].split(" ;")[0]
+        assert str(tmp_path / "server" / "operator.token") in line
+        with urllib.request.urlopen(url) as r:
+            assert r.status == 200 and "MuRES fleet" in r.read().decode()
+        proc.send_signal(signal.SIGTERM)
+        out, _err = proc.communicate(timeout=60)
+        assert proc.returncode == 0 and json.loads(out)["missions"] == 1
+    finally:
+        if proc.poll() is None:
+            proc.kill()

@@ -18,10 +18,10 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from training_server import console
 from training_server.api import episodes, fleet, health, live, maps, metrics, missions, policies, training_runs
 from training_server.api.deps import DESCRIPTIONS
 from training_server.api.limits import BodyLimit
+from training_server.console import mount as mount_console
 
 log = logging.getLogger("mures.server.api")
 
@@ -55,7 +55,7 @@ def create_app(srv: Any) -> FastAPI:
     for module in (health, maps, fleet, live, missions, episodes, policies, training_runs):
         app.include_router(module.router, prefix=API_PREFIX)
     app.include_router(metrics.router)
-    console.mount(app)
+    mount_console(app)
     app.add_middleware(BodyLimit)
 
     @app.middleware("http")
