@@ -235,3 +235,12 @@ def test_event_stream_ends_when_the_server_stops(api):
 def test_bad_model_versions_are_422(api, bad):
     _srv, c = api
     assert c.get(bad, headers=auth(AG)).status_code == 422
+
+
+def test_status_lists_the_ten_newest_runs_newest_first(api):
+    srv, c = api
+    for k in range(12):
+        srv.store.add_run(f"run-{k:02d}", {})
+        time.sleep(0.002)  # distinct creation times
+    status = _events(c.get("/api/v1/events?once=true", headers=auth(AG)).text)["status"][0]
+    assert [r["id"] for r in status["runs"]] == [f"run-{k:02d}" for k in range(11, 1, -1)]

@@ -192,8 +192,20 @@ def test_an_operators_session(fleet, page, tmp_path):
     assert "published v2" in pg.locator("#run-message").inner_text()
     assert fleet.api.get("/api/v1/policies/current")["version"] == 2
 
+    # a second run, cancelled from the console
+    pg.fill("#run-episodes", "2000000")
+    pg.click("#start-run")
+    pg.wait_for_selector(
+        "#runs-table tbody tr[data-status='running'] button, #runs-table tbody tr[data-status='queued'] button"
+    )
+    pg.locator("#runs-table tbody tr").first.locator("button").click()
+    wait_for(
+        lambda: pg.locator("#runs-table tbody tr").first.get_attribute("data-status") == "cancelled", "the cancel", 120
+    )
+
     # roll back to version 1, confirming
     goto(pg, f"{base}/policies")
+    assert "512 episodes" in pg.locator("#policies-table tr[data-version='2'] td.trained").inner_text()
     pg.locator("#policies-table tr[data-version='1'] button[data-action='promote']").click()
     assert "Roll back to v1" in pg.locator("#confirm-text").inner_text()
     pg.click("#confirm-ok")
@@ -221,7 +233,7 @@ def test_an_operators_session(fleet, page, tmp_path):
     pg.click("#start-run")
     pg.wait_for_selector("#notice:not([hidden])")
     assert "Refused" in pg.locator("#notice").inner_text()
-    assert len(fleet.api.get("/api/v1/training-runs")["items"]) == 1
+    assert len(fleet.api.get("/api/v1/training-runs")["items"]) == 2
 
 
 def test_a_robot_that_drops_off_is_flagged_and_alerted(fleet, page):

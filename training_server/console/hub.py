@@ -68,7 +68,7 @@ class Hub:
                 return state
         srv = self.srv
         stats = srv.store.episode_stats(srv.fleet)
-        runs = srv.store.runs()[:10]
+        runs = srv.store.runs()[-10:][::-1]  # the ten newest, newest first
         body = {
             "current_policy": srv.current_version(),
             "running_missions": sorted(m["id"] for m in srv.store.running_missions(srv.fleet)),

@@ -679,6 +679,10 @@ pages.policies = async function (ctx) {
         : p.run_id
           ? "—"
           : "initial";
+      const mt = run && run.metrics ? run.metrics : null;
+      const trained = mt
+        ? `${mt.train.episodes.toLocaleString()} episodes in ${fmtNum(mt.train.wall_seconds, 0)} s; EM on ${mt.em.missions} missions`
+        : "—";
       const pf = perfOf[p.version];
       const ct = pf ? `${fmtNum(pf.mean_capture_time)} ± ${pf.ci95 === null ? "?" : fmtNum(pf.ci95)} (${pf.missions} missions)` : "no missions yet";
       const m = p.meta || {};
@@ -708,6 +712,7 @@ pages.policies = async function (ctx) {
         el("td", {}, p.parent ? `v${p.parent}` : "—"),
         el("td", {}, p.run_id || "—"),
         el("td", {}, method),
+        el("td", { class: "trained" }, trained),
         el("td", {}, gate),
         el("td", { class: "perf" }, ct),
         el("td", {}, action),
@@ -781,7 +786,7 @@ pages.training = async function (ctx) {
     drawCurve(p.curve);
   }
   async function refresh() {
-    runs = (await api("/api/v1/training-runs")).items;
+    runs = (await api("/api/v1/training-runs")).items.reverse(); // newest first
     if (!selected && runs.length) selected = runs[0].id;
     $("#runs-table tbody").replaceChildren(
       ...runs.map((r) => {
