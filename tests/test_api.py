@@ -299,6 +299,7 @@ def test_openapi_documents_auth_errors_on_every_protected_route(api):
                 "/api/v1/episodes",
                 "/api/v1/episodes/{robot_id}/{mission_id}",
                 "/api/v1/missions/{mission_id}/export.mcap",
+                "/api/v1/missions/{mission_id}/replay",
             )
             assert ("403" in op["responses"]) == (method == "post" or scoped), (method, path)
             assert "HTTPValidationError" not in str(op["responses"]), (method, path)
@@ -475,8 +476,16 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
     srv.bus.gone = {"r3": 3.0}
     m = c.post("/api/v1/missions", json={"robots": ["r1"], "mission_id": "m-f"}, headers=auth(OP)).json()
     srv.bus.live = {
-        "r1": {"state": "mission", "mission_id": m["id"], "t": 7, "node": 43, "policy_version": 1},
-        "r2": {"state": "idle", "node": 12, "policy_version": 1},
+        "r1": {
+            "state": "mission",
+            "mission_id": m["id"],
+            "t": 7,
+            "node": 43,
+            "z": 1,
+            "policy_version": 1,
+            "backend": "sim",
+        },
+        "r2": {"state": "idle", "node": 12, "policy_version": 1, "z": 1},
     }
     f = c.get("/api/v1/fleet", headers=auth(AG)).json()
     by = {a["robot_id"]: a for a in f["agents"]}
@@ -491,8 +500,11 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
         "step": 7,
         "node": 43,
         "policy_version": 1,
+        "z": 1,
+        "backend": "sim",
     }
     assert by["r2"]["state"] == "idle" and by["r2"]["node"] == 12 and by["r2"]["mission_id"] is None
+    assert by["r2"]["z"] is None and by["r2"]["backend"] is None  # z only within the mission it flies
     assert by["r3"]["state"] == "offline" and by["r3"]["online"] is False and by["r3"]["since"] is None
 
 

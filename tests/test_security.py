@@ -189,6 +189,10 @@ def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, 
         with pytest.raises(ApiError) as exc:
             robot1.get("/api/v1/episodes/r2/m1")
         assert exc.value.status == 403
+        for whole_mission in ("/api/v1/missions/m1/replay", "/api/v1/missions/m1/export.mcap"):  # every robot's
+            with pytest.raises(ApiError) as exc:
+                robot1.get(whole_mission)
+            assert exc.value.status == 403, whole_mission
         assert server_main(["robots", "revoke", "r1", "--data-dir", str(data)]) == 0
         with pytest.raises(ApiError) as exc:
             robot1.get("/api/v1/map")
