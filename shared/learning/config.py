@@ -22,14 +22,24 @@ def _opt(help: str, **kw: Any) -> Any:
     return {"help": help, **kw}
 
 
-def positive_int(text: str) -> int:
+def _int_at_least(text: str, low: int, what: str) -> int:
     try:
         v = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if v < low:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {v}")
     return v
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (argparse type)."""
+    return _int_at_least(text, 1, "a positive integer")
+
+
+def whole_number(text: str) -> int:
+    """An integer >= 0 (argparse type)."""
+    return _int_at_least(text, 0, "a whole number >= 0")
 
 
 def floats(text: str) -> list[float]:

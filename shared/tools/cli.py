@@ -34,7 +34,7 @@ from shared.engine.estimate import collect_missions, em, eq8, mean_row_tv
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
 from shared.learning import config as train_config
-from shared.learning.config import positive_int
+from shared.learning.config import positive_int, whole_number
 from shared.learning.snapshot import load_snapshot, save_snapshot
 from shared.registry import searcher_factory
 
@@ -429,17 +429,6 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------- fleet-sim
-def _count(text: str) -> int:
-    """A whole number >= 0 (argparse type)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {v}")
-    return v
-
-
 def cmd_fleet_sim(args: argparse.Namespace) -> int:
     from shared.core.http import ApiError
     from shared.tools.fleetsim import run_fleet_sim
@@ -641,7 +630,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("fleet-sim", help="run server, simulated world and N robot agents on loopback; fly missions")
     _add_world_args(p)
-    p.add_argument("--missions", type=_count, default=None, help="missions to fly (0 with --serve)")
+    p.add_argument("--missions", type=whole_number, default=None, help="missions to fly (0 with --serve)")
     p.add_argument(
         "--serve",
         action="store_true",

@@ -156,6 +156,21 @@ function openStream(params, handlers) {
   };
 }
 
+// The stream's status on a page: its alerts shown, and refresh() called whenever keyOf(status)
+// changes after the first (the page loads its own data first). Other handlers as openStream's.
+function followStatus(ctx, keyOf, refresh, handlers = {}) {
+  let key = null;
+  return openStream({}, {
+    ...handlers,
+    status: (s) => {
+      ctx.status(s);
+      const k = keyOf(s);
+      if (key !== null && k !== key) refresh();
+      key = k;
+    },
+  });
+}
+
 // ------------------------------------------------------------------ the map
 // heat(v) for v in [0, 1]: white -> amber -> red
 function heat(v) {
@@ -521,18 +536,7 @@ pages.missions = async function (ctx) {
   });
   $("#missions-newer").addEventListener("click", () => ((offset = Math.max(0, offset - limit)), refresh()));
   $("#missions-older").addEventListener("click", () => ((offset += limit), refresh()));
-  let running = "";
-  openStream({}, {
-    fleet: robots,
-    status: (s) => {
-      ctx.status(s);
-      const key = s.running_missions.join(",") + "|" + s.episodes.stored;
-      if (key !== running) {
-        running = key;
-        refresh();
-      }
-    },
-  });
+  followStatus(ctx, (s) => s.running_missions.join(",") + "|" + s.episodes.stored, refresh, { fleet: robots });
   await refresh();
 };
 
@@ -637,15 +641,7 @@ pages.replay = async function (ctx) {
       notice(`Export failed: ${e.message}`);
     }
   });
-  let seen = "";
-  openStream({}, {
-    status: (s) => {
-      ctx.status(s);
-      const key = s.episodes.stored + "|" + s.running_missions.includes(id);
-      if (seen && key !== seen) load();
-      seen = key;
-    },
-  });
+  followStatus(ctx, (s) => s.episodes.stored + "|" + s.running_missions.includes(id), load);
   try {
     await load();
   } catch (e) {
@@ -720,15 +716,7 @@ pages.policies = async function (ctx) {
     });
     $("#policies-table tbody").replaceChildren(...rows);
   }
-  let key = "";
-  openStream({}, {
-    status: (s) => {
-      ctx.status(s);
-      const k = `${s.current_policy}|${s.episodes.stored}|${s.runs.map((r) => r.status).join(",")}`;
-      if (key && k !== key) refresh();
-      key = k;
-    },
-  });
+  followStatus(ctx, (s) => `${s.current_policy}|${s.episodes.stored}|${s.runs.map((r) => r.status).join(",")}`, refresh);
   await refresh();
 };
 
@@ -838,15 +826,7 @@ pages.training = async function (ctx) {
     if (r) selected = r.id;
     refresh();
   });
-  let key = "";
-  openStream({}, {
-    status: (s) => {
-      ctx.status(s);
-      const k = JSON.stringify(s.runs);
-      if (key && k !== key) refresh();
-      key = k;
-    },
-  });
+  followStatus(ctx, (s) => JSON.stringify(s.runs), refresh);
   await refresh();
 };
 
@@ -887,15 +867,7 @@ pages.data = async function (ctx) {
   pick.replaceChildren(...[...list.items].reverse().map((p) => el("option", { value: p.version }, `v${p.version}${p.current ? " (current)" : ""}`)));
   pick.value = String(list.current);
   pick.addEventListener("change", () => model().catch((e) => notice(e.message)));
-  let key = "";
-  openStream({}, {
-    status: (s) => {
-      ctx.status(s);
-      const k = JSON.stringify(s.episodes);
-      if (key && k !== key) stats();
-      key = k;
-    },
-  });
+  followStatus(ctx, (s) => JSON.stringify(s.episodes), stats);
   await Promise.all([stats(), model().catch((e) => notice(e.message))]);
 };
 
