@@ -2,7 +2,7 @@
 robots moving (update rate, browser CPU); with --screenshots, the main views of a real fleet-sim
 saved as PNG for the docs.
 
-    python benchmarks/console.py [--robots 20] [--seconds 30] [--screenshots docs/console]
+    python benchmarks/console.py [--robots 20] [--seconds 30] [--out FILE] [--screenshots DIR [--no-figures]]
 
 Live view: a training-server on loopback and ROBOTS synthetic robots (a fleet-sim of 20 agent
 processes is too heavy for 2 cores): each declares its liveliness token like an agent and publishes
@@ -291,11 +291,13 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--screenshots", metavar="DIR", help="also save the main views of a fleet-sim as PNG here")
     ap.add_argument("--out", metavar="FILE", help="also write the figures as JSON here")
+    ap.add_argument("--no-figures", action="store_true", help="only the screenshots")
     args = ap.parse_args()
-    res = figures(args)
-    print(json.dumps(res, indent=1))
-    if args.out:
-        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+    if not args.no_figures:
+        res = figures(args)
+        print(json.dumps(res, indent=1))
+        if args.out:
+            Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
     if args.screenshots:
         screenshots(Path(args.screenshots))
 
