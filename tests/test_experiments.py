@@ -260,3 +260,6 @@ def test_fig5_pairs_each_beta_with_pg_of_the_same_training_seed(tmp_path):
     assert "diff_to_pg" not in pg_row and pg_row["method"] == "pg"
     text = "\n".join(ex._beta_reading([row, pg_row]))
     assert "| 0.5 | -2.00 |" in text and "no beta < 1 captures sooner" in text  # the seeds' CI includes 0
+    # the episodes' CI excludes 0: said too, with what it does not show
+    assert "Over the pooled episodes (these teams, not the training's variation): beta in [0.5] captures sooner" in text
+    assert "not separated from the seed-to-seed spread" in text

@@ -1379,6 +1379,28 @@ def _beta_reading(rows: list[dict[str, Any]]) -> list[str]:
             + (f"; beta in {worse} captures later" if worse else "")
             + ".",
         ]
+    # the pooled-episode CI holds the teams fixed: it says these teams differ, not that training
+    # with that beta does; reported too, so that a reader sees both
+    ep_sooner = [r["beta"] for r in diffs if r["diff_to_pg"] + r["diff_to_pg_ci95_episodes"] < 0]
+    ep_later = [r["beta"] for r in diffs if r["diff_to_pg"] - r["diff_to_pg_ci95_episodes"] > 0]
+    if ep_sooner or ep_later:
+        out += [
+            "",
+            "Over the pooled episodes (these teams, not the training's variation): "
+            + "; ".join(
+                x
+                for x in (
+                    f"beta in {ep_sooner} captures sooner than PG" if ep_sooner else "",
+                    f"beta in {ep_later} captures later" if ep_later else "",
+                )
+                if x
+            )
+            + (
+                f". With {len(seeds)} training seeds per beta that is not separated from the seed-to-seed spread."
+                if len(seeds) > 1 and not (set(ep_sooner) & set(sig) or set(ep_later) & set(worse))
+                else "."
+            ),
+        ]
     return [*out, ""]
 
 
