@@ -104,7 +104,15 @@ def train(
     belief = BatchedBelief(graph, model, sensor, device)
     local_batch = math.ceil(cfg.batch / world)
     sim = SearchSim(
-        graph, target, sensor, N, local_batch, seed=cfg.seed * 7_919 + rank, device=device, auto_reset=False
+        graph,
+        target,
+        sensor,
+        N,
+        local_batch,
+        seed=cfg.seed * 7_919 + rank,
+        device=device,
+        auto_reset=False,
+        check_actions=False,  # the policies' softmax is masked to N[p]: every draw is a valid move
     )
     gen = torch.Generator(device=device)
     gen.manual_seed(cfg.seed * 104_729 + rank)
