@@ -143,3 +143,30 @@ def test_deterministic_for_a_seed_and_auto_reset():
     a, b, c = run(1), run(1), run(2)
     assert torch.equal(a, b) and not torch.equal(a, c)
     assert len(a) > 64  # slots were reused for fresh episodes
+
+
+def test_the_trainers_lean_mode_plays_the_same_episodes():
+    """check_actions=False, details=False (what the trainer runs): the same draws, positions,
+    observations and ends as the full simulator for the same seed and actions; only the false-alarm
+    and captured-by bookkeeping is left out, and a move outside N[p] is no longer refused."""
+    g = builtin_graph("office")
+    full = SearchSim(g, uniform_walk(g), Sensor(), 3, 64, seed=5, auto_reset=False)
+    lean = SearchSim(g, uniform_walk(g), Sensor(), 3, 64, seed=5, auto_reset=False, check_actions=False, details=False)
+    obs_f, obs_l = full.reset(), lean.reset()
+    searcher = RandomSearcher(g, seed=2)
+    while full.any_alive:
+        act = searcher.act(obs_f)
+        (obs_f, res_f), (obs_l, res_l) = full.step(act), lean.step(act)
+        for a, b in ((obs_f.pos, obs_l.pos), (obs_f.z, obs_l.z), (obs_f.t, obs_l.t), (full.target, lean.target)):
+            assert torch.equal(a, b)
+        for a, b in (
+            (res_f.done, res_l.done),
+            (res_f.capture_time, res_l.capture_time),
+            (res_f.censored, res_l.censored),
+        ):
+            assert torch.equal(a, b)
+    assert not lean.any_alive
+    far = next(v for v in range(g.n) if v not in set(g.closed(g.start).tolist()))  # not one move from s
+    full.reset()
+    with pytest.raises(ValueError, match="is not in N"):
+        full.step(torch.full((64, 3), far))

@@ -75,6 +75,7 @@ class SearchSim:
         start: int | None = None,
         withdraw_at: list[int | None] | None = None,
         check_actions: bool = True,
+        details: bool = True,
     ) -> None:
         if n_robots < 1:
             raise ValueError(f"expected at least 1 robot, got {n_robots}")
@@ -114,6 +115,9 @@ class SearchSim:
         # False: the caller's actions are known to be in N[p] (the trainer's masked policies), and
         # the check, a gather and a host sync per step, is skipped
         self.check_actions = check_actions
+        # False: StepResult's false_alarms and captured_by are not kept up to date (the trainer
+        # reads done, capture_time and censored only); saves their bookkeeping every step
+        self.details = details
         drop = [NEVER if w is None else int(w) for w in (withdraw_at or [None] * n_robots)]
         if len(drop) != n_robots:
             raise ValueError(f"withdraw_at has {len(drop)} entries, expected one per robot ({n_robots})")
@@ -137,7 +141,9 @@ class SearchSim:
 
     def _observe(self) -> tuple[torch.Tensor, torch.Tensor]:
         """z (B, N) and in_D (B, N) for the current positions and target (sensor of docs/SPEC.md section 1)."""
-        in_d = self.detect[self.pos, self.target.unsqueeze(1)] & self.active
+        # detect[p, e] for each robot's p and its episode's e, as one gather from the flat table
+        flat = (self.pos * self.n + self.target.unsqueeze(1)).reshape(-1)
+        in_d = self.detect.view(-1).index_select(0, flat).view(self.B, self.N) & self.active
         u = self._rand(self.B, self.N)
         z = torch.where(in_d, u >= self.eta_fn, u < self.eta_fp) & self.active
         return z, in_d
@@ -191,14 +197,16 @@ class SearchSim:
         # robots move, then the target moves (docs/SPEC.md section 1 order)
         self.pos = act
         u = self._rand(self.B, 1)
-        k = (u > self.t_cum[self.target]).sum(1)
-        self.target = torch.where(moving, self.t_dst[self.target, k], self.target)
+        k = (u > self.t_cum.index_select(0, self.target)).sum(1)  # the candidate u falls on
+        nxt = self.t_dst.view(-1).index_select(0, self.target * self.t_dst.shape[1] + k)  # t_dst[e, k]
+        self.target = torch.where(moving, nxt, self.target)
         self.t = self.t + moving.long()
         self.active = self.active & (self.withdraw_at > self.t.unsqueeze(1))
         # observe z_{t+1}
         z, in_d = self._observe()
         self.z = torch.where(moving.unsqueeze(1), z, self.z)
-        self.false_alarms = self.false_alarms + ((z & ~in_d).sum(1) * moving)
+        if self.details:
+            self.false_alarms = self.false_alarms + ((z & ~in_d).sum(1) * moving)
         hits = z & in_d & moving.unsqueeze(1)
         captured = hits.any(1)
         censored = moving & ~captured & (self.t >= self.t_max)
@@ -207,8 +215,10 @@ class SearchSim:
             done=done,
             capture_time=self.t.clone(),
             censored=censored,
-            false_alarms=self.false_alarms.clone(),
-            captured_by=torch.where(self.pending, self.pending_by, self._first(hits)),
+            false_alarms=self.false_alarms.clone() if self.details else self.false_alarms,
+            captured_by=torch.where(self.pending, self.pending_by, self._first(hits))
+            if self.details
+            else self.pending_by,
         )
         self.pending = self.pending & ~done
         self._new = torch.zeros_like(done)

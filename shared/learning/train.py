@@ -113,6 +113,7 @@ def train(
         device=device,
         auto_reset=False,
         check_actions=False,  # the policies' softmax is masked to N[p]: every draw is a valid move
+        details=False,  # the rollout reads done, capture_time and censored only
     )
     gen = torch.Generator(device=device)
     gen.manual_seed(cfg.seed * 104_729 + rank)
