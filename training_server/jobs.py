@@ -364,26 +364,23 @@ class Supervisor:
         proc.join(10)
         self.current_proc = None
         now = time.time()
+
+        def finish(status: str, phase: str, **fields: Any) -> None:
+            """The run's end: its status and last phase, the learning curve kept."""
+            store.update_run(run_id, status=status, finished=now, progress={"phase": phase, "curve": curve}, **fields)
+
         if result["type"] == "cancelled":
-            store.update_run(run_id, status="cancelled", finished=now, progress={"phase": "cancelled", "curve": curve})
+            finish("cancelled", "cancelled")
             log.info("training run %s cancelled", run_id)
         elif result["type"] == "failed":
-            store.update_run(
-                run_id,
-                status="failed",
-                finished=now,
-                error=result["error"],
-                progress={"phase": "failed", "curve": curve},
-            )
+            finish("failed", "failed", error=result["error"])
             log.warning("training run %s failed: %s", run_id, result["error"])
         elif not result["passed"]:
             g = result["metrics"]["gate"]
-            store.update_run(
-                run_id,
-                status="failed",
-                finished=now,
+            finish(
+                "failed",
+                "gated out",
                 metrics=result["metrics"],
-                progress={"phase": "gated out", "curve": curve},
                 error=f"evaluation gate: new policy {g['new']['mean_capture_time']:.2f} steps, "
                 f"current {g['current']['mean_capture_time']:.2f}; current policy kept",
             )
@@ -392,13 +389,6 @@ class Supervisor:
             version = srv.publish_version(
                 staging, parent=parent, run_id=run_id, metrics=result["metrics"], promote=bool(run["params"]["promote"])
             )
-            store.update_run(
-                run_id,
-                status="succeeded",
-                finished=now,
-                metrics=result["metrics"],
-                version=version,
-                progress={"phase": "done", "curve": curve},
-            )
+            finish("succeeded", "done", metrics=result["metrics"], version=version)
             log.info("training run %s succeeded: version %d", run_id, version)
         shutil.rmtree(staging, ignore_errors=True)

@@ -80,21 +80,19 @@ async def events(
         next_status = 0.0
         while not stopping():
             out = []
-            fleet = await run_in_threadpool(hub.fleet)
-            key = json.dumps({k: v for k, v in fleet.items() if k != "ts"}, sort_keys=True)
+            fleet, key = await run_in_threadpool(hub.fleet)
             if key != sent.get("fleet"):
                 sent["fleet"] = key
                 out.append(_sse("fleet", fleet))
             if belief is not None:
-                b = hub.belief(belief)
+                b = await run_in_threadpool(hub.belief, belief)
                 bkey = None if b is None else (b["mission_id"], b["t"])
                 if b is not None and bkey != sent.get("belief"):
                     sent["belief"] = bkey
                     out.append(_sse("belief", b))
             if time.monotonic() >= next_status:
                 next_status = time.monotonic() + STATUS_EVERY
-                status = await run_in_threadpool(hub.status)
-                skey = json.dumps(status, sort_keys=True)
+                status, skey = await run_in_threadpool(hub.status)
                 if skey != sent.get("status"):
                     sent["status"] = skey
                     out.append(_sse("status", status))

@@ -1,12 +1,14 @@
 """What the console's live view shows, computed once for every browser watching: the fleet (each
 robot's last telemetry with its mission state), the server's status, and the alerts.
 
-Each is cached for a short while (FLEET_EVERY, STATUS_EVERY), so twenty browsers cost the database
-what one does. Thread-safe: the event streams call it from FastAPI's thread pool.
+Each is cached for a short while (FLEET_EVERY, STATUS_EVERY) with a key that changes when it does,
+so twenty browsers cost the database, and the serialisation that tells a change, what one does.
+Thread-safe: the event streams call it from FastAPI's thread pool.
 """
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections import deque
@@ -22,19 +24,21 @@ class Hub:
     def __init__(self, srv: Any) -> None:
         self.srv = srv
         self.lock = threading.Lock()
-        self._fleet: tuple[float, dict[str, Any]] = (0.0, {})
-        self._status: tuple[float, dict[str, Any]] = (0.0, {})
+        self._fleet: tuple[float, dict[str, Any], str] = (0.0, {}, "")
+        self._status: tuple[float, dict[str, Any], str] = (0.0, {}, "")
+        self._beliefs: dict[str, dict[str, Any]] = {}  # robot -> its last reported belief
         self._rejections: deque[tuple[float, int]] = deque()  # (when, rejected in all)
 
     # ------------------------------------------------------------------ fleet
-    def fleet(self) -> dict[str, Any]:
-        """GET /api/v1/fleet's body with the live extras the map draws: each robot's last
+    def fleet(self) -> tuple[dict[str, Any], str]:
+        """(GET /api/v1/fleet's body with the live extras the map draws: each robot's last
         observation z and goal, and the simulated world's ground truth of running missions
-        (fleet-sim only)."""
+        (fleet-sim only); a key that changes when the body does, "ts" aside). Each refresh also
+        keeps every robot's last reported belief for ``belief``."""
         with self.lock:
-            when, state = self._fleet
+            when, body, key = self._fleet
             if time.monotonic() - when < FLEET_EVERY:
-                return state
+                return body, key
         from training_server.api.fleet import fleet_view
 
         body = fleet_view(self.srv).model_dump()
@@ -47,25 +51,38 @@ class Hub:
                 if t is not None:
                     truth[mid] = t
         body["truth"] = truth
+        key = json.dumps(body, sort_keys=True)
         body["ts"] = time.time()
+        beliefs = {
+            robot: {
+                "robot_id": robot,
+                "mission_id": live.get("mission_id"),
+                "t": live.get("t"),
+                "belief": live["belief"],
+            }
+            for robot, a in bus.agents().items()
+            if (live := a["live"] or {}).get("state") == "mission" and "belief" in live
+        }
         with self.lock:
-            self._fleet = (time.monotonic(), body)
-        return body
+            self._fleet = (time.monotonic(), body, key)
+            self._beliefs = beliefs
+        return body, key
 
     def belief(self, robot: str) -> dict[str, Any] | None:
-        """The robot's last reported belief {"t", "mission_id", "belief"} (None: none reported)."""
-        live = self.srv.bus.agents().get(robot, {}).get("live") or {}
-        if live.get("state") != "mission" or "belief" not in live:
-            return None
-        return {"robot_id": robot, "mission_id": live.get("mission_id"), "t": live.get("t"), "belief": live["belief"]}
+        """The robot's last reported belief {"robot_id", "mission_id", "t", "belief"} (None: none
+        reported), as of the last fleet refresh."""
+        self.fleet()
+        with self.lock:
+            return self._beliefs.get(robot)
 
     # ------------------------------------------------------------------ status and alerts
-    def status(self) -> dict[str, Any]:
-        """The current policy, running missions, recent runs, episode counts and the alerts."""
+    def status(self) -> tuple[dict[str, Any], str]:
+        """(The current policy, running missions, recent runs, episode counts and the alerts; a
+        key that changes when they do.)"""
         with self.lock:
-            when, state = self._status
+            when, body, key = self._status
             if time.monotonic() - when < STATUS_EVERY:
-                return state
+                return body, key
         srv = self.srv
         stats = srv.store.episode_stats(srv.fleet)
         runs = srv.store.runs()[-10:][::-1]  # the ten newest, newest first
@@ -76,12 +93,13 @@ class Hub:
             "episodes": stats,
             "alerts": self._alerts(stats, runs),
         }
+        key = json.dumps(body, sort_keys=True)
         with self.lock:
-            self._status = (time.monotonic(), body)
-        return body
+            self._status = (time.monotonic(), body, key)
+        return body, key
 
     def alerts(self) -> list[dict[str, Any]]:
-        return list(self.status()["alerts"])
+        return list(self.status()[0]["alerts"])
 
     def _alerts(self, stats: dict[str, Any], runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
         now = time.time()

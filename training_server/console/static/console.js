@@ -885,7 +885,7 @@ async function start() {
     sessionStorage.removeItem(ROLE_KEY);
     location.assign("/signin");
   });
-  const ctx = { role, status: (s) => showAlerts(s.alerts) };
+  const ctx = { status: (s) => showAlerts(s.alerts) };
   try {
     await pages[page](ctx);
     document.body.dataset.ready = "1";
