@@ -20,17 +20,9 @@ def main() -> None:
     p.add_argument("--map", choices=("office", "museum"), default="office")
     p.add_argument("--quick", action="store_true")
     args = p.parse_args()
-    root, env, b = Path(args.results), args.map, ex.QUICK if args.quick else ex.FULL
+    root, b = Path(args.results), ex.QUICK if args.quick else ex.FULL
     ex._CELLS = root / "cells"
-    sensor = ex.sensor_for("cepg")
-    times, trained = {}, {}
-    for beta in ex.BETAS:
-        for s in b.seeds:
-            team = ex._flown(ex._snapshot(root, env, 4, beta, b.train, s), env, sensor, 4)
-            cell = ex._cell(env, 4, "pg" if beta == 1.0 else "cepg", team, b.episodes, times=True)
-            times[beta, s] = cell.pop("capture_times")
-            trained[beta] = cell["train_episodes"]
-    rows = [{**ex._beta_row(env, 4, beta, b, times), "train_episodes": trained[beta]} for beta in ex.BETAS]
+    rows = ex.fig5_rows(root, args.map, b)
     for r in rows:
         print(json.dumps(r))
     print("\n".join(ex._beta_reading(rows)))

@@ -742,18 +742,8 @@ def fig5(root: Path, b: Budget) -> Path:
     S - 1 degrees of freedom: what another training run would give)."""
 
     N, rows = 4, []
-    sensor = sensor_for("cepg")
     for env in ("office", "museum"):
-        times: dict[tuple[float, int], np.ndarray] = {}
-        trained: dict[float, Any] = {}  # the episodes the teams ran (whole batches), as the cells say
-        for beta in BETAS:
-            for s in b.seeds:
-                team = _flown(_snapshot(root, env, N, beta, b.train, s), env, sensor, N)
-                cell = _cell(env, N, "pg" if beta == 1.0 else "cepg", team, b.episodes, times=True)
-                times[beta, s] = cell.pop("capture_times", np.zeros(0))
-                trained[beta] = cell.get("train_episodes", b.train)
-        for beta in BETAS:
-            rows.append({**_beta_row(env, N, beta, b, times), "train_episodes": trained[beta]})
+        rows += fig5_rows(root, env, b, N)
         _say(
             f"fig5: {env}: " + ", ".join(f"beta {r['beta']} {r['mean_capture_time']:.2f}" for r in rows[-len(BETAS) :])
         )
@@ -761,6 +751,20 @@ def fig5(root: Path, b: Budget) -> Path:
     _write(out, "fig5", _setup("fig5", b, robots=N, training_seeds=list(b.seeds)), rows)
     _bars(out / "fig5.png", rows, "beta", "capture time (steps), N = 4")
     return out
+
+
+def fig5_rows(root: Path, env: str, b: Budget, N: int = 4) -> list[dict[str, Any]]:
+    """fig5's rows of one map, a row per beta (``fig5``), its teams trained first where missing."""
+    sensor = sensor_for("cepg")
+    times: dict[tuple[float, int], np.ndarray] = {}
+    trained: dict[float, Any] = {}  # the episodes the teams ran (whole batches), as the cells say
+    for beta in BETAS:
+        for s in b.seeds:
+            team = _flown(_snapshot(root, env, N, beta, b.train, s), env, sensor, N)
+            cell = _cell(env, N, "pg" if beta == 1.0 else "cepg", team, b.episodes, times=True)
+            times[beta, s] = cell.pop("capture_times", np.zeros(0))
+            trained[beta] = cell.get("train_episodes", b.train)
+    return [{**_beta_row(env, N, beta, b, times), "train_episodes": trained[beta]} for beta in BETAS]
 
 
 def _beta_row(env: str, N: int, beta: float, b: Budget, times: dict[tuple[float, int], np.ndarray]) -> dict[str, Any]:
