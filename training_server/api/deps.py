@@ -101,5 +101,11 @@ def robot_scope(request: Request, robot_id: str | None) -> str | None:
     return own
 
 
+def fleet_scope(request: Request, what: str) -> None:
+    """``what`` holds every robot's records: 403 for a robot's own token."""
+    if getattr(request.state, "robot", None) is not None:
+        raise HTTPException(403, f"a robot's own token reads its own records only; {what} holds every robot's")
+
+
 READ = [Depends(role)]  # route dependencies: any fleet token
 WRITE = [Depends(operator)]  # route dependencies: the operator token

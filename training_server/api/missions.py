@@ -9,7 +9,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 
-from training_server.api.deps import READ, WRITE, Srv, errors
+from training_server.api.deps import READ, WRITE, Srv, errors, fleet_scope
 from training_server.api.schemas import (
     MAX_ID,
     Mission,
@@ -120,8 +120,7 @@ def export_mission(mission_id: str, request: Request, srv: Srv) -> Response:
     per step (recomputed from its record), the outcome (training_server/export.py)."""
     from training_server.export import mission_mcap
 
-    if getattr(request.state, "robot", None) is not None:
-        raise HTTPException(403, "a robot's own token reads its own records only; the export holds every robot's")
+    fleet_scope(request, "the export")
     m = mission_view(srv, mission_id)
     records = {r: srv.store.get_record(srv.fleet, r, mission_id) for r in m.episodes_received}
     data = mission_mcap(srv, m, {r: rec for r, rec in records.items() if rec is not None})
@@ -139,8 +138,7 @@ def replay_mission(mission_id: str, request: Request, srv: Srv) -> MissionReplay
     model of the version it flew (null when that version is gone)."""
     from training_server.export import recomputed_beliefs
 
-    if getattr(request.state, "robot", None) is not None:
-        raise HTTPException(403, "a robot's own token reads its own records only; a replay holds every robot's")
+    fleet_scope(request, "a replay")
     m = mission_view(srv, mission_id)
     robots: dict[str, RobotReplay] = {}
     cache: dict[int, Any] = {}
