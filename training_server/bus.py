@@ -25,6 +25,16 @@ log = logging.getLogger("mures.server.bus")
 INGEST_BATCH = 512
 
 
+def _json_object(raw: bytes) -> dict[str, Any] | None:
+    """A best-effort message (telemetry, ground truth) as a JSON object; None when it is larger
+    than 1 MiB, not JSON, or not an object (such messages are dropped)."""
+    try:
+        msg = json.loads(raw) if len(raw) <= 1 << 20 else None
+    except ValueError:
+        return None
+    return msg if isinstance(msg, dict) else None
+
+
 class Bus:
     def __init__(self, server: Any, conf: Any) -> None:
         self.server = server
@@ -97,11 +107,8 @@ class Bus:
     def _telemetry(self, key: str, raw: bytes) -> None:
         """Keep a robot's last live state, if it is one (docs/SPEC.md section 6); others are dropped."""
         robot = key.rsplit("/", 1)[-1]
-        try:
-            msg = json.loads(raw) if len(raw) <= 1 << 20 else None
-        except ValueError:
-            msg = None
-        if not isinstance(msg, dict) or msg.get("state") not in ("mission", "idle"):
+        msg = _json_object(raw)
+        if msg is None or msg.get("state") not in ("mission", "idle"):
             return
         keep = {
             k: msg.get(k) for k in ("state", "mission_id", "t", "node", "z", "goal", "policy_version", "backend", "ts")
@@ -115,11 +122,8 @@ class Bus:
 
     def _truth(self, key: str, raw: bytes) -> None:
         """Keep the simulated world's last ground truth of a mission (fleet-sim's debugging overlay)."""
-        try:
-            msg = json.loads(raw) if len(raw) <= 1 << 20 else None
-        except ValueError:
-            msg = None
-        if not isinstance(msg, dict) or not isinstance(msg.get("target"), int) or not isinstance(msg.get("t"), int):
+        msg = _json_object(raw)
+        if msg is None or not isinstance(msg.get("target"), int) or not isinstance(msg.get("t"), int):
             return
         robots = msg.get("robots") if isinstance(msg.get("robots"), dict) else {}
         with self.online_lock:
