@@ -105,6 +105,7 @@ def test_an_operators_session(fleet, page, tmp_path):
     pg.wait_for_url("**/signin**")
     pg.get_by_label("Token").fill("not-a-token")
     pg.get_by_role("button", name="Sign in").click()
+    pg.wait_for_selector("#signin-error:not([hidden])")  # the server's answer arrives after the click
     assert "not valid for this server" in pg.locator("#signin-error").inner_text()
 
     # sign in: the fleet appears, every robot online (on the map once it reports a position)
