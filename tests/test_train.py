@@ -76,21 +76,26 @@ def test_shared_state_cross_entropy_counts_only_where_robots_share_node_and_beli
     policy = TeamPolicy(4, 3, adj)
     uniform = torch.full((4,), 0.25)
     # decision 0: robots 0 and 1 on node 0 with the same belief, robot 2 on node 1;
-    # decision 1: robots 0 and 1 on node 2 with different beliefs, robot 2 on node 2 with robot 0's belief
-    pos = torch.tensor([[0, 0, 1], [2, 2, 2]])
+    # decision 1: robots 0 and 1 on node 2 with different beliefs, robot 2 on node 2 with robot 0's belief;
+    # decision 2: every robot on a node of its own (no pair counts: its networks are not evaluated)
+    pos = torch.tensor([[0, 0, 1], [2, 2, 2], [0, 1, 3]])
     belief = torch.stack(
-        [uniform.expand(3, 4), torch.tensor([[0.7, 0.1, 0.1, 0.1], [0.1, 0.7, 0.1, 0.1], [0.7, 0.1, 0.1, 0.1]])]
+        [
+            uniform.expand(3, 4),
+            torch.tensor([[0.7, 0.1, 0.1, 0.1], [0.1, 0.7, 0.1, 0.1], [0.7, 0.1, 0.1, 0.1]]),
+            uniform.expand(3, 4),
+        ]
     )
     ro = Rollout(
         pos=pos,
         belief=belief,
         action=pos.clone(),
-        t=torch.tensor([0, 0]),
-        episode=torch.tensor([0, 1]),
-        ret=torch.zeros(2),
-        length=torch.tensor([1, 1]),
-        capture_time=torch.ones(2, dtype=torch.long),
-        censored=torch.zeros(2, dtype=torch.bool),
+        t=torch.tensor([0, 0, 0]),
+        episode=torch.tensor([0, 1, 2]),
+        ret=torch.zeros(3),
+        length=torch.tensor([1, 1, 1]),
+        capture_time=torch.ones(3, dtype=torch.long),
+        censored=torch.zeros(3, dtype=torch.bool),
     )
     beta = torch.zeros(3)
     full = cepg_loss(policy, ro, beta, 0.1, ce_states="all").ce
@@ -101,9 +106,20 @@ def test_shared_state_cross_entropy_counts_only_where_robots_share_node_and_beli
         pj = policy.cross_probs(pos, belief)  # (2, N_i, N_j, 4): pi_j at robot i's state
     logs = torch.log(0.9 * pi + 0.1 * 0.25)
     H = lambda k, i, j: float(-(pj[k, i, j] * logs[k, i]).sum())  # noqa: E731
-    want = [(H(0, 0, 1) + H(1, 0, 2)) / 2, H(0, 1, 0) / 2, H(1, 2, 0) / 2]  # mean over N - 1 = 2 others, / B = 2
-    assert torch.allclose(shared, torch.tensor(want) / 2, atol=1e-6)
+    want = [(H(0, 0, 1) + H(1, 0, 2)) / 2, H(0, 1, 0) / 2, H(1, 2, 0) / 2]  # mean over N - 1 = 2 others, / B = 3
+    assert torch.allclose(shared, torch.tensor(want) / 3, atol=1e-6)
     assert (full > shared).all()
+    # its gradient is that of the same sum written out over every decision and pair
+    policy.zero_grad()
+    cepg_loss(policy, ro, beta, 0.1, ce_states="shared").loss.backward()
+    got = [p.grad.clone() for p in policy.parameters()]
+    policy.zero_grad()
+    log_pi = torch.log_softmax(policy.logits(pos, belief), -1)
+    smooth = torch.log(0.9 * log_pi.exp() + 0.1 * 0.25)
+    pairs = [(0, 0, 1), (1, 0, 2), (0, 1, 0), (1, 2, 0)]
+    (sum(-(pj[k, i, j] * smooth[k, i]).sum() for k, i, j in pairs) / 2 / 3).neg().backward()
+    for g, p in zip(got, policy.parameters(), strict=True):
+        assert torch.allclose(g, p.grad, atol=1e-6)
 
 
 def test_training_learns_and_estimates_the_model(trained_run):

@@ -163,17 +163,21 @@ def cross_entropy_term(
         weight = S / k
     else:
         sub, weight = torch.arange(S, device=device), 1.0
-    pos, own_s = ro.pos[sub], log_pi[sub]
-    pi_j = policy.cross_probs(pos, ro.belief[sub])  # (K, N_i, N_j, n): network j on robot i's states
+    pos, bel = ro.pos[sub], ro.belief[sub]
+    pairs = ~torch.eye(N, dtype=torch.bool, device=device).expand(sub.shape[0], N, N)  # (K, N_i, N_j): j != i
+    if ce_states == "shared":  # only where robot j is in robot i's situation: same node, same belief
+        tv = 0.5 * (bel.unsqueeze(2) - bel.unsqueeze(1)).abs().sum(-1)  # (K, N, N)
+        pairs = pairs & (pos.unsqueeze(2) == pos.unsqueeze(1)) & (tv < same_tol)
+        # H is needed only at the decisions where some pair counts (most have none): the same sum,
+        # without evaluating N x N networks on states whose every term would be multiplied by 0
+        keep = pairs.any(2).any(1).nonzero().squeeze(1)
+        sub, pos, bel, pairs = sub[keep], pos[keep], bel[keep], pairs[keep]
+    own_s = log_pi[sub]
+    pi_j = policy.cross_probs(pos, bel)  # (K, N_i, N_j, n): network j on robot i's states
     mask = policy.mask[pos]  # (K, N, n): a in N[p]
     uniform = mask / mask.sum(-1, keepdim=True)
     smooth = torch.where(mask, (1 - eps) * own_s.exp() + eps * uniform, 1.0)  # pi~_i; 1 outside N[p]: log 0
     h = -(pi_j * torch.log(smooth).unsqueeze(2)).sum(-1)  # (K, N_i, N_j): H(pi_j, pi~_i) at each state
-    pairs = ~torch.eye(N, dtype=torch.bool, device=device)  # j != i
-    if ce_states == "shared":  # only where robot j is in robot i's situation: same node, same belief
-        b_sub = ro.belief[sub]
-        tv = 0.5 * (b_sub.unsqueeze(2) - b_sub.unsqueeze(1)).abs().sum(-1)  # (K, N, N)
-        pairs = pairs & (pos.unsqueeze(2) == pos.unsqueeze(1)) & (tv < same_tol)
     h_i = (h * pairs).sum(-1) / max(N - 1, 1)  # (K, N): (1/(N-1)) sum_{j != i}; 0 for a single robot
     T_i = ro.length[ro.episode[sub]].clamp_min(1).to(torch.float32)  # (K,): each decision's episode length
     return weight * (h_i / T_i.unsqueeze(1)).sum(0) / B  # the 1/T_i of Eq. 12, then the mean over episodes
