@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -71,6 +72,29 @@ def test_report_reading_follows_the_numbers(tmp_path):
 def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
     assert main(["experiment", "fig99", "--results", str(tmp_path)]) == 2
     assert "not implemented" in capsys.readouterr().err
+
+
+def test_maps_and_team_sizes_are_checked(tmp_path, capsys):
+    assert main(["experiment", "fig7", "--maps", "office,mars", "--results", str(tmp_path)]) == 2
+    assert "--maps takes office and/or museum" in capsys.readouterr().err
+    assert main(["experiment", "fig7", "--robots", "4,6", "--results", str(tmp_path)]) == 2
+    assert "--robots takes team sizes 1 to 5" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing trained, nothing written
+
+
+def test_a_run_narrowed_to_one_map_and_team_size(tmp_path):
+    """`--maps office --robots 1`: fig6 runs that map and size only, its plot has one panel and
+    the report tables OFFICE alone."""
+    from shared.tools.experiments import Budget, fig6
+
+    b = Budget(quick=True, episodes=40, train=256, planner=1, milp_limit=0.05, teams=(2, 4))
+    fig6(tmp_path, dataclasses.replace(b, maps=("office",), robots=(1,)))
+    d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
+    assert {(r["map"], r["robots"]) for r in d["rows"]} == {("office", 1)} and d["maps"] == ["office"]
+    assert (tmp_path / "fig6" / "fig6.png").stat().st_size > 1000
+    text = report(tmp_path, tmp_path / "results.md").read_text()
+    section = text.split("## Fig. 6")[1].split("\n## ")[0]
+    assert "OFFICE (mean capture time" in section and "MUSEUM" not in section
 
 
 def test_report_tables_robustness_results(tmp_path):

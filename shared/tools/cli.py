@@ -53,6 +53,22 @@ def _eta(text: str) -> float:
     return v
 
 
+def _map_names(text: str) -> tuple[str, ...]:
+    """``office,museum``: comma-separated names (argparse type; `mures experiment` checks them)."""
+    names = tuple(t.strip().lower() for t in text.split(",") if t.strip())
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected map names separated by commas, got {text!r}")
+    return names
+
+
+def _team_sizes(text: str) -> tuple[int, ...]:
+    """``4`` or ``1,2,3``: comma-separated positive integers (argparse type)."""
+    sizes = tuple(positive_int(t.strip()) for t in text.split(",") if t.strip())
+    if not sizes:
+        raise argparse.ArgumentTypeError(f"expected team sizes separated by commas, got {text!r}")
+    return sizes
+
+
 def _add_map_args(p: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--env", choices=BUILTIN_MAPS, help="a built-in map")
@@ -559,6 +575,8 @@ def cmd_experiment(args: argparse.Namespace) -> int:
             args.train_episodes,
             workers=args.workers,
             scheduler=args.dask_scheduler,
+            maps=args.maps,
+            robots=args.robots,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
@@ -680,6 +698,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="training episodes per learned team (default: 400000, or 2000 with --quick)",
     )
     p.add_argument("--results", default="results", help="results directory (default results/)")
+    p.add_argument(
+        "--maps",
+        type=_map_names,
+        metavar="MAP[,MAP]",
+        help="run on these of the paper's maps only: office, museum (default both)",
+    )
+    p.add_argument(
+        "--robots",
+        type=_team_sizes,
+        metavar="N[,N...]",
+        help="team sizes of fig6, fig7, fig9 and fig10 (default: 1..5 for fig7, 1..5 or 2,4 with --quick for the "
+        "others); the N = 4 figures keep N = 4",
+    )
     p.add_argument(
         "--workers",
         type=positive_int,

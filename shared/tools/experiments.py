@@ -27,7 +27,7 @@ import os
 import platform
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TypedDict
@@ -120,6 +120,9 @@ def fig4(root: Path, quick: bool) -> Path:
 
 
 # ---------------------------------------------------------------------- budgets, teams, cells
+PAPER_MAPS = ("office", "museum")
+
+
 @dataclass(frozen=True)
 class Budget:
     """How large each run is: the paper's protocol, or ``--quick`` (every experiment together
@@ -134,12 +137,18 @@ class Budget:
     teams: tuple[int, ...]  # team sizes N of the sweeps (fig6, fig9, fig10)
     marl_train: int | None = None  # training episodes per MARL baseline; None: each method's default budget
     seeds: tuple[int, ...] = (0,)  # training seeds of fig5's teams (the other figures: seed 0)
+    maps: tuple[str, ...] = PAPER_MAPS  # the maps every figure runs on (`--maps`)
+    robots: tuple[int, ...] | None = None  # team sizes of fig6, fig7, fig9, fig10 (`--robots`); None: theirs
 
     def with_train(self, episodes: int | None) -> Budget:
         return self if episodes is None else replace(self, train=episodes, marl_train=episodes)
 
+    def sizes(self, default: Iterable[int]) -> tuple[int, ...]:
+        """The team sizes of a sweep whose own are ``default``, as ``--robots`` narrows them."""
+        return tuple(default) if self.robots is None else self.robots
 
-FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5), seeds=(0, 1, 2))
+
+FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5), marl_train=100_000, seeds=(0, 1, 2))
 QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4), marl_train=1_000)
 MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.MARL_ALGORITHMS
 SEED = 1  # evaluation seed of every cell (training seeds: 0)
@@ -632,6 +641,7 @@ def _setup(name: str, b: Budget, **extra: Any) -> dict[str, Any]:
         "training_episodes": b.train,
         "marl_training_episodes": b.marl_train or "each method's default",
         "seed": SEED,
+        "maps": list(b.maps),
         **extra,
         "machine": machine(),
     }
@@ -642,14 +652,15 @@ def fig7(root: Path, b: Budget) -> Path:
     """All methods, N = 1..5, OFFICE and MUSEUM (paper Fig. 7), and their decision times (Fig. 8)."""
     rows: list[dict[str, Any]] = []
     t_start = time.perf_counter()
-    for env in ("office", "museum"):
-        for N in range(1, 6):
+    for env in b.maps:
+        for N in b.sizes(range(1, 6)):
             _say(f"fig7: {env} N={N}")
             rows += _all_methods(root, env, N, b)
     out = root / "fig7"
     setup = _setup(
         "fig7",
         b,
+        team_sizes=list(b.sizes(range(1, 6))),
         planner_episodes=b.planner,
         fhpe_sa_episodes=b.planner * 4,
         horizons={"fhpe": 2, "fhpe-sa": 5, "milp": 5, "d-milp": 5},
@@ -671,8 +682,8 @@ def _plot_fig7(out: Path, rows: list[dict[str, Any]]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for ax, env in zip(axes, ("office", "museum"), strict=True):
+    fig, panels = _panels(plt, rows)
+    for ax, env in panels:
         for method in dict.fromkeys(r["method"] for r in rows):
             pts = [r for r in rows if r["map"] == env and r["method"] == method]
             if pts:
@@ -687,7 +698,7 @@ def _plot_fig7(out: Path, rows: list[dict[str, Any]]) -> None:
         ax.set_title(env.upper())
         ax.set_xlabel("robots N")
         ax.set_ylabel("capture time (steps)")
-    axes[1].legend(fontsize=8)
+    panels[-1][0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "fig7.png", dpi=110)
     plt.close(fig)
@@ -714,18 +725,25 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
         },
         sel,
     )
+    env = _fig8_map(sel)
     fig, ax = plt.subplots(figsize=(6, 4))
     for method in dict.fromkeys(r["method"] for r in sel):
-        pts = [r for r in sel if r["map"] == "museum" and r["method"] == method]
+        pts = [r for r in sel if r["map"] == env and r["method"] == method]
         if pts:
             ax.plot([r["robots"] for r in pts], [r["decision_ms"] for r in pts], marker="o", label=method)
     ax.set_yscale("log")
-    ax.set_xlabel("robots N (MUSEUM)")
+    ax.set_xlabel(f"robots N ({env.upper()})")
     ax.set_ylabel("decision time per team step (ms)")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "fig8.png", dpi=110)
     plt.close(fig)
+
+
+def _fig8_map(rows: list[dict[str, Any]]) -> str:
+    """The map Fig. 8 shows: the paper's, MUSEUM (the larger), when the rows have it."""
+    maps = maps_in(rows)
+    return "museum" if "museum" in maps or not maps else maps[0]
 
 
 # ---------------------------------------------------------------------- fig5, fig6
@@ -742,7 +760,7 @@ def fig5(root: Path, b: Budget) -> Path:
     S - 1 degrees of freedom: what another training run would give)."""
 
     N, rows = 4, []
-    for env in ("office", "museum"):
+    for env in b.maps:
         rows += fig5_rows(root, env, b, N)
         _say(
             f"fig5: {env}: " + ", ".join(f"beta {r['beta']} {r['mean_capture_time']:.2f}" for r in rows[-len(BETAS) :])
@@ -811,8 +829,8 @@ def _beta_row(env: str, N: int, beta: float, b: Budget, times: dict[tuple[float,
 def fig6(root: Path, b: Budget) -> Path:
     """CE-PG vs CE-PG+ (sensing N[p]) vs C-CE-PG (collective belief) for N in the sweep (paper Fig. 6)."""
     rows = []
-    for env in ("office", "museum"):
-        for N in b.teams:
+    for env in b.maps:
+        for N in b.sizes(b.teams):
             for m in ("cepg", "cepg+", "c-cepg"):
                 rows.append(_cell(env, N, m, _learned(root, env, N, m, b), b.episodes, sensor=sensor_for(m)))
             _say(f"fig6: {env} N={N}: " + ", ".join(f"{r['method']} {r['mean_capture_time']:.1f}" for r in rows[-3:]))
@@ -826,8 +844,8 @@ def fig6(root: Path, b: Budget) -> Path:
 def _noise_sweep(root: Path, b: Budget, name: str, eta: str, value: str, ylabel: str) -> Path:
     """CE-PG teams trained and flown with each ``eta`` ("eta_fn" or "eta_fp") of ETAS, the other 0."""
     rows = []
-    for env in ("office", "museum"):
-        for N in b.teams:
+    for env in b.maps:
+        for N in b.sizes(b.teams):
             for x in ETAS:
                 rows.append(
                     _cell(
@@ -862,7 +880,7 @@ def fig11(root: Path, b: Budget) -> Path:
     """All methods at N = 4 for eta_fn in {0, 0.1, 0.3, 0.5} (paper Fig. 11)."""
     rows = []
     t_start = time.perf_counter()
-    for env in ("office", "museum"):
+    for env in b.maps:
         for eta in ETAS:
             rows += _all_methods(root, env, 4, b, eta_fn=eta)
     out = root / "fig11"
@@ -889,7 +907,7 @@ def fig12(root: Path, b: Budget) -> Path:
     """Robustness: a 4-robot team loses robot 4 at t = 5 (paper Fig. 12), against the intact team."""
     N, rows = 4, []
     sensor = sensor_for("cepg")
-    for env in ("office", "museum"):
+    for env in b.maps:
         for withdraw in (None, [None, None, None, 5]):
             label = "none" if withdraw is None else "r4@t5"
             for m in ("random", "greedy", "pg", "cepg", *MARL):
@@ -907,7 +925,7 @@ def fig13(root: Path, b: Budget) -> Path:
 
     rows = []
     sensor = sensor_for("cepg")
-    for env in ("office", "museum"):
+    for env in b.maps:
         for m in ("cepg", *MARL):
             path = (
                 _snapshot(root, env, 5, 0.5, b.train, 0)
@@ -927,6 +945,19 @@ def fig13(root: Path, b: Budget) -> Path:
     return out
 
 
+def maps_in(rows: list[dict[str, Any]]) -> list[str]:
+    """The maps a figure's rows cover, the paper's first, in the paper's order."""
+    have = list(dict.fromkeys(r["map"] for r in rows))
+    return [m for m in PAPER_MAPS if m in have] + [m for m in have if m not in PAPER_MAPS]
+
+
+def _panels(plt: Any, rows: list[dict[str, Any]]) -> tuple[Any, list[tuple[Any, str]]]:
+    """A figure with one panel per map of ``rows`` (``maps_in``): the figure and (axes, map) pairs."""
+    maps = maps_in(rows) or list(PAPER_MAPS)
+    fig, axes = plt.subplots(1, len(maps), figsize=(5.5 * len(maps), 4), squeeze=False)
+    return fig, list(zip(axes[0], maps, strict=True))
+
+
 def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None:
     if _PLAN is not None:
         return
@@ -935,8 +966,8 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for ax, env in zip(axes, ("office", "museum"), strict=True):
+    fig, panels = _panels(plt, rows)
+    for ax, env in panels:
         sel = [r for r in rows if r["map"] == env]
         groups = list(dict.fromkeys(r[key] for r in sel))
         methods = list(dict.fromkeys(r["method"] for r in sel))
@@ -955,7 +986,7 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
         ax.set_xlabel(key)
         ax.set_title(env.upper())
         ax.set_ylabel(ylabel)
-    axes[1].legend(fontsize=8)
+    panels[-1][0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -971,8 +1002,8 @@ def _lines(path: Path, rows: list[dict[str, Any]], key: str, value: str, ylabel:
     import matplotlib.pyplot as plt
 
     half = "ci95_halfwidth" if value == "mean_capture_time" else "false_alarms_ci95_halfwidth"
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for ax, env in zip(axes, ("office", "museum"), strict=True):
+    fig, panels = _panels(plt, rows)
+    for ax, env in panels:
         for N in sorted({r["robots"] for r in rows if r["map"] == env}):
             pts = [r for r in rows if r["map"] == env and r["robots"] == N]
             ax.errorbar(
@@ -1090,6 +1121,8 @@ def run(
     train_episodes: int | None = None,
     workers: int = 1,
     scheduler: str | None = None,
+    maps: tuple[str, ...] | None = None,
+    robots: tuple[int, ...] | None = None,
 ) -> Path:
     """Run one experiment (``all``: every one in turn); returns its results directory.
     ``train_episodes`` overrides the learned teams' training budget. The teams the experiment
@@ -1100,6 +1133,14 @@ def run(
     b = (QUICK if quick else FULL).with_train(train_episodes)
     if name != "all" and name not in EXPERIMENTS:
         raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)}, all)")
+    if maps is not None:
+        if not maps or any(m not in PAPER_MAPS for m in maps):
+            raise ValueError(f"--maps takes {' and/or '.join(PAPER_MAPS)} (comma-separated), not {','.join(maps)!r}")
+        b = replace(b, maps=tuple(dict.fromkeys(maps)))
+    if robots is not None:
+        if not robots or any(n < 1 or n > 5 for n in robots):
+            raise ValueError(f"--robots takes team sizes 1 to 5 (comma-separated), not {','.join(map(str, robots))}")
+        b = replace(b, robots=tuple(sorted(set(robots))))
     for _round in range(3):  # the teams (and the planners' cells), then the learned teams' cells
         jobs = plan(name, root, b)
         if not jobs:
@@ -1178,7 +1219,7 @@ def report(root: Path, out: Path) -> Path:
         rows = d["rows"]
         methods = list(dict.fromkeys(r["method"] for r in rows))
         lines += [
-            "## Fig. 7: capture time of all methods, N = 1..5",
+            f"## Fig. 7: capture time of all methods, N = {', '.join(map(str, sorted({r['robots'] for r in rows})))}",
             "",
             f"Setup: {d['episodes']} episodes per cell for random, greedy, the learned teams and oracle; "
             f"{d['planner_episodes']} for fhpe, milp and d-milp, {d['fhpe_sa_episodes']} for fhpe-sa "
@@ -1197,7 +1238,7 @@ def report(root: Path, out: Path) -> Path:
             "exceed 10^6.",
             "",
         ]
-        for env in ("office", "museum"):
+        for env in maps_in(rows):
             Ns = sorted({r["robots"] for r in rows if r["map"] == env})
             lines += [
                 f"### {env.upper()} (mean capture time ± 95% CI half-width, episodes)",
@@ -1233,23 +1274,25 @@ def report(root: Path, out: Path) -> Path:
             "",
         ]
         lines += _reading(rows)
+        env8 = _fig8_map(rows)
+        Ns8 = sorted({r["robots"] for r in rows if r["map"] == env8})
         lines += [
             "",
             "## Fig. 8: decision time per team step",
             "",
             "Milliseconds per team step, one episode at a time (batch 1), the simulator's step included "
-            "(about 0.1 ms), MUSEUM:",
+            f"(about 0.1 ms), {env8.upper()}:",
             "",
-            "| method | " + " | ".join(f"N={n}" for n in range(1, 6)) + " |",
-            "| --- |" + " --- |" * 5,
+            "| method | " + " | ".join(f"N={n}" for n in Ns8) + " |",
+            "| --- |" + " --- |" * len(Ns8),
         ]
         for m in methods:
             cells = []
-            for n in range(1, 6):
-                r = next((x for x in rows if x["map"] == "museum" and x["robots"] == n and x["method"] == m), None)
+            for n in Ns8:
+                r = next((x for x in rows if x["map"] == env8 and x["robots"] == n and x["method"] == m), None)
                 cells.append("—" if r is None else f"{r['decision_ms']:.3g}")
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
-        r4 = {r["method"]: r for r in rows if r["map"] == "museum" and r["robots"] == 4}
+        r4 = {r["method"]: r for r in rows if r["map"] == env8 and r["robots"] == 4}
         if "cepg" in r4:
             ratios = [
                 f"{m} / cepg = {r4[m]['decision_ms'] / r4['cepg']['decision_ms']:.0f}x"
@@ -1258,7 +1301,7 @@ def report(root: Path, out: Path) -> Path:
             ]
             lines += [
                 "",
-                f"Decision-time ratios at N = 4 on MUSEUM: {', '.join(ratios)}. HiGHS stops each MILP "
+                f"Decision-time ratios at N = 4 on {env8.upper()}: {', '.join(ratios)}. HiGHS stops each MILP "
                 f"solve at {d['milp_time_limit_s']} s (d-milp solves once per robot), so the MILPs' times "
                 "here are bounded by that limit, not by what an optimal solve would take.",
             ]
@@ -1324,7 +1367,7 @@ def report(root: Path, out: Path) -> Path:
             + note,
             "",
         ]
-        for env in ("office", "museum"):
+        for env in maps_in(rows):
             sel = [r for r in rows if r["map"] == env]
             groups = list(dict.fromkeys(r[key] for r in sel))
             labels = list(dict.fromkeys(r[row_key] for r in sel))
@@ -1497,7 +1540,7 @@ def _fmt(mean: float, half: float, episodes: int) -> str:
 
 def _reading(rows: list[dict[str, Any]]) -> list[str]:
     out = []
-    for env in ("office", "museum"):
+    for env in maps_in(rows):
         for n in sorted({r["robots"] for r in rows if r["map"] == env}):
             cell = {r["method"]: r for r in rows if r["map"] == env and r["robots"] == n}
             if "cepg" not in cell:
