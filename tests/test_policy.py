@@ -67,3 +67,22 @@ def test_sample_never_draws_a_zero_probability_action():
     for u in (0.0, 1.0 - 2**-24, 1.0 - 2**-30):
         draws = sample(rows, None, torch.full((2, 1), u))
         assert torch.all(rows.gather(1, draws.unsqueeze(1)) > 0), (u, draws)
+
+
+def test_rollout_reads_capture_and_censoring_from_the_simulator():
+    """Episodes cut at T_max are censored with capture time T_max; the others were caught before
+    or at T_max; a simulator that restarts finished episodes is refused."""
+    import pytest
+
+    g = builtin_graph("office")
+    m, s = uniform_walk(g), Sensor()
+    torch.manual_seed(0)
+    pol = TeamPolicy(g.n, 2, torch.as_tensor(g.adjacency()))
+    gen = torch.Generator().manual_seed(0)
+    sim = SearchSim(g, m, s, 2, 64, seed=3, auto_reset=False, t_max=4)
+    ro = rollout(sim, pol, BatchedBelief(g, m, s), False, gen)
+    assert ro.censored.any() and (~ro.censored).any()
+    assert torch.all(ro.capture_time[ro.censored] == 4) and torch.all(ro.capture_time <= 4)
+    assert torch.equal(torch.bincount(ro.episode, minlength=64), ro.capture_time)
+    with pytest.raises(ValueError, match="auto_reset"):
+        rollout(SearchSim(g, m, s, 2, 8, seed=3), pol, BatchedBelief(g, m, s), False, gen)

@@ -41,7 +41,7 @@ class BatchedBelief:
     def likelihood(self, pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Diagonal of Lambda (Eq. 2) for robots at ``pos`` seeing ``z``: (...,) -> (..., n)."""
         # one row gather from the (2n, n) view: row z n + p (index_select is cheaper than a 2-D index)
-        rows = (z.long() * self.n + pos).reshape(-1)
+        rows = torch.where(z if z.dtype == torch.bool else z != 0, pos + self.n, pos).reshape(-1)
         return self.lik_table.view(2 * self.n, self.n).index_select(0, rows).view(*pos.shape, self.n)
 
     def collective_likelihood(

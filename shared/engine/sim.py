@@ -122,6 +122,11 @@ class SearchSim:
         if len(drop) != n_robots:
             raise ValueError(f"withdraw_at has {len(drop)} entries, expected one per robot ({n_robots})")
         self.withdraw_at = torch.tensor(drop, dtype=torch.long, device=dev)  # (N,)
+        # without withdrawals every robot stays active: the per-step masking by ``active`` is skipped
+        self.withdrawals = any(w != NEVER for w in drop)
+        # a perfect sensor reads z = [e in D(p)]: the comparisons with eta are skipped (the draw is
+        # still made, so the random stream, and every episode, is the same as with them)
+        self.perfect = self.eta_fn == 0.0 and self.eta_fp == 0.0
         # state
         B, N = batch, n_robots
         self.pos = torch.full((B, N), self.start, dtype=torch.long, device=dev)
@@ -143,10 +148,14 @@ class SearchSim:
         """z (B, N) and in_D (B, N) for the current positions and target (sensor of docs/SPEC.md section 1)."""
         # detect[p, e] for each robot's p and its episode's e, as one gather from the flat table
         flat = (self.pos * self.n + self.target.unsqueeze(1)).reshape(-1)
-        in_d = self.detect.view(-1).index_select(0, flat).view(self.B, self.N) & self.active
+        in_d = self.detect.view(-1).index_select(0, flat).view(self.B, self.N)
+        if self.withdrawals:
+            in_d = in_d & self.active
         u = self._rand(self.B, self.N)
-        z = torch.where(in_d, u >= self.eta_fn, u < self.eta_fp) & self.active
-        return z, in_d
+        if self.perfect:  # u >= 0 always, u < 0 never
+            return in_d, in_d
+        z = torch.where(in_d, u >= self.eta_fn, u < self.eta_fp)
+        return (z & self.active if self.withdrawals else z), in_d
 
     @staticmethod
     def _first(hits: torch.Tensor) -> torch.Tensor:
@@ -186,7 +195,9 @@ class SearchSim:
             raise ValueError(f"expected actions of shape {(self.B, self.N)}, got {tuple(actions.shape)}")
         actions = actions.to(device=self.device, dtype=torch.long)
         moving = self.alive & ~self.pending  # (B,)
-        act = torch.where(self.active & moving.unsqueeze(1), actions, self.pos)
+        act = torch.where(
+            self.active & moving.unsqueeze(1) if self.withdrawals else moving.unsqueeze(1), actions, self.pos
+        )
         if self.check_actions and not bool(self.adj[self.pos, act].all()):
             bad = (~self.adj[self.pos, act]).nonzero()[0]
             b, i = int(bad[0]), int(bad[1])
@@ -201,19 +212,20 @@ class SearchSim:
         nxt = self.t_dst.view(-1).index_select(0, self.target * self.t_dst.shape[1] + k)  # t_dst[e, k]
         self.target = torch.where(moving, nxt, self.target)
         self.t = self.t + moving.long()
-        self.active = self.active & (self.withdraw_at > self.t.unsqueeze(1))
+        if self.withdrawals:
+            self.active = self.active & (self.withdraw_at > self.t.unsqueeze(1))
         # observe z_{t+1}
         z, in_d = self._observe()
         self.z = torch.where(moving.unsqueeze(1), z, self.z)
         if self.details:
             self.false_alarms = self.false_alarms + ((z & ~in_d).sum(1) * moving)
-        hits = z & in_d & moving.unsqueeze(1)
+        hits = (in_d if self.perfect else z & in_d) & moving.unsqueeze(1)
         captured = hits.any(1)
         censored = moving & ~captured & (self.t >= self.t_max)
         done = captured | censored | (self.alive & self.pending)
         result = StepResult(
             done=done,
-            capture_time=self.t.clone(),
+            capture_time=self.t,  # never changed in place: the next step makes a new tensor
             censored=censored,
             false_alarms=self.false_alarms.clone() if self.details else self.false_alarms,
             captured_by=torch.where(self.pending, self.pending_by, self._first(hits))

@@ -73,6 +73,8 @@ def rollout(
     ``collective``: every robot uses the collective belief (C-CE-PG).
     """
     B, N = sim.B, sim.N
+    if sim.auto_reset:
+        raise ValueError("rollout runs its episodes to their end: the simulator must not restart them (auto_reset)")
 
     def lik(pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Lambda's diagonal per robot (B', N, n): own (Eq. 2) or collective (Eq. 7)."""
@@ -83,21 +85,21 @@ def rollout(
     obs = sim.reset()
     b = belief.initial(lik(obs.pos, obs.z))
     logs: dict[str, list[torch.Tensor]] = {k: [] for k in ("pos", "belief", "action", "t", "episode")}
-    capture_time = torch.zeros(B, dtype=torch.long, device=sim.device)
     censored = torch.zeros(B, dtype=torch.bool, device=sim.device)
-    while sim.any_alive:
-        idx = (sim.alive & ~sim.pending).nonzero().squeeze(1)
+    while True:
+        idx = (sim.alive & ~sim.pending).nonzero().squeeze(1)  # the episodes that decide now
+        if idx.numel() == 0:  # every episode has ended (or was caught at t = 0, its capture time 0)
+            break
         pos_a, bel_a = obs.pos[idx], b[idx]
         probs = torch.softmax(policy.logits(pos_a, bel_a), dim=-1)
         act = sample(probs, gen)
-        actions = obs.pos.clone()
-        actions[idx] = act
         for k, v in (("pos", pos_a), ("belief", bel_a), ("action", act), ("t", obs.t[idx]), ("episode", idx)):
             logs[k].append(v)
-        obs, res = sim.step(actions)
-        capture_time = torch.where(res.done, res.capture_time, capture_time)
-        censored = torch.where(res.done, res.censored, censored)
+        obs, res = sim.step(obs.pos.index_put((idx,), act))  # the others stand still (finished, or caught at t = 0)
+        censored = censored | res.censored
         b[idx] = belief.update(bel_a, lik(obs.pos[idx], obs.z[idx]))
+    # a finished episode's clock stops (the simulator does not restart it): t is its capture time
+    capture_time = obs.t
     pos, bel, act, t, ep = (torch.cat(logs[k]) for k in ("pos", "belief", "action", "t", "episode"))
     ret = -(capture_time[ep] - t).to(torch.float32)  # reward -1 per step until capture
     return Rollout(pos, bel, act, t, ep, ret, capture_time, capture_time, censored)

@@ -13,6 +13,7 @@ layer is a row gather).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -25,6 +26,7 @@ class TeamPolicy(nn.Module):
     """N independent MLPs 2n -> 2n -> n with masked softmax, stacked for batched evaluation."""
 
     mask: torch.Tensor  # (n, n) bool buffer: mask[p, a] = a in N[p]
+    blocked: torch.Tensor  # (n, n) bool buffer: ~mask (not saved)
     row0: torch.Tensor  # (N,) long buffer i n: robot i's first row in w_pos viewed (N n, H) (not saved)
 
     def __init__(self, n: int, n_robots: int, nbr_mask: torch.Tensor, hidden: int | None = None) -> None:
@@ -34,6 +36,8 @@ class TeamPolicy(nn.Module):
         if nbr_mask.shape != (n, n):
             raise ValueError(f"expected an (n, n) = ({n}, {n}) neighbourhood mask, got {tuple(nbr_mask.shape)}")
         self.register_buffer("mask", nbr_mask.bool())  # (n, n): mask[p, a] = a in N[p]
+        self.register_buffer("blocked", ~nbr_mask.bool(), persistent=False)  # (n, n): a not in N[p]
+        self.register_load_state_dict_post_hook(lambda m, _keys: m.blocked.copy_(~m.mask))
         self.register_buffer("row0", torch.arange(n_robots) * n, persistent=False)  # (N,): robot i's first row i n
         k1, k2 = 1 / math.sqrt(2 * n), 1 / math.sqrt(H)
         # layer 1 split into its one-hot(p) half (a gather) and its belief half (a matmul)
@@ -54,7 +58,7 @@ class TeamPolicy(nn.Module):
         # the one-hot half: row (i n + p_i) of w_pos viewed (N n, H), one index_select
         h = h + self.w_pos.view(self.N * self.n, self.H).index_select(0, (pos + self.row0).reshape(-1)).view_as(h)
         out = torch.baddbmm(self.b2.unsqueeze(1), torch.relu(h).transpose(0, 1), self.w2).transpose(0, 1)
-        return out.masked_fill(~self.mask[pos], NEG_INF)
+        return out.masked_fill(self.blocked[pos], NEG_INF)
 
     def logits_for(self, nets: torch.Tensor, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         """Robot k runs network nets[k] (k robots, any k): pos (B, k), belief (B, k, n) -> (B, k, n)."""
@@ -97,5 +101,11 @@ def sample(probs: torch.Tensor, gen: torch.Generator | None, u: torch.Tensor | N
         u = torch.rand((*probs.shape[:-1], 1), generator=gen, device=probs.device, dtype=probs.dtype)
     cdf = probs.cumsum(-1)
     idx = (cdf <= u * cdf[..., -1:]).sum(-1)
-    last = ((probs > 0) * torch.arange(1, probs.shape[-1] + 1, device=probs.device)).argmax(-1)
+    last = ((probs > 0) * _ranks(probs.shape[-1], probs.device)).argmax(-1)
     return torch.minimum(idx, last)
+
+
+@functools.cache
+def _ranks(n: int, device: torch.device) -> torch.Tensor:
+    """1, 2, ..., n (``sample``'s tie-break toward the last positive entry), made once per size."""
+    return torch.arange(1, n + 1, device=device)

@@ -86,6 +86,7 @@ def train(
     beta = torch.tensor(cfg.per_robot(cfg.beta, "beta"), device=device)
     lrs = torch.tensor(cfg.per_robot(cfg.lr, "lr"), device=device)
     lr_scale = (lrs / lrs.max()).view(N, 1, 1)
+    per_robot_lr = bool((lr_scale != 1).any())  # robots with a smaller rate than the largest
     collective = cfg.variant == "c-cepg"
 
     torch.manual_seed(cfg.seed)  # identical initial weights on every process
@@ -147,12 +148,12 @@ def train(
                 dist.all_reduce(p.grad)
             dist.all_reduce(stats)
             stats[4] /= world
-        before = [p.detach().clone() for p in policy.parameters()]
+        before = [p.detach().clone() for p in policy.parameters()] if per_robot_lr else []
         for group in opt.param_groups:  # linear decay: a steadier final policy
             group["lr"] = lr_max * (1.0 - (1.0 - cfg.lr_final) * min(1.0, episodes / cfg.episodes))
         opt.step()
         with torch.no_grad():  # per-robot learning rates (module docstring)
-            for p, p0 in zip(policy.parameters(), before, strict=True):
+            for p, p0 in zip(policy.parameters() if per_robot_lr else [], before, strict=True):
                 scale = lr_scale.view(N, *([1] * (p.dim() - 1)))
                 p.copy_(p0 + scale * (p - p0))
         updates += 1
