@@ -193,14 +193,12 @@ def test_teams_trained_by_local_processes_and_by_a_dask_cluster_give_the_same_ro
     """fig6 at a tiny budget, its six teams trained and its six cells evaluated three ways: in this
     process, by two local worker processes, and as tasks on a Dask cluster (a scheduler and two
     workers started here on loopback): the same rows; a finished run leaves nothing to do."""
-    import os
-    import subprocess
-    import sys
     from pathlib import Path
 
     from shared.tools import experiments
     from shared.tools.experiments import Budget
-    from shared.tools.fleetsim import free_port, wait_until
+    from shared.tools.fleetsim import free_port
+    from shared.tools.runner import local_dask_cluster
 
     tiny = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,))
     monkeypatch.setattr(experiments, "QUICK", tiny)
@@ -219,42 +217,8 @@ def test_teams_trained_by_local_processes_and_by_a_dask_cluster_give_the_same_ro
     assert _rows(tmp_path / "pool" / "fig6" / "fig6.json") == expected
     monkeypatch.setattr(experiments, "_evaluate_cell", evaluate)
 
-    port = free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    root = str(Path(__file__).resolve().parent.parent)
-    env = {**os.environ, "PYTHONPATH": root, "OMP_NUM_THREADS": "1"}
-    dask = str(Path(sys.executable).parent / "dask")  # the `dask scheduler` / `dask worker` commands
-    procs = [
-        subprocess.Popen(
-            [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
-            env=env,
-            cwd=tmp_path,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-    ]
-    try:
-        for i in range(2):
-            worker = [address, "--nthreads", "1", "--no-dashboard", "--local-directory", str(tmp_path / f"w{i}")]
-            procs.append(
-                subprocess.Popen(
-                    [dask, "worker", *worker],
-                    env=env,
-                    cwd=tmp_path,
-                    stdout=subprocess.DEVNULL,
-                    stderr=subprocess.DEVNULL,
-                )
-            )
-        from distributed import Client
-
-        with Client(address, timeout=60) as client:
-            wait_until(lambda: len(client.scheduler_info()["workers"]) == 2, 120, "two Dask workers")
+    with local_dask_cluster(2, tmp_path, Path(__file__).resolve().parent.parent) as address:
         experiments.run("fig6", tmp_path / "dask", quick=True, scheduler=address)
-    finally:
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            p.wait(30)
     assert _rows(tmp_path / "dask" / "fig6" / "fig6.json") == expected
     assert experiments.plan("fig6", tmp_path / "dask", tiny) == []  # resumes: every team is cached
     with pytest.raises(ValueError, match="cannot reach the Dask scheduler at tcp://"):

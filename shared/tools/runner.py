@@ -13,7 +13,11 @@ cache holds, so a killed run resumes from them.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import multiprocessing
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -120,3 +124,38 @@ def run_jobs(
 def directory_files(path: Path, rel_to: Path) -> dict[str, bytes]:
     """Every file under ``path`` as {path relative to ``rel_to``: bytes}."""
     return {str(p.relative_to(rel_to)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+@contextlib.contextmanager
+def local_dask_cluster(workers: int, workdir: Path, project: Path) -> Iterator[str]:
+    """A Dask scheduler and ``workers`` one-thread workers on loopback, started with the
+    `dask scheduler` / `dask worker` commands as on a real cluster (``project``: the checkout the
+    workers import from); yields the scheduler's address and stops them all on exit."""
+    from distributed import Client
+
+    from shared.tools.fleetsim import free_port, wait_until
+
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONPATH": str(project), "OMP_NUM_THREADS": "1"}
+    dask = str(Path(sys.executable).parent / "dask")
+    quiet: dict[str, Any] = {"env": env, "cwd": workdir, "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    procs = [
+        subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], **quiet)
+    ]
+    try:
+        for i in range(workers):
+            local = str(workdir / f"worker-{i}")
+            procs.append(
+                subprocess.Popen(
+                    [dask, "worker", address, "--nthreads", "1", "--no-dashboard", "--local-directory", local], **quiet
+                )
+            )
+        with Client(address, timeout=60) as client:
+            wait_until(lambda: len(client.scheduler_info()["workers"]) == workers, 120, f"{workers} Dask workers")
+        yield address
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(30)
