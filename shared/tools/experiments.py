@@ -132,11 +132,12 @@ class Budget:
     quick: bool
     episodes: int  # evaluation episodes per cell (the paper: 1500)
     train: int  # training episodes per learned team (the paper: 4 x 10^5)
-    planner: int  # episodes for fhpe, milp and d-milp (one MILP solve per robot step); fhpe-sa runs 4x
+    planner: int  # episodes for fhpe and milp (one MILP solve per team step); fhpe-sa runs 4x
     milp_limit: float  # HiGHS time limit per solve, seconds
     teams: tuple[int, ...]  # team sizes N of the sweeps (fig6, fig9, fig10)
     marl_train: int | None = None  # training episodes per MARL baseline; None: each method's default budget
     seeds: tuple[int, ...] = (0,)  # training seeds of fig5's teams (the other figures: seed 0)
+    d_milp: int | None = None  # episodes for d-milp (N solves per team step); None: ``planner``
     maps: tuple[str, ...] = PAPER_MAPS  # the maps every figure runs on (`--maps`)
     robots: tuple[int, ...] | None = None  # team sizes of fig6, fig7, fig9, fig10 (`--robots`); None: theirs
 
@@ -148,7 +149,7 @@ class Budget:
         return tuple(default) if self.robots is None else self.robots
 
 
-FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5), marl_train=100_000, seeds=(0, 1, 2))
+FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5), marl_train=100_000, seeds=(0, 1, 2), d_milp=30)
 QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4), marl_train=1_000)
 MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.MARL_ALGORITHMS
 SEED = 1  # evaluation seed of every cell (training seeds: 0)
@@ -623,7 +624,7 @@ def _all_methods(root: Path, env: str, N: int, b: Budget, eta_fn: float = 0.0) -
         if m == "fhpe" and N > 3:
             continue  # 36^4 joint paths and more per decision: see the report
         kw = {"time_limit": b.milp_limit} if "milp" in m else {}
-        eps = b.planner * (4 if m == "fhpe-sa" else 1)
+        eps = {"fhpe-sa": 4 * b.planner, "d-milp": b.d_milp or b.planner}.get(m, b.planner)
         rows.append(_cell(env, N, m, _reference(env, N, m, sensor, **kw), eps, sensor=sensor, latency=True))
     if N <= 2:
         rows.append(
@@ -663,6 +664,7 @@ def fig7(root: Path, b: Budget) -> Path:
         team_sizes=list(b.sizes(range(1, 6))),
         planner_episodes=b.planner,
         fhpe_sa_episodes=b.planner * 4,
+        d_milp_episodes=b.d_milp or b.planner,
         horizons={"fhpe": 2, "fhpe-sa": 5, "milp": 5, "d-milp": 5},
         discount=0.97,
         milp_time_limit_s=b.milp_limit,
@@ -893,6 +895,7 @@ def fig11(root: Path, b: Budget) -> Path:
             robots=4,
             planner_episodes=b.planner,
             fhpe_sa_episodes=b.planner * 4,
+            d_milp_episodes=b.d_milp or b.planner,
             milp_time_limit_s=b.milp_limit,
             wall_seconds=round(time.perf_counter() - t_start, 1),
         ),
@@ -1222,7 +1225,8 @@ def report(root: Path, out: Path) -> Path:
             f"## Fig. 7: capture time of all methods, N = {', '.join(map(str, sorted({r['robots'] for r in rows})))}",
             "",
             f"Setup: {d['episodes']} episodes per cell for random, greedy, the learned teams and oracle; "
-            f"{d['planner_episodes']} for fhpe, milp and d-milp, {d['fhpe_sa_episodes']} for fhpe-sa "
+            f"{d['planner_episodes']} for fhpe and milp, {d.get('d_milp_episodes', d['planner_episodes'])} for "
+            f"d-milp, {d['fhpe_sa_episodes']} for fhpe-sa "
             f"(planners are slow; see Fig. 8); seed {d['seed']}; learned teams trained for "
             f"{d['training_episodes']:,} episodes with EM-estimated beliefs (Gamma_hat_0 = I); horizons "
             f"{d['horizons']}, discount {d['discount']}, MILP time limit {d['milp_time_limit_s']} s per solve "
@@ -1359,7 +1363,8 @@ def report(root: Path, out: Path) -> Path:
             f"trained for {d['training_episodes']:,} episodes (MARL baselines: {_marl_budget(d)}); "
             f"quick={d['quick']}; {d['machine']['date']}. "
             + (
-                f"Planners: {d['planner_episodes']} episodes (fhpe-sa {d['fhpe_sa_episodes']}), MILP time limit "
+                f"Planners: {d['planner_episodes']} episodes (fhpe-sa {d['fhpe_sa_episodes']}, d-milp "
+                f"{d.get('d_milp_episodes', d['planner_episodes'])}), MILP time limit "
                 f"{d['milp_time_limit_s']} s per solve. "
                 if "planner_episodes" in d
                 else ""
