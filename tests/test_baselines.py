@@ -50,18 +50,37 @@ def test_milp_finds_the_best_single_robot_path(office):
     assert _team_value(pl, b, [got]) == pytest.approx(best, rel=1e-6)
 
 
-def test_milp_without_an_incumbent_falls_back_to_the_best_uncovered_move(office):
+def test_milp_stopped_at_once_keeps_its_first_incumbent_the_best_uncovered_move(office):
     g, model, _, _ = office
-    pl = Milp(g, model, Sensor(), time_limit=1e-9)  # HiGHS stops before any incumbent
+    pl = Milp(g, model, Sensor(), time_limit=1e-9)  # HiGHS stops before improving on what it was given
     start = next(v for v in range(g.n) if len(g.closed(v)) >= 3)
     a, c = [int(v) for v in g.closed(start) if v != start][:2]
     b = np.zeros(g.n)
     b[a], b[c] = 0.7, 0.3  # a static-ish target: most of the predicted mass stays on a, then c
     pl.gamma_dense = np.eye(g.n)
     paths = pl._solve(b, [start, start], {})
-    assert pl.fallbacks == 1
+    assert pl.timeouts == 1
     assert [p[0] for p in paths] == [a, c]  # robot 1 takes a, robot 2 the best node a does not cover
     assert all(p == [p[0]] * pl.h for p in paths)
+
+
+def test_milp_continues_its_plan_and_a_d_milp_robot_respects_the_plans_before_it(office):
+    """The next decision starts from the last plan shifted by the step taken (a feasible point the
+    solver then improves, so the value never drops below it); in d-milp each robot's plan holds
+    the earlier robots' plans fixed."""
+    g, model, b, rng = office
+    pl = Milp(g, model, Sensor(eta_fn=0.1), time_limit=30)
+    start = int(rng.integers(g.n))
+    first = pl._solve(b, [start], {})[0]
+    b2 = b @ pl.gamma_dense
+    shifted = first[1:] + first[-1:]
+    second = pl._solve(b2, [first[0]], {})[0]
+    assert _team_value(pl, b2, [second]) >= _team_value(pl, b2, [shifted]) - 1e-9
+    d = Milp(g, model, Sensor(eta_fn=0.1), time_limit=30, distributed=True)
+    s0, s1 = int(rng.integers(g.n)), int(rng.integers(g.n))
+    fixed = d._solve(b, [s0], {})
+    both = d._solve(b, [s0, s1], {0: fixed[0]})
+    assert both[0] == fixed[0] and both[1][0] in g.closed(s1)
 
 
 def test_fhpe_maximises_over_joint_two_step_paths(office):

@@ -16,9 +16,10 @@ episode (a Python loop over the batch); decision times are reported by the exper
 - ``milp``: the MESPP mixed-integer model of Asfora et al. (robots' paths as flows on the
   time-expanded graph, belief mass propagated through Gamma, capture linearised: captured mass
   c_t(v) <= (1 - eta_fn) m_t(v) and c_t(v) <= y_t(v), where y_t(v) = 1 iff some robot detects v),
-  objective the discounted captured mass, horizon h = 5, solved by HiGHS (scipy.optimize.milp)
-  with a per-solve time limit; the incumbent is used when the limit is hit, and a one-step
-  sequential greedy move when there is none yet (counted in ``fallbacks``).
+  objective the discounted captured mass, horizon h = 5, solved by HiGHS (highspy) with a
+  per-solve time limit. The model is built once per episode and team size and only re-bounded
+  per decision; each solve starts from a feasible incumbent (the last plan shifted by the step
+  taken, or a one-step sequential greedy move), which is what remains if the limit is hit first.
 - ``d-milp``: the distributed variant: robots solve one after another, each with the plans of
   the robots before it fixed.
 - ``oracle``: robots that always know where the target is, acting on the dynamic-programming
