@@ -107,7 +107,7 @@ class Milp(Planner):
 
     def _solve(self, b: np.ndarray, starts: list[int], fixed: dict[int, list[int]]) -> list[list[int]]:
         """Team paths (h nodes each) maximising sum_t gamma^t sum_v c_t(v), warm-started from each
-        robot's previous plan shifted by the step it took (or from standing still)."""
+        robot's previous plan shifted by the step it took (or from the greedy uncovered move)."""
         m = self._model(len(starts))
         g1 = b @ self.gamma_dense
         greedy = self._one_step_paths(b, starts, fixed)
