@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from shared.tools.cli import main
@@ -67,6 +68,27 @@ def test_report_reading_follows_the_numbers(tmp_path):
     line = next(x for x in text.splitlines() if x.startswith("- OFFICE N=4"))
     assert "sooner than random 26.0" in line and "later than milp 8.0" in line
     assert "not separated from greedy 10.4" in line and "oracle bound 5.0" in line
+    # flown on CE-PG's episodes, greedy is compared by its paired difference: here separated
+    rows[3].update(diff_to_cepg=0.4, diff_to_cepg_ci95=0.3)
+    (tmp_path / "fig7" / "fig7.json").write_text(json.dumps({**setup, "rows": rows}))
+    line = next(x for x in report(tmp_path, tmp_path / "r.md").read_text().splitlines() if x.startswith("- OFFICE"))
+    assert "sooner than random 26.0, greedy 10.4 (paired +0.40 ± 0.30)" in line
+
+
+def test_paired_differences_to_cepg_are_over_the_same_episodes():
+    from shared.tools.experiments import _paired_to_cepg
+
+    base = {"map": "office", "robots": 4, "seed": 1, "mean_capture_time": 0.0, "ci95_halfwidth": 0.0}
+    rows = [
+        {**base, "method": "cepg", "episodes": 4, "capture_times": np.array([3.0, 5.0, 7.0, 9.0])},
+        {**base, "method": "pg", "episodes": 4, "capture_times": np.array([4.0, 6.0, 8.0, 10.0])},
+        {**base, "method": "milp", "episodes": 2, "capture_times": np.array([1.0, 2.0])},
+        {**base, "method": "fhpe-sa", "episodes": 8},
+    ]
+    out = _paired_to_cepg(rows)
+    assert all("capture_times" not in r for r in out)
+    assert out[1]["diff_to_cepg"] == 1.0 and out[1]["diff_to_cepg_ci95"] == 0.0  # one step later in every episode
+    assert "diff_to_cepg" not in out[0] and "diff_to_cepg" not in out[2] and "diff_to_cepg" not in out[3]
 
 
 def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
