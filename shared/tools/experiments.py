@@ -651,10 +651,12 @@ def _paired_to_cepg(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for r in rows:
         times = r.get("capture_times")
         r = {k: v for k, v in r.items() if k != "capture_times"}
-        same = ref is not None and times is not None and (r["episodes"], r["seed"]) == (ref["episodes"], ref["seed"])
-        if same and r["method"] != "cepg" and len(times) == len(ref["capture_times"]) > 1:
-            dm, dh = mean_ci95(np.asarray(times) - ref["capture_times"])
-            r.update(diff_to_cepg=round(dm, 3), diff_to_cepg_ci95=round(dh, 3))
+        if ref is not None and times is not None and r["method"] != "cepg":
+            base = ref["capture_times"]
+            same = (r["episodes"], r["seed"]) == (ref["episodes"], ref["seed"]) and len(times) == len(base) > 1
+            if same:
+                dm, dh = mean_ci95(np.asarray(times) - base)
+                r.update(diff_to_cepg=round(dm, 3), diff_to_cepg_ci95=round(dh, 3))
         out.append(r)
     return out
 
