@@ -1257,8 +1257,12 @@ def report(root: Path, out: Path) -> Path:
             f"(planners are slow; see Fig. 8); seed {d['seed']}; learned teams trained for "
             f"{d['training_episodes']:,} episodes with EM-estimated beliefs (Gamma_hat_0 = I); horizons "
             f"{d['horizons']}, discount {d['discount']}, MILP time limit {d['milp_time_limit_s']} s per solve "
-            f"(HiGHS); quick={d['quick']}; {d['machine']['cpus']} CPUs, {d['machine']['date']}; the whole "
-            f"grid took {d['wall_seconds']:.0f} s. MARL baselines (maddpg, masac, facmac, mambpo, mappo) trained "
+            f"(HiGHS); quick={d['quick']}; {d['machine']['cpus']} CPUs, {d['machine']['date']}; maps "
+            f"{', '.join(m.upper() for m in d.get('maps', PAPER_MAPS))}, N = "
+            f"{', '.join(str(n) for n in d.get('team_sizes', range(1, 6)))}; evaluating the cells took "
+            f"{sum(r.get('wall_seconds', 0.0) for r in rows):.0f} s (training the teams not included; the "
+            f"last run, its cells cached or not, {d['wall_seconds']:.0f} s). "
+            "MARL baselines (maddpg, masac, facmac, mambpo, mappo) trained "
             f"for {_marl_budget(d)} with EM-estimated beliefs, executed decentralised as CE-PG.",
             "",
             "The planners (fhpe, fhpe-sa, milp, d-milp) and the oracle get the true target model and see all "
