@@ -480,7 +480,15 @@ def _cell(
 
     sensor = sensor or Sensor()
     nan = float("nan")
-    placeholder = {"map": env, "robots": robots, "method": method, "mean_capture_time": nan, "ci95_halfwidth": nan}
+    placeholder = {
+        "map": env,
+        "robots": robots,
+        "method": method,
+        "mean_capture_time": nan,
+        "ci95_halfwidth": nan,
+        "false_alarms_per_episode": nan,
+        "false_alarms_ci95_halfwidth": nan,
+    }
     if not make.ready():  # planning: its team is not trained yet
         return placeholder
     args = {
