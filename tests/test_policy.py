@@ -86,3 +86,13 @@ def test_rollout_reads_capture_and_censoring_from_the_simulator():
     assert torch.equal(torch.bincount(ro.episode, minlength=64), ro.capture_time)
     with pytest.raises(ValueError, match="auto_reset"):
         rollout(SearchSim(g, m, s, 2, 8, seed=3), pol, BatchedBelief(g, m, s), False, gen)
+
+
+def test_a_loaded_state_dict_brings_its_mask_and_the_blocked_moves_follow():
+    g = builtin_graph("office")
+    adj = torch.as_tensor(g.adjacency())
+    src, dst = TeamPolicy(g.n, 2, adj), TeamPolicy(g.n, 2, torch.ones_like(adj))
+    dst.load_state_dict(src.state_dict())  # a warm start: weights and the mask of src
+    assert torch.equal(dst.blocked, ~adj.bool())
+    pos, bel = torch.zeros(3, 2, dtype=torch.long), torch.full((3, 2, g.n), 1.0 / g.n)
+    assert torch.equal(dst.logits(pos, bel), src.logits(pos, bel))

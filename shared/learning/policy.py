@@ -22,6 +22,11 @@ from torch import nn
 NEG_INF = -1e9
 
 
+def _refresh_blocked(module: TeamPolicy, _incompatible_keys: object) -> None:
+    """After load_state_dict: ``blocked`` follows the loaded ``mask`` (a hook must return None)."""
+    module.blocked.copy_(~module.mask)
+
+
 class TeamPolicy(nn.Module):
     """N independent MLPs 2n -> 2n -> n with masked softmax, stacked for batched evaluation."""
 
@@ -37,7 +42,7 @@ class TeamPolicy(nn.Module):
             raise ValueError(f"expected an (n, n) = ({n}, {n}) neighbourhood mask, got {tuple(nbr_mask.shape)}")
         self.register_buffer("mask", nbr_mask.bool())  # (n, n): mask[p, a] = a in N[p]
         self.register_buffer("blocked", ~nbr_mask.bool(), persistent=False)  # (n, n): a not in N[p]
-        self.register_load_state_dict_post_hook(lambda m, _keys: m.blocked.copy_(~m.mask))
+        self.register_load_state_dict_post_hook(_refresh_blocked)
         self.register_buffer("row0", torch.arange(n_robots) * n, persistent=False)  # (N,): robot i's first row i n
         k1, k2 = 1 / math.sqrt(2 * n), 1 / math.sqrt(H)
         # layer 1 split into its one-hot(p) half (a gather) and its belief half (a matmul)
