@@ -148,14 +148,16 @@ def train(
                 dist.all_reduce(p.grad)
             dist.all_reduce(stats)
             stats[4] /= world
-        before = [p.detach().clone() for p in policy.parameters()] if per_robot_lr else []
+        if per_robot_lr:
+            before = [p.detach().clone() for p in policy.parameters()]
         for group in opt.param_groups:  # linear decay: a steadier final policy
             group["lr"] = lr_max * (1.0 - (1.0 - cfg.lr_final) * min(1.0, episodes / cfg.episodes))
         opt.step()
-        with torch.no_grad():  # per-robot learning rates (module docstring)
-            for p, p0 in zip(policy.parameters() if per_robot_lr else [], before, strict=True):
-                scale = lr_scale.view(N, *([1] * (p.dim() - 1)))
-                p.copy_(p0 + scale * (p - p0))
+        if per_robot_lr:  # per-robot learning rates (module docstring)
+            with torch.no_grad():
+                for p, p0 in zip(policy.parameters(), before, strict=True):
+                    scale = lr_scale.view(N, *([1] * (p.dim() - 1)))
+                    p.copy_(p0 + scale * (p - p0))
         updates += 1
         n_eps, ct_sum, cens_sum, steps, ce = (float(x) for x in stats)
         episodes += int(n_eps)

@@ -144,6 +144,10 @@ class Budget:
     def with_train(self, episodes: int | None) -> Budget:
         return self if episodes is None else replace(self, train=episodes, marl_train=episodes)
 
+    def planner_episodes(self, method: str) -> int:
+        """Episodes a planner's cell flies: ``planner``, 4x for fhpe-sa, ``d_milp`` for d-milp."""
+        return {"fhpe-sa": 4 * self.planner, "d-milp": self.d_milp or self.planner}.get(method, self.planner)
+
     def sizes(self, default: Iterable[int]) -> tuple[int, ...]:
         """The team sizes of a sweep whose own are ``default``, as ``--robots`` narrows them."""
         return tuple(default) if self.robots is None else self.robots
@@ -638,8 +642,9 @@ def _all_methods(root: Path, env: str, N: int, b: Budget, eta_fn: float = 0.0) -
         if m == "fhpe" and N > 3:
             continue  # 36^4 joint paths and more per decision: see the report
         kw = {"time_limit": b.milp_limit} if "milp" in m else {}
-        eps = {"fhpe-sa": 4 * b.planner, "d-milp": b.d_milp or b.planner}.get(m, b.planner)
-        rows.append(_cell(env, N, m, _reference(env, N, m, sensor, **kw), eps, sensor=sensor, latency=True))
+        rows.append(
+            _cell(env, N, m, _reference(env, N, m, sensor, **kw), b.planner_episodes(m), sensor=sensor, latency=True)
+        )
     if N <= 2:
         rows.append(
             _cell(env, N, "oracle", _reference(env, N, "oracle", sensor), b.episodes, sensor=sensor, latency=True)
@@ -667,6 +672,16 @@ def _paired_to_cepg(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 r.update(diff_to_cepg=round(dm, 3), diff_to_cepg_ci95=round(dh, 3))
         out.append(r)
     return out
+
+
+def _planner_setup(b: Budget) -> dict[str, Any]:
+    """The planners' budget as the setup of a figure that flies them (fig7, fig11) records it."""
+    return {
+        "planner_episodes": b.planner,
+        "fhpe_sa_episodes": b.planner_episodes("fhpe-sa"),
+        "d_milp_episodes": b.planner_episodes("d-milp"),
+        "milp_time_limit_s": b.milp_limit,
+    }
 
 
 def _setup(name: str, b: Budget, **extra: Any) -> dict[str, Any]:
@@ -697,12 +712,9 @@ def fig7(root: Path, b: Budget) -> Path:
         "fig7",
         b,
         team_sizes=list(b.sizes(range(1, 6))),
-        planner_episodes=b.planner,
-        fhpe_sa_episodes=b.planner * 4,
-        d_milp_episodes=b.d_milp or b.planner,
+        **_planner_setup(b),
         horizons={"fhpe": 2, "fhpe-sa": 5, "milp": 5, "d-milp": 5},
         discount=0.97,
-        milp_time_limit_s=b.milp_limit,
         wall_seconds=round(time.perf_counter() - t_start, 1),
     )
     _write(out, "fig7", setup, rows)
@@ -928,10 +940,7 @@ def fig11(root: Path, b: Budget) -> Path:
             "fig11",
             b,
             robots=4,
-            planner_episodes=b.planner,
-            fhpe_sa_episodes=b.planner * 4,
-            d_milp_episodes=b.d_milp or b.planner,
-            milp_time_limit_s=b.milp_limit,
+            **_planner_setup(b),
             wall_seconds=round(time.perf_counter() - t_start, 1),
         ),
         rows,
