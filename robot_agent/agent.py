@@ -195,6 +195,10 @@ class Agent:
         self.state.mkdir(parents=True, exist_ok=True)
         self.stop = threading.Event()
         self.control: queue.Queue[dict[str, Any]] = queue.Queue()
+        # a start for this robot that came during a mission: flown when that mission ends (the
+        # server frees a robot when its mission is captured or stopped, before this agent has
+        # finished and sent the record, so an operator's next start can come that early)
+        self.next_start: dict[str, Any] | None = None
         self.flush_now = threading.Event()
         self.outbox = Outbox(self.state / "outbox")
         self.journal = Journal(self.state / "journal.jsonl")
@@ -490,7 +494,9 @@ class Agent:
         )
 
     def _control_for(self, mid: str, wait: float = 0.0) -> dict[str, Any] | None:
-        """The end message (captured/stop) of mission ``mid`` if one has arrived; others are dropped."""
+        """The end message (captured/stop) of mission ``mid`` if one has arrived. A start for this
+        robot is kept in ``next_start`` (the latest wins; its own end message cancels it); other
+        messages are dropped."""
         deadline = time.monotonic() + wait
         while True:
             try:
@@ -503,8 +509,35 @@ class Agent:
                 return None
             if msg["mission_id"] == mid and msg["type"] in ("captured", "stop"):
                 return msg
-            if msg["type"] == "start" and msg["mission_id"] != mid:
-                log.warning("mission %s started while %s is running; ignored", msg["mission_id"], mid)
+            if msg["type"] == "start" and msg["mission_id"] != mid and self._for_me(msg):
+                if self.next_start is not None:
+                    log.warning(
+                        "mission %s replaced by mission %s before it began",
+                        self.next_start["mission_id"],
+                        msg["mission_id"],
+                    )
+                log.info("mission %s started while %s is running; it begins when %s ends", msg["mission_id"], mid, mid)
+                self.next_start = msg
+            elif (
+                msg["type"] in ("captured", "stop")
+                and self.next_start is not None
+                and msg["mission_id"] == self.next_start["mission_id"]
+            ):
+                log.info("mission %s ended before it began here", msg["mission_id"])
+                self.next_start = None
+
+    def _for_me(self, msg: dict[str, Any]) -> bool:
+        return self.robot_id in (msg.get("robots") or [self.robot_id])
+
+    def next_control(self, timeout: float) -> dict[str, Any] | None:
+        """Between missions: the start deferred during the last mission, else the next message."""
+        if self.next_start is not None:
+            msg, self.next_start = self.next_start, None
+            return msg
+        try:
+            return self.control.get(timeout=timeout)
+        except queue.Empty:
+            return None
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> int:
@@ -534,11 +567,8 @@ class Agent:
                 if time.monotonic() - idle_beat >= IDLE_BEAT_S:  # between missions: alive, idle, where
                     idle_beat = time.monotonic()
                     self.telemetry({"state": "idle", "node": self.last_node}, force=True)
-                try:
-                    msg = self.control.get(timeout=0.5)
-                except queue.Empty:
-                    continue
-                if msg["type"] != "start" or self.robot_id not in (msg.get("robots") or [self.robot_id]):
+                msg = self.next_control(timeout=0.5)
+                if msg is None or msg["type"] != "start" or not self._for_me(msg):
                     continue
                 self.run_mission(msg, backend)
                 if not self.stop.is_set():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import io
 import json
@@ -165,3 +166,27 @@ def test_snapshot_convert_command(tmp_path):
     assert cli_main(["snapshot", "convert", str(d)]) == 0 and (d / "weights.safetensors").exists()
     assert cli_main(["snapshot", "convert", str(d)]) == 0  # nothing to do, says so
     assert cli_main(["snapshot", "convert", str(tmp_path / "missing")]) == 2
+
+
+def test_a_start_that_comes_during_a_mission_is_flown_after_it(tmp_path):
+    """The server frees a robot once its mission is captured or stopped, before the agent has
+    sent the record; an operator's next start can come in that gap and must not be lost."""
+    from robot_agent.agent import Agent
+
+    args = argparse.Namespace(
+        robot_id="r1", fleet="f", token_file=None, server="http://127.0.0.1:9", ca_file=None, state_dir=str(tmp_path)
+    )
+    agent = Agent(args)
+    for msg in (
+        {"type": "start", "mission_id": "m2", "robots": ["r1", "r2"]},
+        {"type": "start", "mission_id": "m3", "robots": ["r2"]},  # not this robot's
+        {"type": "stop", "mission_id": "m1"},
+    ):
+        agent.control.put(msg)
+    assert agent._control_for("m1") == {"type": "stop", "mission_id": "m1"}
+    assert agent.next_control(timeout=0)["mission_id"] == "m2"
+    assert agent.next_control(timeout=0) is None
+    # a deferred start whose own stop arrives before the running mission ends is dropped
+    agent.control.put({"type": "start", "mission_id": "m4", "robots": ["r1"]})
+    agent.control.put({"type": "stop", "mission_id": "m4"})
+    assert agent._control_for("m1") is None and agent.next_start is None
