@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -214,6 +217,36 @@ def test_marl_experiment_and_its_report(tmp_path, monkeypatch):
     assert meta["algorithm"] == "maddpg"
     text = report(tmp_path, tmp_path / "results.md").read_text()
     assert "## The MARL baselines" in text and "| WARD | maddpg |" in text and "| mappo | clip=0.1 | 300 |" in text
+    assert "### Past the budget" not in text  # until benchmarks/marl_plateau.py has written its table
+
+    # the plateau check: the same episodes for every team, paired with the reference
+    snaps = tmp_path / "snapshots"
+    ref, team = next(snaps.glob("office-N4-beta0.5-256-s0")), next(snaps.glob("office-N4-maddpg-300-s0"))
+    out = tmp_path / "marl" / "plateau.json"
+    script = Path(__file__).parents[1] / "benchmarks" / "marl_plateau.py"
+    argv = [
+        sys.executable,
+        str(script),
+        "--reference",
+        str(ref),
+        str(ref),
+        str(team),
+        "--episodes",
+        "30",
+        "--out",
+        str(out),
+    ]
+    subprocess.run(argv, check=True, capture_output=True, text=True)
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["algorithm"], r.get("reference", False)) for r in rows] == [
+        ("cepg", True),
+        ("cepg", False),
+        ("maddpg", False),
+    ]
+    assert rows[1]["diff_to_reference"] == 0 and rows[1]["mean_capture_time"] == rows[0]["mean_capture_time"]
+    text = report(tmp_path, tmp_path / "results.md").read_text()
+    row = f"| maddpg | {rows[2]['train_episodes']:,} | {rows[2]['train_wall_seconds']:.0f} | "
+    assert "### Past the budget: OFFICE, N = 4" in text and row in text
 
 
 def _rows(path):

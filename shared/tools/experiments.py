@@ -1587,6 +1587,37 @@ def _marl_report(root: Path, rel: str) -> list[str]:
             f"| {r['method']} | {', '.join(r['overrides'])} | {r['train_episodes']:,} "
             f"| {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], r['episodes'])} |"
         )
+    return [*lines, "", *_plateau_report(root)]
+
+
+def _plateau_report(root: Path) -> list[str]:
+    """Teams trained past their budget (benchmarks/marl_plateau.py -> marl/plateau.json), paired
+    with the reference team on the same episodes."""
+    f = root / "marl" / "plateau.json"
+    if not f.exists():
+        return []
+    d = json.loads(f.read_text())
+    ref = next(r for r in d["rows"] if r.get("reference"))
+    lines = [
+        f"### Past the budget: {d['map'].upper()}, N = {d['robots']}",
+        "",
+        f"Teams of one method trained for growing budgets (seed {ref['training_seed']}), each flown on the same "
+        f"{d['episodes']} episodes (seed {d['seed']}) as the reference, {ref['algorithm']} trained for "
+        f"{ref['train_episodes']:,} episodes ({_fmt(ref['mean_capture_time'], ref['ci95_halfwidth'], d['episodes'])}); "
+        "paired: team - reference over those episodes, 95% CI (negative: the team captures sooner). "
+        "`python benchmarks/marl_plateau.py` made this table; its docstring has the training commands.",
+        "",
+        "| method | training episodes | training wall s | capture time | paired vs reference |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for r in d["rows"]:
+        if r.get("reference"):
+            continue
+        lines.append(
+            f"| {r['algorithm']} | {r['train_episodes']:,} | {r['train_wall_seconds']:.0f} "
+            f"| {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], d['episodes'])} "
+            f"| {r['diff_to_reference']:+.2f} ± {r['diff_to_reference_ci95']:.2f} |"
+        )
     return [*lines, ""]
 
 

@@ -1,0 +1,98 @@
+"""Has a team reached its plateau? Teams of one method trained for growing budgets, flown on the
+same episodes as a reference team (CE-PG), with the paired difference to it.
+
+Train the teams first with the CLI, e.g. (OFFICE, N = 4, the protocol's seed 0):
+
+    mures train --env office --robots 4 --algorithm mappo --episodes 100000 --seed 0 --threads 1 --out T/mappo-1e5
+    mures train --env office --robots 4 --algorithm mappo --episodes 400000 --seed 0 --threads 1 --out T/mappo-4e5
+    mures train --env office --robots 4 --episodes 400000 --seed 0 --out T/cepg-4e5
+
+then
+
+    python benchmarks/marl_plateau.py --env office --robots 4 --reference T/cepg-4e5 T/mappo-1e5 T/mappo-4e5 [--out results/marl/plateau.json]
+
+Every team flies the same --episodes episodes (seed --seed: the same target paths and draws), on
+the paper's setup (uniform-walk target, perfect node sensor). Prints, per team, the episodes it
+was trained for, its mean capture time (95% CI) and its paired difference to the reference
+(team - reference, 95% CI over the episodes; negative: it captures sooner); with --out, also
+writes them as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.core.snapshot import read_meta
+from shared.engine.evaluate import evaluate, mean_ci95
+from shared.learning.snapshot import PolicySearcher, load_snapshot
+
+
+def fly(path: Path, env: str, robots: int, episodes: int, seed: int) -> tuple[dict, np.ndarray]:
+    """A snapshot's capture times over the seeded episodes, and what it says of its training."""
+    g = builtin_graph(env)
+    snap, sensor = load_snapshot(path, g), Sensor()
+    res = evaluate(
+        g, uniform_walk(g), sensor, robots, lambda s: PolicySearcher(snap, g, sensor, robots, seed=s), episodes, seed
+    )
+    meta = read_meta(path)
+    info = {
+        "team": path.name,
+        "algorithm": meta.get("algorithm", "cepg"),
+        "train_episodes": meta.get("summary", {}).get("episodes"),
+        "training_seed": meta.get("training", {}).get("seed"),
+        "train_wall_seconds": meta.get("summary", {}).get("wall_seconds"),
+    }
+    return info, res.capture_time.astype(np.float64)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("teams", nargs="+", type=Path, help="snapshot directories to compare")
+    ap.add_argument("--reference", type=Path, required=True, help="the snapshot the differences are taken to")
+    ap.add_argument("--env", default="office", choices=["office", "museum", "ward"])
+    ap.add_argument("--robots", type=int, default=4)
+    ap.add_argument("--episodes", type=int, default=1500)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--out", type=Path, help="write the rows as JSON here")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    ref_info, ref = fly(args.reference, args.env, args.robots, args.episodes, args.seed)
+    m, h = mean_ci95(ref)
+    rows = [{**ref_info, "reference": True, "mean_capture_time": round(m, 3), "ci95_halfwidth": round(h, 3)}]
+    print(f"{args.env.upper()} N={args.robots}, {args.episodes} episodes, seed {args.seed}")
+    print(f"  reference {ref_info['algorithm']:<7} {ref_info['train_episodes']:>9,} episodes  {m:6.2f} ± {h:.2f}")
+    for path in args.teams:
+        info, t = fly(path, args.env, args.robots, args.episodes, args.seed)
+        m, h = mean_ci95(t)
+        dm, dh = mean_ci95(t - ref)
+        rows.append(
+            {
+                **info,
+                "mean_capture_time": round(m, 3),
+                "ci95_halfwidth": round(h, 3),
+                "diff_to_reference": round(dm, 3),
+                "diff_to_reference_ci95": round(dh, 3),
+            }
+        )
+        print(
+            f"  {info['algorithm']:<17} {info['train_episodes']:>9,} episodes  {m:6.2f} ± {h:.2f}   "
+            f"paired vs reference {dm:+.2f} ± {dh:.2f}"
+        )
+    if args.out:
+        setup = {"map": args.env, "robots": args.robots, "episodes": args.episodes, "seed": args.seed}
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({**setup, "rows": rows}, indent=1) + "\n")
+        print(f"wrote {args.out} in {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
