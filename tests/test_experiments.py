@@ -94,6 +94,27 @@ def test_paired_differences_to_cepg_are_over_the_same_episodes():
     assert "diff_to_cepg" not in out[0] and "diff_to_cepg" not in out[2] and "diff_to_cepg" not in out[3]
 
 
+def test_fig6_reading_uses_fig7_paired_differences_where_it_has_them(tmp_path):
+    """The variants against CE-PG: fig7's paired difference for the same map and N when recorded,
+    else whether the two CIs are disjoint."""
+    from shared.tools.experiments import _variants_reading
+
+    def row(method, mean, half, N=4):
+        return {"map": "museum", "robots": N, "method": method, "mean_capture_time": mean, "ci95_halfwidth": half}
+
+    rows = [row("cepg", 20.0, 1.0), row("cepg+", 7.0, 0.5), row("c-cepg", 21.0, 1.0)]
+    (line, _blank) = _variants_reading(rows, tmp_path)
+    assert "cepg+ captures sooner than CE-PG (7.00 against 20.00, 95% CIs disjoint)" in line
+    assert "c-cepg is not separated from CE-PG (21.00 against 20.00, 95% CIs overlap)" in line
+    fig7 = tmp_path / "fig7"
+    fig7.mkdir()
+    paired = {**row("c-cepg", 21.0, 1.0), "diff_to_cepg": 1.0, "diff_to_cepg_ci95": 0.4}
+    (fig7 / "fig7.json").write_text(json.dumps({"rows": [paired]}))
+    (line, _blank) = _variants_reading(rows, tmp_path)
+    assert "c-cepg captures later than CE-PG (fig7's paired difference +1.00 ± 0.40)" in line
+    assert _variants_reading([row("cepg+", 7.0, 0.5)], tmp_path) == []  # no CE-PG row to compare with
+
+
 def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
     assert main(["experiment", "fig99", "--results", str(tmp_path)]) == 2
     assert "not implemented" in capsys.readouterr().err

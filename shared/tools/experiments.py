@@ -1446,6 +1446,8 @@ def report(root: Path, out: Path) -> Path:
             lines.append("")
             if fig == "fig5":
                 lines += _beta_reading(sel)
+            if fig == "fig6":
+                lines += _variants_reading(sel, root)
         lines += [f"![{fig}]({rel}/{fig}/{fig}.png)", ""]
     lines += _marl_report(root, rel)
     missing = [e for e in EXPERIMENTS if e != "fig8" and not (root / e).exists()]
@@ -1453,6 +1455,44 @@ def report(root: Path, out: Path) -> Path:
         lines += ["## Not recorded", "", ", ".join(missing) + ": run `mures experiment NAME` to record them.", ""]
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(out, "\n".join(lines))
+    return out
+
+
+def _variants_reading(rows: list[dict[str, Any]], root: Path) -> list[str]:
+    """fig6 on one map against the paper's claim that CE-PG+ and C-CE-PG both capture sooner
+    than CE-PG: from fig7's paired difference (same episodes) where fig7 has that map and team
+    size, else from whether the two 95% CIs are disjoint."""
+    f7 = root / "fig7" / "fig7.json"
+    paired = {
+        (r["map"], r["robots"], r["method"]): r
+        for r in (json.loads(f7.read_text())["rows"] if f7.exists() else [])
+        if "diff_to_cepg" in r
+    }
+    out = []
+    for N in dict.fromkeys(r["robots"] for r in rows):
+        base = next((r for r in rows if r["robots"] == N and r["method"] == "cepg"), None)
+        if base is None:
+            continue
+        said = []
+        for m in ("cepg+", "c-cepg"):
+            r = next((x for x in rows if x["robots"] == N and x["method"] == m), None)
+            if r is None:
+                continue
+            q = paired.get((r["map"], N, m))
+            if q is not None:  # fig7's cells are these teams on these episodes
+                lo, hi = q["diff_to_cepg"] - q["diff_to_cepg_ci95"], q["diff_to_cepg"] + q["diff_to_cepg_ci95"]
+                how = f"fig7's paired difference {q['diff_to_cepg']:+.2f} ± {q['diff_to_cepg_ci95']:.2f}"
+            else:
+                d, h = r["mean_capture_time"] - base["mean_capture_time"], r["ci95_halfwidth"] + base["ci95_halfwidth"]
+                lo, hi = d - h, d + h  # disjoint CIs: the difference exceeds the sum of their half-widths
+                ci = "disjoint" if lo > 0 or hi < 0 else "overlap"
+                how = f"{r['mean_capture_time']:.2f} against {base['mean_capture_time']:.2f}, 95% CIs {ci}"
+            verdict = "captures sooner than" if hi < 0 else "captures later than" if lo > 0 else "is not separated from"
+            said.append(f"{m} {verdict} CE-PG ({how})")
+        if said:
+            out.append(f"at N = {N}, " + "; ".join(said) + ".")
+    if out:
+        out = ["The paper: CE-PG+ and C-CE-PG both capture sooner than CE-PG. Here, " + " ".join(out), ""]
     return out
 
 
