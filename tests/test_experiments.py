@@ -115,6 +115,20 @@ def test_fig6_reading_uses_fig7_paired_differences_where_it_has_them(tmp_path):
     assert _variants_reading([row("cepg+", 7.0, 0.5)], tmp_path) == []  # no CE-PG row to compare with
 
 
+def test_noise_sweep_reading_says_where_the_value_rises():
+    from shared.tools.experiments import _trend_reading
+
+    rows = [
+        {"robots": 4, "eta_fn": x, "mean_capture_time": m, "ci95_halfwidth": 0.5}
+        for x, m in ((0.3, 12.0), (0.0, 8.0), (0.1, 8.5))
+    ]
+    (line, _blank) = _trend_reading(rows, "eta_fn", "mean_capture_time", "ci95_halfwidth")
+    assert line == (
+        "The paper: the mean capture time rises with eta_fn. Here, at N = 4, 0.0 -> 0.1: the 95% CIs overlap "
+        "(8.00 to 8.50); 0.1 -> 0.3: rises (8.50 to 12.00)."
+    )
+
+
 def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
     assert main(["experiment", "fig99", "--results", str(tmp_path)]) == 2
     assert "not implemented" in capsys.readouterr().err

@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -1448,6 +1449,8 @@ def report(root: Path, out: Path) -> Path:
                 lines += _beta_reading(sel)
             if fig == "fig6":
                 lines += _variants_reading(sel, root)
+            if fig in ("fig9", "fig10"):
+                lines += _trend_reading(sel, key, value, half)
         lines += [f"![{fig}]({rel}/{fig}/{fig}.png)", ""]
     lines += _marl_report(root, rel)
     missing = [e for e in EXPERIMENTS if e != "fig8" and not (root / e).exists()]
@@ -1494,6 +1497,26 @@ def _variants_reading(rows: list[dict[str, Any]], root: Path) -> list[str]:
     if out:
         out = ["The paper: CE-PG+ and C-CE-PG both capture sooner than CE-PG. Here, " + " ".join(out), ""]
     return out
+
+
+def _trend_reading(rows: list[dict[str, Any]], key: str, value: str, half: str) -> list[str]:
+    """fig9 / fig10 on one map against the paper's claim that the value (capture time, false
+    alarms) grows with the sensor's error rate ``key``: per team size, each step up in the rate
+    and whether the two cells' 95% CIs are disjoint."""
+    what = value.replace("_", " ")
+    out = []
+    for N in dict.fromkeys(r["robots"] for r in rows):
+        sel = sorted((r for r in rows if r["robots"] == N), key=lambda r: r[key])
+        steps = []
+        for a, b in itertools.pairwise(sel):
+            d, h = b[value] - a[value], b[half] + a[half]
+            word = "rises" if d > h else "falls" if d < -h else "the 95% CIs overlap"
+            steps.append(f"{a[key]} -> {b[key]}: {word} ({a[value]:.2f} to {b[value]:.2f})")
+        if steps:
+            out.append(f"at N = {N}, " + "; ".join(steps))
+    if not out:
+        return []
+    return [f"The paper: the {what} rises with {key}. Here, " + "; ".join(out) + ".", ""]
 
 
 def _beta_reading(rows: list[dict[str, Any]]) -> list[str]:
