@@ -129,6 +129,18 @@ def test_noise_sweep_reading_says_where_the_value_rises():
     )
 
 
+def test_marl_budgets_per_method():
+    """The protocol trains MAPPO for 4x10^5 episodes (its 10^5 was not its plateau), the other
+    baselines for 10^5; --train-episodes sets every learned team's budget alike."""
+    from shared.tools.experiments import FULL, _marl_budget, _setup
+
+    assert FULL.marl_episodes("mappo") == 400_000 and FULL.marl_episodes("maddpg") == 100_000
+    assert _marl_budget(_setup("fig7", FULL)) == "100,000 episodes (MAPPO 400,000)"
+    b = FULL.with_train(5_000)
+    assert b.marl_episodes("mappo") == b.marl_episodes("masac") == 5_000
+    assert _marl_budget(_setup("fig7", b)) == "5,000 episodes"
+
+
 def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
     assert main(["experiment", "fig99", "--results", str(tmp_path)]) == 2
     assert "not implemented" in capsys.readouterr().err
