@@ -141,6 +141,23 @@ def test_marl_budgets_per_method():
     assert _marl_budget(_setup("fig7", b)) == "5,000 episodes"
 
 
+def test_withdrawal_reading_names_the_best_learned_team_and_each_rise():
+    from shared.tools.experiments import _withdrawal_reading
+
+    def row(method, withdrawn, mean, half=0.5):
+        return {"method": method, "withdrawn": withdrawn, "mean_capture_time": mean, "ci95_halfwidth": half}
+
+    rows = [row("greedy", "none", 20.0), row("cepg", "none", 8.0), row("mappo", "none", 7.0)]
+    rows += [row("greedy", "r4@t5", 9.0), row("cepg", "r4@t5", 11.0), row("mappo", "r4@t5", 11.5)]
+    (line, _blank) = _withdrawal_reading(rows)
+    assert (
+        "cepg captures soonest of the learned methods (11.00 ± 0.50), then mappo (11.50 ± 0.50; 95% CIs overlap)"
+        in line
+    )
+    assert line.endswith("Rise over the intact team: cepg +3.00, mappo +4.50.")  # greedy is not a learned method
+    assert _withdrawal_reading(rows[:3]) == []
+
+
 def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
     assert main(["experiment", "fig99", "--results", str(tmp_path)]) == 2
     assert "not implemented" in capsys.readouterr().err

@@ -1472,6 +1472,8 @@ def report(root: Path, out: Path) -> Path:
                 lines += _variants_reading(sel, root)
             if fig in ("fig9", "fig10"):
                 lines += _trend_reading(sel, key, value, half)
+            if fig == "fig12":
+                lines += _withdrawal_reading(sel)
         lines += [f"![{fig}]({rel}/{fig}/{fig}.png)", ""]
     lines += _marl_report(root, rel)
     missing = [e for e in EXPERIMENTS if e != "fig8" and not (root / e).exists()]
@@ -1538,6 +1540,38 @@ def _trend_reading(rows: list[dict[str, Any]], key: str, value: str, half: str) 
     if not out:
         return []
     return [f"The paper: the {what} rises with {key}. Here, " + "; ".join(out) + ".", ""]
+
+
+def _withdrawal_reading(rows: list[dict[str, Any]]) -> list[str]:
+    """fig12 on one map against the paper's claim that CE-PG does best of the learned methods
+    when a robot is withdrawn: the lowest capture time and the runner-up (are their 95% CIs
+    disjoint?), and how much each learned method's capture time rises over its intact team's."""
+    intact = {r["method"]: r for r in rows if r["withdrawn"] == "none"}
+    out = []
+    for label in dict.fromkeys(r["withdrawn"] for r in rows if r["withdrawn"] != "none"):
+        learned = sorted(
+            (r for r in rows if r["withdrawn"] == label and r["method"] not in ("random", "greedy")),
+            key=lambda r: r["mean_capture_time"],
+        )
+        if len(learned) < 2:
+            continue
+        best, second = learned[:2]
+        gap = second["mean_capture_time"] - best["mean_capture_time"]
+        apart = gap > best["ci95_halfwidth"] + second["ci95_halfwidth"]
+        rises = ", ".join(
+            f"{r['method']} {r['mean_capture_time'] - intact[r['method']]['mean_capture_time']:+.2f}"
+            for r in learned
+            if r["method"] in intact
+        )
+        out.append(
+            f"With {label} withdrawn, {best['method']} captures soonest of the learned methods "
+            f"({best['mean_capture_time']:.2f} ± {best['ci95_halfwidth']:.2f}), then {second['method']} "
+            f"({second['mean_capture_time']:.2f} ± {second['ci95_halfwidth']:.2f}; 95% CIs "
+            f"{'disjoint' if apart else 'overlap'}). Rise over the intact team: {rises}."
+        )
+    if not out:
+        return []
+    return ["The paper: CE-PG does best of the learned methods when a robot is withdrawn. " + " ".join(out), ""]
 
 
 def _beta_reading(rows: list[dict[str, Any]]) -> list[str]:
