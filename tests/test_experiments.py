@@ -130,12 +130,13 @@ def test_noise_sweep_reading_says_where_the_value_rises():
 
 
 def test_marl_budgets_per_method():
-    """The protocol trains MAPPO for 4x10^5 episodes (its 10^5 was not its plateau), the other
-    baselines for 10^5; --train-episodes sets every learned team's budget alike."""
+    """The protocol trains MAPPO for 4x10^5 episodes and MADDPG for 3x10^5 (10^5 was not their
+    plateau), the other baselines for 10^5; --train-episodes sets every learned team's budget alike."""
     from shared.tools.experiments import FULL, _marl_budget, _setup
 
-    assert FULL.marl_episodes("mappo") == 400_000 and FULL.marl_episodes("maddpg") == 100_000
-    assert _marl_budget(_setup("fig7", FULL)) == "100,000 episodes (MAPPO 400,000)"
+    assert FULL.marl_episodes("mappo") == 400_000 and FULL.marl_episodes("maddpg") == 300_000
+    assert FULL.marl_episodes("masac") == 100_000
+    assert _marl_budget(_setup("fig7", FULL)) == "100,000 episodes (MAPPO 400,000, MADDPG 300,000)"
     b = FULL.with_train(5_000)
     assert b.marl_episodes("mappo") == b.marl_episodes("masac") == 5_000
     assert _marl_budget(_setup("fig7", b)) == "5,000 episodes"
