@@ -1339,8 +1339,9 @@ def report(root: Path, out: Path) -> Path:
             "",
             "### Reading (computed from the table)",
             "",
-            f"The learned teams here were trained for {d['training_episodes']:,} episodes, "
-            f"{100 * d['training_episodes'] / 400_000:.1f}% of the paper's budget of 400,000"
+            f"CE-PG's teams here were trained for {d['training_episodes']:,} episodes, "
+            f"{100 * d['training_episodes'] / 400_000:.1f}% of the paper's budget of 400,000; the MARL "
+            f"baselines for {_marl_budget(d)}"
             + (
                 ", and the planners ran on one to four episodes: a quick run, not the paper's protocol."
                 if d["quick"]
