@@ -1506,16 +1506,20 @@ def _variants_reading(rows: list[dict[str, Any]], root: Path) -> list[str]:
             r = next((x for x in rows if x["robots"] == N and x["method"] == m), None)
             if r is None:
                 continue
-            q = paired.get((r["map"], N, m))
-            if q is not None:  # fig7's cells are these teams on these episodes
-                lo, hi = q["diff_to_cepg"] - q["diff_to_cepg_ci95"], q["diff_to_cepg"] + q["diff_to_cepg_ci95"]
-                how = f"fig7's paired difference {q['diff_to_cepg']:+.2f} ± {q['diff_to_cepg_ci95']:.2f}"
+            q = paired.get((r["map"], N, m))  # fig7's cell: these teams on these episodes
+            gap, sep = _gap(q or r, base)
+            if q is not None:
+                how = f"fig7's paired difference {gap:+.2f} ± {sep:.2f}"
             else:
-                d, h = r["mean_capture_time"] - base["mean_capture_time"], r["ci95_halfwidth"] + base["ci95_halfwidth"]
-                lo, hi = d - h, d + h  # disjoint CIs: the difference exceeds the sum of their half-widths
-                ci = "disjoint" if lo > 0 or hi < 0 else "overlap"
+                ci = "disjoint" if abs(gap) > sep else "overlap"
                 how = f"{r['mean_capture_time']:.2f} against {base['mean_capture_time']:.2f}, 95% CIs {ci}"
-            verdict = "captures sooner than" if hi < 0 else "captures later than" if lo > 0 else "is not separated from"
+            verdict = (
+                "captures sooner than"
+                if gap < -sep
+                else "captures later than"
+                if gap > sep
+                else "is not separated from"
+            )
             said.append(f"{m} {verdict} CE-PG ({how})")
         if said:
             out.append(f"at N = {N}, " + "; ".join(said) + ".")
@@ -1534,7 +1538,7 @@ def _trend_reading(rows: list[dict[str, Any]], key: str, value: str, half: str) 
         sel = sorted((r for r in rows if r["robots"] == N), key=lambda r: r[key])
         steps = []
         for a, b in itertools.pairwise(sel):
-            d, h = b[value] - a[value], b[half] + a[half]
+            d, h = _gap(b, a, value, half)
             word = "rises" if d > h else "falls" if d < -h else "the 95% CIs overlap"
             steps.append(f"{a[key]} -> {b[key]}: {word} ({a[value]:.2f} to {b[value]:.2f})")
         if steps:
@@ -1558,8 +1562,8 @@ def _withdrawal_reading(rows: list[dict[str, Any]]) -> list[str]:
         if len(learned) < 2:
             continue
         best, second = learned[:2]
-        gap = second["mean_capture_time"] - best["mean_capture_time"]
-        apart = gap > best["ci95_halfwidth"] + second["ci95_halfwidth"]
+        gap, sep = _gap(second, best)  # rows of one withdrawal: none carries a paired difference
+        apart = gap > sep
         rises = ", ".join(
             f"{r['method']} {r['mean_capture_time'] - intact[r['method']]['mean_capture_time']:+.2f}"
             for r in learned
@@ -1750,6 +1754,17 @@ def _fmt(mean: float, half: float, episodes: int) -> str:
     return f"{mean:.2f} ± {half:.2f}"
 
 
+def _gap(
+    r: dict[str, Any], base: dict[str, Any], value: str = "mean_capture_time", half: str = "ci95_halfwidth"
+) -> tuple[float, float]:
+    """(r - base, the margin it must exceed to count): CE-PG's paired difference and its CI
+    half-width when ``r`` carries one (it flew CE-PG's episodes, and ``base`` is CE-PG's row), else
+    the difference of the two values and the sum of their CI half-widths (the CIs must not overlap)."""
+    if "diff_to_cepg" in r and base.get("method") == "cepg" and value == "mean_capture_time":
+        return r["diff_to_cepg"], r["diff_to_cepg_ci95"]
+    return r[value] - base[value], r[half] + base[half]
+
+
 def _reading(rows: list[dict[str, Any]]) -> list[str]:
     out = []
     for env in maps_in(rows):
@@ -1768,13 +1783,10 @@ def _reading(rows: list[dict[str, Any]]) -> list[str]:
                 if r["episodes"] < 2 or not math.isfinite(r["ci95_halfwidth"]):
                     few.append(f"{m} {r['mean_capture_time']:.1f}")
                     continue
-                if "diff_to_cepg" in r:  # the same episodes: the paired difference and its CI
-                    gap, sep = r["diff_to_cepg"], r["diff_to_cepg_ci95"]
-                    text = f"{m} {r['mean_capture_time']:.1f} (paired {gap:+.2f} ± {sep:.2f})"
-                else:  # other episodes (the planners): the two CIs must not overlap
-                    gap = r["mean_capture_time"] - c["mean_capture_time"]
-                    sep = r["ci95_halfwidth"] + c["ci95_halfwidth"]
-                    text = f"{m} {r['mean_capture_time']:.1f}"
+                gap, sep = _gap(r, c)
+                text = f"{m} {r['mean_capture_time']:.1f}" + (
+                    f" (paired {gap:+.2f} ± {sep:.2f})" if "diff_to_cepg" in r else ""
+                )
                 (better if gap > sep else worse if gap < -sep else tied).append(text)
             line = f"- {env.upper()} N={n}: cepg {c['mean_capture_time']:.1f}"
             if better:
