@@ -129,6 +129,22 @@ def test_noise_sweep_reading_says_where_the_value_rises():
     )
 
 
+def test_fp_sweep_reading_says_whether_the_capture_time_moved():
+    from shared.tools.experiments import _unmoved_reading
+
+    def row(n, fp, m):
+        return {"robots": n, "eta_fp": fp, "mean_capture_time": m, "ci95_halfwidth": 0.5, "episodes": 100}
+
+    rows = [row(4, 0.5, 8.8), row(4, 0.0, 8.0), row(4, 0.1, 8.1), row(2, 0.0, 20.0), row(2, 0.5, 22.0)]
+    (line, _blank) = _unmoved_reading(rows, "eta_fp")
+    assert line == (
+        "The paper: eta_fp does not change the capture time. Here, at N = 4, eta_fp 0.0 -> 0.5: "
+        "8.00 ± 0.50 to 8.80 ± 0.50, 95% CIs overlap; at N = 2, eta_fp 0.0 -> 0.5: 20.00 ± 0.50 to "
+        "22.00 ± 0.50, it rises (95% CIs disjoint)."
+    )
+    assert _unmoved_reading([row(4, 0.0, 8.0)], "eta_fp") == []  # one rate: nothing to compare
+
+
 def test_marl_budgets_per_method():
     """The protocol trains MAPPO for 4x10^5 episodes and MADDPG for 3x10^5 (10^5 was not their
     plateau), the other baselines for 10^5; --train-episodes sets every learned team's budget alike."""

@@ -1474,6 +1474,8 @@ def report(root: Path, out: Path) -> Path:
                 lines += _variants_reading(sel, root)
             if fig in ("fig9", "fig10"):
                 lines += _trend_reading(sel, key, value, half)
+            if fig == "fig10":
+                lines += _unmoved_reading(sel, key)
             if fig == "fig12":
                 lines += _withdrawal_reading(sel)
         lines += [f"![{fig}]({rel}/{fig}/{fig}.png)", ""]
@@ -1546,6 +1548,30 @@ def _trend_reading(rows: list[dict[str, Any]], key: str, value: str, half: str) 
     if not out:
         return []
     return [f"The paper: the {what} rises with {key}. Here, " + "; ".join(out) + ".", ""]
+
+
+def _unmoved_reading(rows: list[dict[str, Any]], key: str) -> list[str]:
+    """fig10 on one map against the paper's other claim there: eta_fp (``key``) raises the false
+    alarms but not the capture time. Per team size, the capture time at the lowest and the highest
+    rate and whether their 95% CIs are disjoint."""
+    out = []
+    for N in dict.fromkeys(r["robots"] for r in rows):
+        sel = sorted((r for r in rows if r["robots"] == N), key=lambda r: r[key])
+        if len(sel) < 2:
+            continue
+        lo, hi = sel[0], sel[-1]
+        d, h = _gap(hi, lo)
+        word = (
+            "it rises (95% CIs disjoint)" if d > h else "it falls (95% CIs disjoint)" if d < -h else "95% CIs overlap"
+        )
+        out.append(
+            f"at N = {N}, {key} {lo[key]} -> {hi[key]}: "
+            f"{_fmt(lo['mean_capture_time'], lo['ci95_halfwidth'], lo['episodes'])} to "
+            f"{_fmt(hi['mean_capture_time'], hi['ci95_halfwidth'], hi['episodes'])}, {word}"
+        )
+    if not out:
+        return []
+    return [f"The paper: {key} does not change the capture time. Here, " + "; ".join(out) + ".", ""]
 
 
 def _withdrawal_reading(rows: list[dict[str, Any]]) -> list[str]:
