@@ -29,7 +29,10 @@ def main() -> None:
     res = train(g, uniform_walk(g), Sensor(), cfg)
     torch.save({k: v.detach() for k, v in res.policy.named_parameters()}, out / f"rank{rank}.pt")
     (out / f"rank{rank}.json").write_text(json.dumps({k: res.summary[k] for k in ("processes", "episodes")}))
+    print(f"rank {rank}: wrote its weights", file=sys.stderr, flush=True)
+    dist.barrier()  # as `mures train` leaves the group: no rank tears down while another still writes
     dist.destroy_process_group()
+    print(f"rank {rank}: left the process group", file=sys.stderr, flush=True)
 
 
 if __name__ == "__main__":

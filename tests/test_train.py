@@ -317,7 +317,9 @@ def test_two_process_data_parallel_training_ends_with_identical_weights(tmp_path
         env=env,
         timeout=300,
     )
-    assert r.returncode == 0, r.stderr[-3000:]
+    # on failure: how far each rank got (the worker says when it wrote and when it left) and the end
+    said = [line for line in r.stderr.splitlines() if line.startswith("rank ")]
+    assert r.returncode == 0, (said, sorted(p.name for p in tmp_path.iterdir()), r.stderr[-3000:])
     w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
     w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
     assert set(w0) == set(w1)
@@ -327,3 +329,24 @@ def test_two_process_data_parallel_training_ends_with_identical_weights(tmp_path
     assert info["processes"] == 2 and info["episodes"] >= 2048
     init = torch.load(tmp_path / "init.pt", weights_only=True)
     assert not torch.equal(init["w2"], w0["w2"])  # it trained
+
+
+@pytest.mark.slow
+def test_mures_train_under_torchrun_writes_one_snapshot_from_two_processes(tmp_path):
+    """The README's scale-out command: two gloo processes train one team, rank 0 writes it, and
+    both leave the process group cleanly (exit 0)."""
+    out = tmp_path / "team"
+    launch = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
+    job = ["train", "--env", "office", "--robots", "2", "--episodes", "1024", "--batch", "256", "--seed", "3"]
+    r = subprocess.run(
+        [*launch, "-m", "shared.tools.cli", *job, "--quiet", "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    summary = json.loads((out / "training_summary.json").read_text())
+    assert summary["processes"] == 2 and summary["episodes"] >= 1024 and not summary["interrupted"]
+    assert load_snapshot(out, builtin_graph("office")).policy.N == 2
