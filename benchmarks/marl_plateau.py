@@ -13,8 +13,10 @@ then
 
 Every team flies the same --episodes episodes (seed --seed: the same target paths and draws), on
 the paper's setup (uniform-walk target, perfect node sensor). Prints, per team, the episodes it
-was trained for, its mean capture time (95% CI) and its paired difference to the reference
-(team - reference, 95% CI over the episodes; negative: it captures sooner); with --out, also
+was trained for, its mean capture time (95% CI), its paired difference to the reference
+(team - reference, 95% CI over the episodes; negative: it captures sooner), and its learning
+curve's capture time over the tenth of its run ending at the middle and over the last tenth
+(still falling at the end: not yet its plateau); with --out, also
 writes them as JSON.
 """
 
@@ -35,6 +37,15 @@ from shared.engine.evaluate import evaluate, mean_ci95
 from shared.learning.snapshot import PolicySearcher, load_snapshot
 
 
+def _curve_mean(curve: list[dict], lo: float, hi: float) -> float | None:
+    """Mean training capture time of the learning-curve points between fractions lo and hi of the run."""
+    if not curve:
+        return None
+    total = curve[-1]["episodes"]
+    pts = [p["mean_capture_time"] for p in curve if lo * total < p["episodes"] <= hi * total]
+    return round(float(np.mean(pts)), 3) if pts else None
+
+
 def fly(path: Path, env: str, robots: int, episodes: int, seed: int) -> tuple[dict, np.ndarray]:
     """A snapshot's capture times over the seeded episodes, and what it says of its training."""
     g = builtin_graph(env)
@@ -43,14 +54,24 @@ def fly(path: Path, env: str, robots: int, episodes: int, seed: int) -> tuple[di
         g, uniform_walk(g), sensor, robots, lambda s: PolicySearcher(snap, g, sensor, robots, seed=s), episodes, seed
     )
     meta = read_meta(path)
+    curve = meta.get("summary", {}).get("learning_curve", [])
     info = {
         "team": path.name,
         "algorithm": meta.get("algorithm", "cepg"),
         "train_episodes": meta.get("summary", {}).get("episodes"),
         "training_seed": meta.get("training", {}).get("seed"),
         "train_wall_seconds": meta.get("summary", {}).get("wall_seconds"),
+        # is it still learning at the end of its budget? its training capture time (the learning
+        # curve: exploring policies, training episodes) over the tenth of the run ending at its
+        # middle, and over the last tenth
+        "curve_at_half": _curve_mean(curve, 0.4, 0.5),
+        "curve_at_end": _curve_mean(curve, 0.9, 1.0),
     }
     return info, res.capture_time.astype(np.float64)
+
+
+def _said(x: float | None) -> str:
+    return "—" if x is None else f"{x:.2f}"
 
 
 def main() -> None:
@@ -85,7 +106,8 @@ def main() -> None:
         )
         print(
             f"  {info['algorithm']:<17} {info['train_episodes']:>9,} episodes  {m:6.2f} ± {h:.2f}   "
-            f"paired vs reference {dm:+.2f} ± {dh:.2f}"
+            f"paired vs reference {dm:+.2f} ± {dh:.2f}   training curve {_said(info['curve_at_half'])} at half, "
+            f"{_said(info['curve_at_end'])} at the end"
         )
     if args.out:
         setup = {"map": args.env, "robots": args.robots, "episodes": args.episodes, "seed": args.seed}

@@ -325,6 +325,11 @@ def test_marl_experiment_and_its_report(tmp_path, monkeypatch):
         ("maddpg", False),
     ]
     assert rows[1]["diff_to_reference"] == 0 and rows[1]["mean_capture_time"] == rows[0]["mean_capture_time"]
+    # the learning curve at the middle and at the end of each team's run, from its training summary
+    curve = json.loads((team / "training_summary.json").read_text())["learning_curve"]
+    last = [p["mean_capture_time"] for p in curve if p["episodes"] > 0.9 * curve[-1]["episodes"]]
+    assert rows[2]["curve_at_end"] == pytest.approx(sum(last) / len(last), abs=1e-3)
+    assert rows[2]["curve_at_half"] is not None
     text = report(tmp_path, tmp_path / "results.md").read_text()
     row = f"| maddpg | {rows[2]['train_episodes']:,} | {rows[2]['train_wall_seconds']:.0f} | "
     assert "### Past the budget: OFFICE, N = 4" in text and row in text

@@ -1757,18 +1757,27 @@ def _plateau_report(root: Path) -> list[str]:
         f"{d['episodes']} episodes (seed {d['seed']}) as the reference, {ref['algorithm']} trained for "
         f"{ref['train_episodes']:,} episodes ({_fmt(ref['mean_capture_time'], ref['ci95_halfwidth'], d['episodes'])}); "
         "paired: team - reference over those episodes, 95% CI (negative: the team captures sooner). "
-        "`python benchmarks/marl_plateau.py` made this table; its docstring has the training commands.",
+        "`python benchmarks/marl_plateau.py` made this table; its docstring has the training commands. "
+        "Training curve: the team's capture time while it trained (exploring, on its training episodes) over the "
+        "tenth of its run ending at the middle, and over the last tenth; still falling at the end means the "
+        "budget was not yet its plateau.",
         "",
-        "| method | training episodes | training wall s | capture time | paired vs reference |",
-        "| --- | --- | --- | --- | --- |",
+        "| method | training episodes | training wall s | capture time | paired vs reference "
+        "| training curve: middle -> end |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
+
+    def said(x: float | None, digits: int = 2) -> str:
+        return "—" if x is None else f"{x:.{digits}f}"
+
     for r in d["rows"]:
-        if r.get("reference"):
-            continue
+        paired = (
+            "reference" if r.get("reference") else f"{r['diff_to_reference']:+.2f} ± {r['diff_to_reference_ci95']:.2f}"
+        )
         lines.append(
-            f"| {r['algorithm']} | {r['train_episodes']:,} | {r['train_wall_seconds']:.0f} "
-            f"| {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], d['episodes'])} "
-            f"| {r['diff_to_reference']:+.2f} ± {r['diff_to_reference_ci95']:.2f} |"
+            f"| {r['algorithm']} | {r['train_episodes']:,} | {said(r['train_wall_seconds'], 0)} "
+            f"| {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], d['episodes'])} | {paired} "
+            f"| {said(r.get('curve_at_half'))} -> {said(r.get('curve_at_end'))} |"
         )
     return [*lines, ""]
 
