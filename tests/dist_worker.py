@@ -1,5 +1,6 @@
 """Worker for the data-parallel test: launched twice by torchrun (gloo, loopback)."""
 
+import faulthandler
 import json
 import sys
 from pathlib import Path
@@ -17,6 +18,7 @@ from shared.learning.train import train
 
 
 def main() -> None:
+    faulthandler.enable()  # an abort in torch's C++ (seen once in CI) then prints where Python was
     out = Path(sys.argv[1])
     dist.init_process_group("gloo")
     rank = dist.get_rank()

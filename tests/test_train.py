@@ -318,8 +318,10 @@ def test_two_process_data_parallel_training_ends_with_identical_weights(tmp_path
         timeout=300,
     )
     # on failure: how far each rank got (the worker says when it wrote and when it left) and the end
-    said = [line for line in r.stderr.splitlines() if line.startswith("rank ")]
-    assert r.returncode == 0, (said, sorted(p.name for p in tmp_path.iterdir()), r.stderr[-3000:])
+    # and, after an abort, where Python was (the worker's faulthandler)
+    said = [line for line in r.stderr.splitlines() if line.startswith(("rank ", "Fatal Python", "Current thread"))]
+    fault = [line for line in r.stderr.splitlines() if line.startswith('  File "')][:30]
+    assert r.returncode == 0, (said, fault, sorted(p.name for p in tmp_path.iterdir()), r.stderr[-3000:])
     w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
     w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
     assert set(w0) == set(w1)
