@@ -30,8 +30,9 @@ demo-train: $(STAMP)
 	  $(VENV)/bin/mures evaluate --env museum --robots 4 --searcher $$s --episodes 1500 --seed 1 || exit 1; \
 	done
 
+# --durations: the slowest tests, so that a CI log shows where its minutes go
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=15
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
