@@ -215,6 +215,57 @@ def test_a_run_narrowed_to_one_map_and_team_size(tmp_path):
     assert "OFFICE (mean capture time" in section and "MUSEUM" not in section
 
 
+def test_a_figure_recorded_in_runs_at_different_budgets(tmp_path):
+    """`--add`: a run at other team sizes (here at half the budget, `--train-fraction 0.5`) adds
+    its rows to the recorded figure, each row with its own budget; a later run of a size already
+    recorded replaces that size's rows; the report lists the runs."""
+    from shared.tools.experiments import Budget, fig6
+
+    b = Budget(quick=True, episodes=30, train=512, planner=1, milp_limit=0.05, teams=(2, 4), maps=("office",))
+    fig6(tmp_path, dataclasses.replace(b, robots=(1,)))
+    fig6(tmp_path, dataclasses.replace(b.scaled(0.5), robots=(2,), add=True))
+    d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
+    trained = {(r["robots"], r["method"]): r["train_episodes"] for r in d["rows"]}
+    assert set(trained) == {(n, m) for n in (1, 2) for m in ("cepg", "cepg+", "c-cepg")}
+    assert all(trained[1, m] >= 512 and trained[2, m] < 512 for m in ("cepg", "cepg+", "c-cepg"))
+    assert [(p["training_episodes"], p["covers"]) for p in d["parts"]] == [
+        (512, [["office", 1]]),
+        (256, [["office", 2]]),
+    ]
+    text = report(tmp_path, tmp_path / "results.md").read_text()
+    section = text.split("## Fig. 6")[1].split("\n## ")[0]
+    assert "Recorded in 2 runs (`--add`)" in section and "trained for the budget of each run below" in section
+    assert "OFFICE N = 1: learned teams trained for 512 episodes" in section
+    assert "OFFICE N = 2: learned teams trained for 256 episodes" in section
+    assert "| method | robots 1 | robots 2 |" in section
+
+    fig6(tmp_path, dataclasses.replace(b, robots=(2,), add=True))  # N = 2 again, at the full budget
+    d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
+    assert [(p["training_episodes"], p["covers"]) for p in d["parts"]] == [
+        (512, [["office", 1]]),
+        (512, [["office", 2]]),
+    ]
+    assert len(d["rows"]) == 6 and all(r["train_episodes"] >= 512 for r in d["rows"])
+    fig6(tmp_path, dataclasses.replace(b, robots=(2,)))  # without --add: the run's rows only
+    d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
+    assert {r["robots"] for r in d["rows"]} == {2} and "parts" not in d
+
+
+def test_budgets_scaled_keep_the_methods_ratios():
+    from shared.tools.experiments import FULL
+
+    b = FULL.scaled(0.25)
+    assert (b.train, b.marl_episodes("masac"), b.marl_episodes("mappo"), b.marl_episodes("maddpg")) == (
+        100_000,
+        25_000,
+        100_000,
+        75_000,
+    )
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="--train-fraction takes a fraction in"):
+            FULL.scaled(bad)
+
+
 def test_report_tables_robustness_results(tmp_path):
     rows = [
         {

@@ -592,6 +592,8 @@ def cmd_experiment(args: argparse.Namespace) -> int:
             scheduler=args.dask_scheduler,
             maps=args.maps,
             robots=args.robots,
+            train_fraction=args.train_fraction,
+            add=args.add,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
@@ -718,6 +720,19 @@ def build_parser() -> argparse.ArgumentParser:
         type=positive_int,
         metavar="N",
         help="training episodes per learned team (default: 400000, or 2000 with --quick)",
+    )
+    p.add_argument(
+        "--train-fraction",
+        type=float,
+        metavar="F",
+        help="every learned team's budget times F, in (0, 1] (CE-PG 4x10^5 F, each MARL method's F times its "
+        "own): for team sizes whose full budget does not fit; every row states its budget",
+    )
+    p.add_argument(
+        "--add",
+        action="store_true",
+        help="fig6, fig7, fig9, fig10: keep the recorded rows of the maps and team sizes this run does not "
+        "cover (e.g. N = 4 at the full budget, then --robots 1,2,3,5 --train-fraction 0.25 --add)",
     )
     p.add_argument("--results", default="results", help="results directory (default results/)")
     p.add_argument(

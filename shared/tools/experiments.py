@@ -61,9 +61,16 @@ _CELLS: Path | None = None
 CELL_VERSION = 1  # bump when evaluation itself changes: cached cells are then evaluated again
 
 
-def _write(out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+def _write(
+    out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]], add: bool = False
+) -> list[dict[str, Any]]:
+    """Write a figure's data (JSON, and CSV of its rows); returns the rows written. With ``add``
+    (`--add`) the rows recorded for maps and team sizes this run did not cover are kept beside the
+    new ones, and ``parts`` lists each run's setup and the (map, N) it covers (``_merge``)."""
     if _PLAN is not None:
-        return
+        return rows
+    if add and (out / f"{name}.json").exists():
+        data, rows = _merge(json.loads((out / f"{name}.json").read_text()), data, rows)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / f"{name}.json", json.dumps({**data, "rows": rows}, indent=1) + "\n")
     if rows:
@@ -71,6 +78,39 @@ def _write(out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]
             w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # rows differ
             w.writeheader()
             w.writerows(rows)
+    return rows
+
+
+def _covers(rows: list[dict[str, Any]]) -> list[list[Any]]:
+    """The (map, N) pairs a figure's rows hold, in the paper's map order, then N."""
+    pairs = {(r["map"], r["robots"]) for r in rows}
+    return [list(p) for p in sorted(pairs, key=lambda p: (PAPER_MAPS.index(p[0]) if p[0] in PAPER_MAPS else 9, p[1]))]
+
+
+def _merge(
+    old: dict[str, Any], setup: dict[str, Any], rows: list[dict[str, Any]]
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """A recorded figure with a new run's rows added: the new rows replace the recorded ones of
+    the same (map, N), the others stay. The setup's top level is the new run's, with ``maps`` and
+    ``team_sizes`` widened to all rows, and ``parts``: every run whose rows remain, its setup and
+    the (map, N) pairs it still covers, oldest first."""
+    covered = {(r["map"], r["robots"]) for r in rows}
+    kept = [r for r in old["rows"] if (r["map"], r["robots"]) not in covered]
+    earlier = old.get("parts") or [{**{k: v for k, v in old.items() if k != "rows"}, "covers": _covers(old["rows"])}]
+    parts = []
+    for p in earlier:
+        still = [c for c in p["covers"] if tuple(c) not in covered]
+        if still:
+            parts.append({**p, "covers": still})
+    parts.append({**setup, "covers": _covers(rows)})
+    merged = sorted(
+        kept + rows, key=lambda r: (PAPER_MAPS.index(r["map"]) if r["map"] in PAPER_MAPS else 9, r["robots"])
+    )
+    data = {**setup, "parts": parts}
+    data["maps"] = list(dict.fromkeys(c[0] for c in _covers(merged)))
+    if "team_sizes" in setup:
+        data["team_sizes"] = sorted({r["robots"] for r in merged})
+    return data, merged
 
 
 def _say(text: str) -> None:
@@ -142,11 +182,28 @@ class Budget:
     maps: tuple[str, ...] = PAPER_MAPS  # the maps every figure runs on (`--maps`)
     robots: tuple[int, ...] | None = None  # team sizes of fig6, fig7, fig9, fig10 (`--robots`); None: theirs
     marl_train_for: tuple[tuple[str, int], ...] = ()  # (method, episodes): budgets that replace marl_train
+    add: bool = False  # `--add`: fig6/7/9/10 keep the recorded rows of the maps and team sizes not run
 
     def with_train(self, episodes: int | None) -> Budget:
         if episodes is None:
             return self
         return replace(self, train=episodes, marl_train=episodes, marl_train_for=())
+
+    def scaled(self, fraction: float) -> Budget:
+        """Every learned team's budget times ``fraction`` (`--train-fraction`), the methods' ratios
+        kept: a run at team sizes whose full budget does not fit states its own in every row."""
+        if not 0 < fraction <= 1:
+            raise ValueError(f"--train-fraction takes a fraction in (0, 1], not {fraction:g}")
+
+        def part(episodes: int) -> int:
+            return max(1, round(episodes * fraction))
+
+        return replace(
+            self,
+            train=part(self.train),
+            marl_train=None if self.marl_train is None else part(self.marl_train),
+            marl_train_for=tuple((m, part(e)) for m, e in self.marl_train_for),
+        )
 
     def marl_episodes(self, method: str) -> int | None:
         """Training episodes of a MARL baseline's teams in the figures (None: its default)."""
@@ -740,7 +797,7 @@ def fig7(root: Path, b: Budget) -> Path:
         discount=0.97,
         wall_seconds=round(time.perf_counter() - t_start, 1),
     )
-    _write(out, "fig7", setup, rows)
+    rows = _write(out, "fig7", setup, rows, add=b.add)
     _plot_fig7(out, rows)
     _plot_fig8(root / "fig8", rows, setup)
     return out
@@ -907,7 +964,7 @@ def fig6(root: Path, b: Budget) -> Path:
                 rows.append(_cell(env, N, m, _learned(root, env, N, m, b), b.episodes, sensor=sensor_for(m)))
             _say(f"fig6: {env} N={N}: " + ", ".join(f"{r['method']} {r['mean_capture_time']:.1f}" for r in rows[-3:]))
     out = root / "fig6"
-    _write(out, "fig6", _setup("fig6", b), rows)
+    rows = _write(out, "fig6", _setup("fig6", b), rows, add=b.add)
     _bars(out / "fig6.png", rows, "robots", "capture time (steps)")
     return out
 
@@ -931,7 +988,7 @@ def _noise_sweep(root: Path, b: Budget, name: str, eta: str, value: str, ylabel:
                 )
             _say(f"{name}: {env} N={N}: " + ", ".join(f"{r[value]:.2f}" for r in rows[-len(ETAS) :]))
     out = root / name
-    _write(out, name, _setup(name, b), rows)
+    rows = _write(out, name, _setup(name, b), rows, add=b.add)
     _lines(out / f"{name}.png", rows, eta, value, ylabel)
     return out
 
@@ -1193,14 +1250,24 @@ def run(
     scheduler: str | None = None,
     maps: tuple[str, ...] | None = None,
     robots: tuple[int, ...] | None = None,
+    train_fraction: float | None = None,
+    add: bool = False,
 ) -> Path:
     """Run one experiment (``all``: every one in turn); returns its results directory.
-    ``train_episodes`` overrides the learned teams' training budget. The teams the experiment
+    ``train_episodes`` overrides the learned teams' training budget, ``train_fraction`` scales
+    every method's (``Budget.scaled``); ``add`` keeps a figure's recorded rows of the maps and
+    team sizes this run does not cover (fig6, fig7, fig9, fig10; ``_merge``). The teams the experiment
     needs and the cache lacks are trained first and its cells evaluated (``plan``, round after
     round: a cell needs its team), as jobs of shared/tools/runner.py: in this process, in
     ``workers`` local processes, or on a Dask ``scheduler``'s cluster, each with one torch thread,
     so the numbers are the same every way; the experiment then runs on the cached teams and cells."""
+    if train_episodes is not None and train_fraction is not None:
+        raise ValueError("give --train-episodes or --train-fraction, not both")
     b = (QUICK if quick else FULL).with_train(train_episodes)
+    if train_fraction is not None:
+        b = b.scaled(train_fraction)
+    if add:
+        b = replace(b, add=True)
     if name != "all" and name not in EXPERIMENTS:
         raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)}, all)")
     if maps is not None:
@@ -1295,7 +1362,7 @@ def report(root: Path, out: Path) -> Path:
             f"{d['planner_episodes']} for fhpe and milp, {d.get('d_milp_episodes', d['planner_episodes'])} for "
             f"d-milp, {d['fhpe_sa_episodes']} for fhpe-sa "
             f"(planners are slow; see Fig. 8); seed {d['seed']}; learned teams trained for "
-            f"{d['training_episodes']:,} episodes with EM-estimated beliefs (Gamma_hat_0 = I); horizons "
+            f"{_trained(d)} with EM-estimated beliefs (Gamma_hat_0 = I); horizons "
             f"{d['horizons']}, discount {d['discount']}, MILP time limit {d['milp_time_limit_s']} s per solve "
             f"(HiGHS); quick={d['quick']}; {d['machine']['cpus']} CPUs, {d['machine']['date']}; maps "
             f"{', '.join(m.upper() for m in d.get('maps', PAPER_MAPS))}, N = "
@@ -1305,6 +1372,7 @@ def report(root: Path, out: Path) -> Path:
             "MARL baselines (maddpg, masac, facmac, mambpo, mappo) trained "
             f"for {_marl_budget(d)} with EM-estimated beliefs, executed decentralised as CE-PG.",
             "",
+            *_runs_lines(d),
             "The planners (fhpe, fhpe-sa, milp, d-milp) and the oracle get the true target model and see all "
             "robots' observations (centralised); pg, cepg and cepg+ robots use only their own observations "
             "and an estimated model (cepg+ robots sense N[p], a broader field of view than the others' "
@@ -1339,9 +1407,14 @@ def report(root: Path, out: Path) -> Path:
             "",
             "### Reading (computed from the table)",
             "",
-            f"CE-PG's teams here were trained for {d['training_episodes']:,} episodes, "
-            f"{100 * d['training_episodes'] / 400_000:.1f}% of the paper's budget of 400,000; the MARL "
-            f"baselines for {_marl_budget(d)}"
+            (
+                "CE-PG's teams here were trained for the budget of each run above (every row states its own), "
+                "the paper's 400,000 episodes or less; the MARL baselines likewise"
+                if _runs(d)
+                else f"CE-PG's teams here were trained for {d['training_episodes']:,} episodes, "
+                f"{100 * d['training_episodes'] / 400_000:.1f}% of the paper's budget of 400,000; the MARL "
+                f"baselines for {_marl_budget(d)}"
+            )
             + (
                 ", and the planners ran on one to four episodes: a quick run, not the paper's protocol."
                 if d["quick"]
@@ -1438,7 +1511,7 @@ def report(root: Path, out: Path) -> Path:
             f"## {title}",
             "",
             f"Setup: {d['episodes']} episodes per cell, seed {d['seed']}; learned teams "
-            f"trained for {d['training_episodes']:,} episodes; MARL baselines: {_marl_budget(d)}; "
+            f"trained for {_trained(d)}; MARL baselines: {_marl_budget(d)}; "
             f"quick={d['quick']}; {d['machine']['date']}. "
             + (
                 f"Planners: {d['planner_episodes']} episodes (fhpe-sa {d['fhpe_sa_episodes']}, d-milp "
@@ -1449,6 +1522,7 @@ def report(root: Path, out: Path) -> Path:
             )
             + note,
             "",
+            *_runs_lines(d),
         ]
         for env in maps_in(rows):
             sel = [r for r in rows if r["map"] == env]
@@ -1524,9 +1598,9 @@ def _variants_reading(rows: list[dict[str, Any]], root: Path) -> list[str]:
             )
             said.append(f"{m} {verdict} CE-PG ({how})")
         if said:
-            out.append(f"at N = {N}, " + "; ".join(said) + ".")
+            out.append(f"at N = {N}, " + "; ".join(said))
     if out:
-        out = ["The paper: CE-PG+ and C-CE-PG both capture sooner than CE-PG. Here, " + " ".join(out), ""]
+        out = ["The paper: CE-PG+ and C-CE-PG both capture sooner than CE-PG. Here, " + "; ".join(out) + ".", ""]
     return out
 
 
@@ -1673,8 +1747,50 @@ def _plateau(curve: list[dict[str, Any]], window: int = 10, within: float = 0.10
     return int(p["episodes"]), float(p["wall_seconds"])
 
 
+def _runs(setup: dict[str, Any]) -> list[dict[str, Any]]:
+    """The runs a figure's rows come from, when more than one (`--add`; ``_merge``), else []."""
+    parts = setup.get("parts") or []
+    return parts if len(parts) > 1 else []
+
+
+def _trained(setup: dict[str, Any]) -> str:
+    """The learned teams' training budget as a setup states it."""
+    return "the budget of each run below" if _runs(setup) else f"{setup['training_episodes']:,} episodes"
+
+
+def _runs_lines(setup: dict[str, Any]) -> list[str]:
+    """A figure recorded in several runs: what each covers and at which budgets."""
+    runs = _runs(setup)
+    if not runs:
+        return []
+    said = []
+    for p in runs:
+        where = "; ".join(
+            f"{env.upper()} N = {', '.join(str(c[1]) for c in p['covers'] if c[0] == env)}"
+            for env in dict.fromkeys(c[0] for c in p["covers"])
+        )
+        planners = (
+            f", planners {p['planner_episodes']} (fhpe-sa {p['fhpe_sa_episodes']}, d-milp "
+            f"{p.get('d_milp_episodes', p['planner_episodes'])})"
+            if "planner_episodes" in p
+            else ""
+        )
+        said.append(
+            f"{where}: learned teams trained for {p['training_episodes']:,} episodes, MARL baselines "
+            f"{_marl_budget(p)}; {p['episodes']} episodes per cell{planners}; quick={p['quick']}; "
+            f"{p['machine']['date']}"
+        )
+    return [
+        f"Recorded in {len(runs)} runs (`--add`), each row with its own training budget (train_episodes in the "
+        "data): " + "; and ".join(said) + ".",
+        "",
+    ]
+
+
 def _marl_budget(setup: dict[str, Any]) -> str:
     """The MARL baselines' training budget as a setup states it (older results have none)."""
+    if _runs(setup):
+        return "the budget of each run below"
     given = setup.get("marl_training_episodes")
     if given is None:
         return "(not recorded)"
