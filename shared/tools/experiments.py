@@ -81,10 +81,14 @@ def _write(
     return rows
 
 
+def _place(env: str, N: int) -> tuple[int, int]:
+    """Where a (map, N) goes in a figure: the paper's maps in its order (others after), then N."""
+    return (PAPER_MAPS.index(env) if env in PAPER_MAPS else len(PAPER_MAPS), N)
+
+
 def _covers(rows: list[dict[str, Any]]) -> list[list[Any]]:
-    """The (map, N) pairs a figure's rows hold, in the paper's map order, then N."""
-    pairs = {(r["map"], r["robots"]) for r in rows}
-    return [list(p) for p in sorted(pairs, key=lambda p: (PAPER_MAPS.index(p[0]) if p[0] in PAPER_MAPS else 9, p[1]))]
+    """The (map, N) pairs a figure's rows hold, in ``_place`` order."""
+    return [list(p) for p in sorted({(r["map"], r["robots"]) for r in rows}, key=lambda p: _place(*p))]
 
 
 def _merge(
@@ -103,9 +107,7 @@ def _merge(
         if still:
             parts.append({**p, "covers": still})
     parts.append({**setup, "covers": _covers(rows)})
-    merged = sorted(
-        kept + rows, key=lambda r: (PAPER_MAPS.index(r["map"]) if r["map"] in PAPER_MAPS else 9, r["robots"])
-    )
+    merged = sorted(kept + rows, key=lambda r: _place(r["map"], r["robots"]))
     data = {**setup, "parts": parts}
     data["maps"] = list(dict.fromkeys(c[0] for c in _covers(merged)))
     if "team_sizes" in setup:
