@@ -184,7 +184,7 @@ class Budget:
     maps: tuple[str, ...] = PAPER_MAPS  # the maps every figure runs on (`--maps`)
     robots: tuple[int, ...] | None = None  # team sizes of fig6, fig7, fig9, fig10 (`--robots`); None: theirs
     marl_train_for: tuple[tuple[str, int], ...] = ()  # (method, episodes): budgets that replace marl_train
-    add: bool = False  # `--add`: fig6/7/9/10 keep the recorded rows of the maps and team sizes not run
+    add: bool = False  # `--add`: fig6/7/9/10/12 keep the recorded rows of the maps and team sizes not run
 
     def with_train(self, episodes: int | None) -> Budget:
         if episodes is None:
@@ -1043,7 +1043,7 @@ def fig12(root: Path, b: Budget) -> Path:
                 make = _reference(env, N, m, sensor) if m in ("random", "greedy") else _learned(root, env, N, m, b)
                 rows.append({**_cell(env, N, m, make, b.episodes, withdraw_at=withdraw), "withdrawn": label})
     out = root / "fig12"
-    _write(out, "fig12", _setup("fig12", b), rows)
+    rows = _write(out, "fig12", _setup("fig12", b), rows, add=b.add)
     _bars(out / "fig12.png", rows, "withdrawn", "capture time (steps), N = 4")
     return out
 
@@ -1258,7 +1258,7 @@ def run(
     """Run one experiment (``all``: every one in turn); returns its results directory.
     ``train_episodes`` overrides the learned teams' training budget, ``train_fraction`` scales
     every method's (``Budget.scaled``); ``add`` keeps a figure's recorded rows of the maps and
-    team sizes this run does not cover (fig6, fig7, fig9, fig10; ``_merge``). The teams the experiment
+    team sizes this run does not cover (fig6, fig7, fig9, fig10, fig12; ``_merge``). The teams the experiment
     needs and the cache lacks are trained first and its cells evaluated (``plan``, round after
     round: a cell needs its team), as jobs of shared/tools/runner.py: in this process, in
     ``workers`` local processes, or on a Dask ``scheduler``'s cluster, each with one torch thread,
