@@ -251,6 +251,42 @@ def test_a_figure_recorded_in_runs_at_different_budgets(tmp_path):
     assert {r["robots"] for r in d["rows"]} == {2} and "parts" not in d
 
 
+def test_the_remaining_figures_are_recorded_one_map_at_a_time(tmp_path, monkeypatch, capsys):
+    """`--add` for fig5, fig11 and fig13 (their protocol runs are recorded a map at a time): a
+    MUSEUM run keeps OFFICE's recorded rows. Their cells are stubbed (rows without evaluation): the
+    figures' own code, the merge and the plots run. `--add` is refused where it means nothing."""
+    from shared.tools import experiments as E
+
+    def row(env, N, method, **extra):
+        return {
+            "map": env,
+            "robots": N,
+            "method": method,
+            "episodes": 3,
+            "mean_capture_time": 5.0,
+            "ci95_halfwidth": 1.0,
+            **extra,
+        }
+
+    monkeypatch.setattr(E, "fig5_rows", lambda root, env, b, N=4: [row(env, N, "cepg", beta=x) for x in E.BETAS])
+    monkeypatch.setattr(E, "_all_methods", lambda root, env, N, b, **kw: [row(env, N, m, **kw) for m in ("cepg", "pg")])
+    monkeypatch.setattr(E, "_cell", lambda env, k, method, make, episodes, **kw: row(env, k, method))
+    for stub in ("_snapshot", "_marl_snapshot", "_flown", "_learned"):
+        monkeypatch.setattr(E, stub, lambda *a, **kw: None)
+    b = E.Budget(quick=True, episodes=3, train=256, planner=1, milp_limit=0.05, teams=(4,))
+    for name in ("fig5", "fig11", "fig13"):
+        E.RUNNERS[name](tmp_path, dataclasses.replace(b, maps=("office",)))
+        E.RUNNERS[name](tmp_path, dataclasses.replace(b, maps=("museum",), add=True))
+        d = json.loads((tmp_path / name / f"{name}.json").read_text())
+        assert d["maps"] == ["office", "museum"] and [p["covers"][0][0] for p in d["parts"]] == ["office", "museum"]
+        assert {r["map"] for r in d["rows"]} == {"office", "museum"}, name
+        assert (tmp_path / name / f"{name}.png").stat().st_size > 1000
+    for name in ("fig4", "marl"):
+        assert main(["experiment", name, "--add", "--results", str(tmp_path / "x")]) == 2
+        assert f"{name} is not recorded by them" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
 def test_budgets_scaled_keep_the_methods_ratios():
     from shared.tools.experiments import FULL
 

@@ -731,8 +731,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--add",
         action="store_true",
-        help="fig6, fig7, fig9, fig10, fig12: keep the recorded rows of the maps and team sizes this run does not "
-        "cover (e.g. N = 4 at the full budget, then --robots 1,2,3,5 --train-fraction 0.25 --add)",
+        help="fig5 to fig13: keep the recorded rows of the maps and team sizes this run does not cover (e.g. N = 4 "
+        "at the full budget, then --robots 1,2,3,5 --train-fraction 0.25 --add; or --maps office, then --maps "
+        "museum --add)",
     )
     p.add_argument("--results", default="results", help="results directory (default results/)")
     p.add_argument(

@@ -897,7 +897,7 @@ def fig5(root: Path, b: Budget) -> Path:
             f"fig5: {env}: " + ", ".join(f"beta {r['beta']} {r['mean_capture_time']:.2f}" for r in rows[-len(BETAS) :])
         )
     out = root / "fig5"
-    _write(out, "fig5", _setup("fig5", b, robots=N, training_seeds=list(b.seeds)), rows)
+    rows = _write(out, "fig5", _setup("fig5", b, robots=N, training_seeds=list(b.seeds)), rows, add=b.add)
     _bars(out / "fig5.png", rows, "beta", "capture time (steps), N = 4")
     return out
 
@@ -1015,7 +1015,7 @@ def fig11(root: Path, b: Budget) -> Path:
         for eta in ETAS:
             rows += _all_methods(root, env, 4, b, eta_fn=eta)
     out = root / "fig11"
-    _write(
+    rows = _write(
         out,
         "fig11",
         _setup(
@@ -1026,6 +1026,7 @@ def fig11(root: Path, b: Budget) -> Path:
             wall_seconds=round(time.perf_counter() - t_start, 1),
         ),
         rows,
+        add=b.add,
     )
     _bars(out / "fig11.png", rows, "eta_fn", "capture time (steps), N = 4")
     return out
@@ -1069,7 +1070,7 @@ def fig13(root: Path, b: Budget) -> Path:
                     {**_cell(env, k, f"{m} trained for k", _learned(root, env, k, m, b), b.episodes), "trained_for": k}
                 )
     out = root / "fig13"
-    _write(out, "fig13", _setup("fig13", b), rows)
+    rows = _write(out, "fig13", _setup("fig13", b), rows, add=b.add)
     _bars(out / "fig13.png", rows, "robots", "capture time (steps)")
     return out
 
@@ -1258,7 +1259,8 @@ def run(
     """Run one experiment (``all``: every one in turn); returns its results directory.
     ``train_episodes`` overrides the learned teams' training budget, ``train_fraction`` scales
     every method's (``Budget.scaled``); ``add`` keeps a figure's recorded rows of the maps and
-    team sizes this run does not cover (fig6, fig7, fig9, fig10, fig12; ``_merge``). The teams the experiment
+    team sizes this run does not cover (fig5 to fig13; ``_merge``; refused for fig4 and marl,
+    which are not recorded by map and team size). The teams the experiment
     needs and the cache lacks are trained first and its cells evaluated (``plan``, round after
     round: a cell needs its team), as jobs of shared/tools/runner.py: in this process, in
     ``workers`` local processes, or on a Dask ``scheduler``'s cluster, each with one torch thread,
@@ -1268,10 +1270,14 @@ def run(
     b = (QUICK if quick else FULL).with_train(train_episodes)
     if train_fraction is not None:
         b = b.scaled(train_fraction)
-    if add:
-        b = replace(b, add=True)
     if name != "all" and name not in EXPERIMENTS:
         raise ValueError(f"experiment {name!r} is not implemented (have: {', '.join(EXPERIMENTS)}, all)")
+    if add:
+        if name in ("fig4", "marl"):
+            raise ValueError(
+                f"--add keeps rows of other maps and team sizes; {name} is not recorded by them: run it without --add"
+            )
+        b = replace(b, add=True)
     if maps is not None:
         if not maps or any(m not in PAPER_MAPS for m in maps):
             raise ValueError(f"--maps takes {' and/or '.join(PAPER_MAPS)} (comma-separated), not {','.join(maps)!r}")
