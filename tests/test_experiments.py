@@ -200,19 +200,49 @@ def test_every_experiment_plans_from_an_empty_cache(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+def test_plan_says_what_a_run_would_train_and_evaluate_and_runs_nothing(tmp_path, capsys):
+    """`--plan` on an empty cache: every team of fig7 (OFFICE, N = 2) to train, the cells that need
+    no team now, one cell per team once trained, each with an estimate; nothing is written."""
+    import re
+
+    from shared.tools import experiments as E
+
+    argv = ["experiment", "fig7", "--quick", "--maps", "office", "--robots", "2", "--results", str(tmp_path)]
+    assert main([*argv, "--plan"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    head = re.match(r"fig7 in .*: (\d+) teams to train, (\d+) cells to evaluate now and (\d+) once", lines[0])
+    assert head, lines[0]
+    teams, now, later = map(int, head.groups())
+    learned = len(E.LEARNED) + len(E.MARL)
+    assert teams == learned and later == learned and now >= 2 + len(E.PLANNERS)  # random, greedy, planners
+    assert len(lines) == 1 + teams + now + later
+    assert any("training MADDPG office N=2" in ln for ln in lines) and any(
+        "evaluating milp office N=2" in ln for ln in lines
+    )
+    assert not any(tmp_path.iterdir())
+    # a team's estimate follows its method's measured cost per episode, map and team size
+    assert E._train_cost("maddpg", "office", 4, 1000) > 20 * E._train_cost("cepg", "office", 4, 1000)
+    assert E._train_cost("cepg", "museum", 4, 1000) > E._train_cost("cepg", "office", 4, 1000)
+    assert main([*argv, "--plan", "--train-episodes", "10", "--train-fraction", "0.5"]) == 2
+    assert "not both" in capsys.readouterr().err
+
+
 def test_a_run_narrowed_to_one_map_and_team_size(tmp_path):
     """`--maps office --robots 1`: fig6 runs that map and size only, its plot has one panel and
     the report tables OFFICE alone."""
-    from shared.tools.experiments import Budget, fig6
+    from shared.tools import experiments as E
+    from shared.tools.experiments import Budget
 
     b = Budget(quick=True, episodes=40, train=256, planner=1, milp_limit=0.05, teams=(2, 4))
-    fig6(tmp_path, dataclasses.replace(b, maps=("office",), robots=(1,)))
+    narrowed = dataclasses.replace(b, maps=("office",), robots=(1,))
+    E._run_one("fig6", tmp_path, narrowed, quick=True)  # as `run` does once the teams are trained: cells cached
     d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
     assert {(r["map"], r["robots"]) for r in d["rows"]} == {("office", 1)} and d["maps"] == ["office"]
     assert (tmp_path / "fig6" / "fig6.png").stat().st_size > 1000
     text = report(tmp_path, tmp_path / "results.md").read_text()
     section = text.split("## Fig. 6")[1].split("\n## ")[0]
     assert "OFFICE (mean capture time" in section and "MUSEUM" not in section
+    assert E.plan_lines("fig6", tmp_path, narrowed)[0].startswith("fig6: nothing to train or evaluate")
 
 
 def test_a_figure_recorded_in_runs_at_different_budgets(tmp_path):

@@ -579,9 +579,18 @@ def cmd_world(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------- experiments, report
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from shared.tools.experiments import run
+    from shared.tools.experiments import budget, plan_lines, run
 
     t0 = time.perf_counter()
+    if args.plan:
+        try:
+            b = budget(
+                args.name, args.quick, args.train_episodes, args.maps, args.robots, args.train_fraction, args.add
+            )
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+        print("\n".join(plan_lines(args.name, Path(args.results), b)))
+        return 0
     try:
         out = run(
             args.name,
@@ -736,6 +745,12 @@ def build_parser() -> argparse.ArgumentParser:
         "museum --add)",
     )
     p.add_argument("--results", default="results", help="results directory (default results/)")
+    p.add_argument(
+        "--plan",
+        action="store_true",
+        help="say what the run would train and evaluate with this results directory's cache, each job with its "
+        "estimated time on one core, and run nothing",
+    )
     p.add_argument(
         "--maps",
         type=_map_names,

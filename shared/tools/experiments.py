@@ -55,6 +55,8 @@ def machine() -> dict[str, Any]:
 # evaluating: the teams it needs that are not cached are collected here as jobs, cells are
 # placeholders, and nothing is written.
 _PLAN: list[Job] | None = None
+# ... and the cells it will evaluate once their teams are trained: (label, estimated seconds)
+_LATER: dict[str, tuple[str, float]] = {}  # by the cell's settings and its team's path
 # Evaluated cells are cached as JSON under <results>/cells/ (set by ``run`` and ``plan``): a killed
 # run resumes from the cells it finished, and cells can be evaluated by the parallel runner too.
 _CELLS: Path | None = None
@@ -294,7 +296,7 @@ def _snapshot(
     if not _cached(root / rel, _cepg_config(*args[1:])[1]):
         noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
         label = f"training {'PG' if beta == 1 else variant.upper()} {env} N={robots}{noise}, {episodes:,} episodes"
-        _obtain(root, Job(rel, label, _train_cepg, args, weight=episodes))
+        _obtain(root, Job(rel, label, _train_cepg, args, weight=_train_cost("cepg", env, robots, episodes)))
     return root / rel
 
 
@@ -366,7 +368,8 @@ def _marl_snapshot(
         noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
         extra = f" ({', '.join(overrides)})" if overrides else ""
         label = f"training {algorithm.upper()} {env} N={robots}{noise}{extra}, {config['episodes']:,} episodes"
-        _obtain(root, Job(rel, label, _train_marl, args, weight=config["episodes"]))
+        weight = _train_cost(algorithm, env, robots, config["episodes"])
+        _obtain(root, Job(rel, label, _train_marl, args, weight=weight))
     return root / rel
 
 
@@ -574,8 +577,6 @@ def _cell(
         "false_alarms_per_episode": nan,
         "false_alarms_ci95_halfwidth": nan,
     }
-    if not make.ready():  # planning: its team is not trained yet
-        return placeholder
     args = {
         "env": env,
         "robots": robots,
@@ -586,6 +587,13 @@ def _cell(
         "withdraw_at": withdraw_at,
         "latency": latency,
     }
+    noise = "".join(f", {k} {v}" for k, v in (("eta_fn", sensor.eta_fn), ("eta_fp", sensor.eta_fp)) if v)
+    withdrawn = f", withdrawn {withdraw_at}" if withdraw_at else ""
+    label = f"evaluating {method} {env} N={robots}{noise}{withdrawn} ({episodes} episodes)"
+    if not make.ready():  # planning: its team is not trained yet
+        later = json.dumps({**args, "team": str(getattr(make, "path", ""))}, sort_keys=True)
+        _LATER[later] = (f"{label}, once its team exists", _cell_cost(method, args))
+        return placeholder
     what = {**args, "make": make.describe(), "version": CELL_VERSION}
     key = hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:20]
     cached = None if _CELLS is None else _CELLS / f"{key}.json"
@@ -596,7 +604,6 @@ def _cell(
         if isinstance(make, _Team):  # the worker gets the snapshot's files, not this process's objects
             files = directory_files(make.path, make.path)
             make = _Team(make.path, make.env, make.sensor, make.robots)
-        label = f"evaluating {method} {env} N={robots} ({episodes} episodes)"
         _PLAN.append(Job(f"cell-{key}", label, _cell_job, (key, args, make, files), weight=_cell_cost(method, args)))
         return placeholder
     else:
@@ -610,12 +617,34 @@ def _cell(
     return out
 
 
+# What the jobs cost on one core of the 2-core VM this project is developed on, for the runner's
+# ETA and `--plan`'s estimate (never for results): training, ms per episode on OFFICE at N = 4,
+# the quickest of the protocol's teams of each method (wall_seconds / episodes of its snapshot;
+# others shared the machine); MUSEUM's cost 2.5 times OFFICE's (the median of the methods'
+# ratios there), and sqrt(4 / N) times for N robots (fewer robots, longer episodes: CE-PG at N = 1
+# and 2 cost 1.9 and 1.2 times N = 4). Planners, seconds per team step at their 1 s limit (MILP,
+# every solve at the limit; D-MILP one solve per robot) or as measured (FHPE-SA); episodes of
+# about 8 steps on OFFICE and 17 on MUSEUM at N = 4, 4 / N times that for N robots.
+TRAIN_MS_PER_EPISODE = {"cepg": 0.42, "mappo": 2.3, "maddpg": 10.4, "masac": 7.9, "facmac": 18.1, "mambpo": 14.9}
+MAP_COST = {"office": 1.0, "museum": 2.5}
+STEPS_AT_N4 = {"office": 8.0, "museum": 17.0}
+PLANNER_SECONDS_PER_STEP = {"milp": 1.0, "d-milp": 1.0, "fhpe": 0.2, "fhpe-sa": 0.04}
+
+
+def _train_cost(method: str, env: str, robots: int, episodes: int) -> float:
+    """A team's expected training time in seconds on one core (see TRAIN_MS_PER_EPISODE)."""
+    per = TRAIN_MS_PER_EPISODE.get(method, TRAIN_MS_PER_EPISODE["cepg"]) / 1000
+    return episodes * per * MAP_COST.get(env, 1.0) * (4 / robots) ** 0.5
+
+
 def _cell_cost(method: str, args: dict[str, Any]) -> float:
-    """A cell's expected cost in the unit of the training jobs' weights (episodes of training,
-    about 2,000 a second here), for the runner's ETA."""
-    steps = 20 * args["episodes"]
-    per_step = {"milp": 0.3, "d-milp": 0.3 * args["robots"], "fhpe": 0.2, "fhpe-sa": 0.05}.get(method, 1e-4)
-    return 2000 * steps * per_step
+    """A cell's expected time in seconds on one core (see TRAIN_MS_PER_EPISODE): a planner's
+    decisions, or a learned team's batched episodes (and its decision timing with ``latency``)."""
+    steps = args["episodes"] * STEPS_AT_N4.get(args["env"], 10.0) * 4 / args["robots"]
+    if method in PLANNER_SECONDS_PER_STEP:
+        per_step = PLANNER_SECONDS_PER_STEP[method] * (args["robots"] if method == "d-milp" else 1)
+        return steps * per_step
+    return steps * 2e-4 + (20.0 if args.get("latency") else 0.0)
 
 
 def _cell_job(key: str, args: dict[str, Any], make: Any, files: dict[str, bytes] | None) -> dict[str, bytes]:
@@ -1244,27 +1273,17 @@ RUNNERS: dict[str, Callable[[Path, Budget], Path]] = {
 }
 
 
-def run(
+def budget(
     name: str,
-    root: Path,
     quick: bool,
     train_episodes: int | None = None,
-    workers: int = 1,
-    scheduler: str | None = None,
     maps: tuple[str, ...] | None = None,
     robots: tuple[int, ...] | None = None,
     train_fraction: float | None = None,
     add: bool = False,
-) -> Path:
-    """Run one experiment (``all``: every one in turn); returns its results directory.
-    ``train_episodes`` overrides the learned teams' training budget, ``train_fraction`` scales
-    every method's (``Budget.scaled``); ``add`` keeps a figure's recorded rows of the maps and
-    team sizes this run does not cover (fig5 to fig13; ``_merge``; refused for fig4 and marl,
-    which are not recorded by map and team size). The teams the experiment
-    needs and the cache lacks are trained first and its cells evaluated (``plan``, round after
-    round: a cell needs its team), as jobs of shared/tools/runner.py: in this process, in
-    ``workers`` local processes, or on a Dask ``scheduler``'s cluster, each with one torch thread,
-    so the numbers are the same every way; the experiment then runs on the cached teams and cells."""
+) -> Budget:
+    """The Budget of a run of experiment ``name`` (``run``'s arguments), checked: a ValueError names
+    what is wrong."""
     if train_episodes is not None and train_fraction is not None:
         raise ValueError("give --train-episodes or --train-fraction, not both")
     b = (QUICK if quick else FULL).with_train(train_episodes)
@@ -1286,6 +1305,31 @@ def run(
         if not robots or any(n < 1 or n > 5 for n in robots):
             raise ValueError(f"--robots takes team sizes 1 to 5 (comma-separated), not {','.join(map(str, robots))}")
         b = replace(b, robots=tuple(sorted(set(robots))))
+    return b
+
+
+def run(
+    name: str,
+    root: Path,
+    quick: bool,
+    train_episodes: int | None = None,
+    workers: int = 1,
+    scheduler: str | None = None,
+    maps: tuple[str, ...] | None = None,
+    robots: tuple[int, ...] | None = None,
+    train_fraction: float | None = None,
+    add: bool = False,
+) -> Path:
+    """Run one experiment (``all``: every one in turn); returns its results directory.
+    ``train_episodes`` overrides the learned teams' training budget, ``train_fraction`` scales
+    every method's (``Budget.scaled``); ``add`` keeps a figure's recorded rows of the maps and
+    team sizes this run does not cover (fig5 to fig13; ``_merge``; refused for fig4 and marl,
+    which are not recorded by map and team size). The teams the experiment
+    needs and the cache lacks are trained first and its cells evaluated (``plan``, round after
+    round: a cell needs its team), as jobs of shared/tools/runner.py: in this process, in
+    ``workers`` local processes, or on a Dask ``scheduler``'s cluster, each with one torch thread,
+    so the numbers are the same every way; the experiment then runs on the cached teams and cells."""
+    b = budget(name, quick, train_episodes, maps, robots, train_fraction, add)
     for _round in range(3):  # the teams (and the planners' cells), then the learned teams' cells
         jobs = plan(name, root, b)
         if not jobs:
@@ -1319,16 +1363,54 @@ def plan(name: str, root: Path, b: Budget) -> list[Job]:
     the teams to train, and the cells to evaluate whose teams exist (a cell of a team still to be
     trained comes up in the next plan); the figure functions run with placeholder cells and write
     nothing."""
+    return outlook(name, root, b)[0]
+
+
+def outlook(name: str, root: Path, b: Budget) -> tuple[list[Job], list[tuple[str, float]]]:
+    """``plan``'s jobs, and the cells that wait for a team of those jobs: (label, estimated
+    seconds on one core) each."""
     global _PLAN, _CELLS
     names = [e for e in EXPERIMENTS if e not in ("fig4", "fig8")] if name == "all" else [name]
     _PLAN, _CELLS = [], root / "cells"
+    _LATER.clear()
     try:
         for e in names:
             if e in RUNNERS or e == "fig8":
                 RUNNERS["fig7" if e == "fig8" else e](root, b)
-        return list({j.key: j for j in _PLAN}.values())
+        return list({j.key: j for j in _PLAN}.values()), list(_LATER.values())
     finally:
         _PLAN, _CELLS = None, None
+        _LATER.clear()
+
+
+def plan_lines(name: str, root: Path, b: Budget) -> list[str]:
+    """`mures experiment NAME --plan`: what a run would do with this cache, each job with its
+    estimated time, and the total (one core of the machine the estimates come from; K workers
+    divide it at best by K)."""
+    jobs, later = outlook(name, root, b)
+    if name == "fig4" or (not jobs and not later):
+        return [f"{name}: nothing to train or evaluate in {root}: a run only writes its figure from the cache"]
+    teams = [j for j in jobs if j.label.startswith("training")]
+    cells = [j for j in jobs if not j.label.startswith("training")]
+    total = sum(j.weight for j in jobs) + sum(w for _, w in later)
+
+    def hours(seconds: float) -> str:
+        return (
+            f"{seconds / 3600:.1f} h"
+            if seconds >= 360
+            else f"{seconds / 60:.0f} min"
+            if seconds >= 60
+            else f"{seconds:.0f} s"
+        )
+
+    lines = [
+        f"{name} in {root}: {len(teams)} teams to train, {len(cells)} cells to evaluate now and {len(later)} once "
+        f"their teams exist; about {hours(total)} on one core (K workers: at best that / K), estimated from this "
+        "project's measured rates (shared/tools/experiments.py, TRAIN_MS_PER_EPISODE); nothing was run"
+    ]
+    lines += [f"  {hours(j.weight):>7}  {j.label}" for j in sorted(jobs, key=lambda j: -j.weight)]
+    lines += [f"  {hours(w):>7}  {label}" for label, w in sorted(later, key=lambda x: -x[1])]
+    return lines
 
 
 # ---------------------------------------------------------------------- report
