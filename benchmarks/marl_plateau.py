@@ -84,6 +84,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", type=Path, help="write the rows as JSON here")
     args = ap.parse_args()
+    missing = [str(p) for p in (args.reference, *args.teams) if not (p / "policy.json").is_file()]
+    if missing:  # before any team is flown: a typo should not cost the others' minutes
+        ap.error(f"not a snapshot directory (no policy.json): {', '.join(missing)}")
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     ref_info, ref = fly(args.reference, args.env, args.robots, args.episodes, args.seed)
