@@ -146,13 +146,13 @@ def test_fp_sweep_reading_says_whether_the_capture_time_moved():
 
 
 def test_marl_budgets_per_method():
-    """The protocol trains MAPPO for 4x10^5 episodes and MADDPG for 3x10^5 (10^5 was not their
+    """The protocol trains MAPPO for 4x10^5 episodes, MADDPG and MASAC for 3x10^5 (10^5 was not their
     plateau), the other baselines for 10^5; --train-episodes sets every learned team's budget alike."""
     from shared.tools.experiments import FULL, _marl_budget, _setup
 
     assert FULL.marl_episodes("mappo") == 400_000 and FULL.marl_episodes("maddpg") == 300_000
-    assert FULL.marl_episodes("masac") == 100_000
-    assert _marl_budget(_setup("fig7", FULL)) == "100,000 episodes (MAPPO 400,000, MADDPG 300,000)"
+    assert FULL.marl_episodes("masac") == 300_000 and FULL.marl_episodes("facmac") == 100_000
+    assert _marl_budget(_setup("fig7", FULL)) == "100,000 episodes (MAPPO 400,000, MADDPG 300,000, MASAC 300,000)"
     b = FULL.with_train(5_000)
     assert b.marl_episodes("mappo") == b.marl_episodes("masac") == 5_000
     assert _marl_budget(_setup("fig7", b)) == "5,000 episodes"
@@ -321,7 +321,7 @@ def test_budgets_scaled_keep_the_methods_ratios():
     from shared.tools.experiments import FULL
 
     b = FULL.scaled(0.25)
-    assert (b.train, b.marl_episodes("masac"), b.marl_episodes("mappo"), b.marl_episodes("maddpg")) == (
+    assert (b.train, b.marl_episodes("facmac"), b.marl_episodes("mappo"), b.marl_episodes("maddpg")) == (
         100_000,
         25_000,
         100_000,

@@ -222,9 +222,10 @@ class Budget:
         return tuple(default) if self.robots is None else self.robots
 
 
-# MAPPO trains for 4x10^5 episodes (as CE-PG) and MADDPG for 3x10^5: at 10^5 neither had reached its
-# plateau (OFFICE, N = 4, the same 1500 episodes; benchmarks/marl_plateau.py): MAPPO 8.54 +- 0.41 at
-# 10^5, 7.88 +- 0.36 at 4x10^5; MADDPG 11.54 +- 0.51 at 10^5, 9.92 +- 0.43 at 3x10^5
+# MAPPO trains for 4x10^5 episodes (as CE-PG), MADDPG and MASAC for 3x10^5: at 10^5 none had reached
+# its plateau (OFFICE, N = 4, the same 1500 episodes; benchmarks/marl_plateau.py): MAPPO 8.54 +- 0.41
+# at 10^5, 7.88 +- 0.36 at 4x10^5; MADDPG 11.54 +- 0.51 at 10^5, 9.92 +- 0.43 at 3x10^5; MASAC
+# 8.10 +- 0.43 at 10^5, 7.31 +- 0.30 at 3x10^5
 FULL = Budget(
     False,
     1500,
@@ -235,7 +236,7 @@ FULL = Budget(
     marl_train=100_000,
     seeds=(0, 1, 2),
     d_milp=30,
-    marl_train_for=(("mappo", 400_000), ("maddpg", 300_000)),
+    marl_train_for=(("mappo", 400_000), ("maddpg", 300_000), ("masac", 300_000)),
 )
 QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4), marl_train=1_000)
 MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.MARL_ALGORITHMS
