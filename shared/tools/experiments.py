@@ -276,6 +276,11 @@ def _cached(path: Path, config: dict[str, Any]) -> bool:
     )
 
 
+def _noise(eta_fn: float, eta_fp: float) -> str:
+    """A job label's sensor noise: ", eta_fn X, eta_fp Y", each only where nonzero."""
+    return f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
+
+
 def _snapshot(
     root: Path,
     env: str,
@@ -295,7 +300,7 @@ def _snapshot(
     rel = f"snapshots/{env}-N{robots}-beta{beta}-{episodes}-s{seed}{tag}"
     args = (rel, env, robots, beta, episodes, seed, variant, eta_fn, eta_fp)
     if not _cached(root / rel, _cepg_config(*args[1:])[1]):
-        noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
+        noise = _noise(eta_fn, eta_fp)
         label = f"training {'PG' if beta == 1 else variant.upper()} {env} N={robots}{noise}, {episodes:,} episodes"
         _obtain(root, Job(rel, label, _train_cepg, args, weight=_train_cost("cepg", env, robots, episodes)))
     return root / rel
@@ -366,7 +371,7 @@ def _marl_snapshot(
     args = (env, robots, algorithm, episodes, seed, eta_fn, eta_fp, overrides)
     _cfg, _hyper, rel, config = _marl_config(*args)
     if not _cached(root / rel, config):
-        noise = f"{f', eta_fn {eta_fn}' if eta_fn else ''}{f', eta_fp {eta_fp}' if eta_fp else ''}"
+        noise = _noise(eta_fn, eta_fp)
         extra = f" ({', '.join(overrides)})" if overrides else ""
         label = f"training {algorithm.upper()} {env} N={robots}{noise}{extra}, {config['episodes']:,} episodes"
         weight = _train_cost(algorithm, env, robots, config["episodes"])
@@ -588,9 +593,10 @@ def _cell(
         "withdraw_at": withdraw_at,
         "latency": latency,
     }
-    noise = "".join(f", {k} {v}" for k, v in (("eta_fn", sensor.eta_fn), ("eta_fp", sensor.eta_fp)) if v)
     withdrawn = f", withdrawn {withdraw_at}" if withdraw_at else ""
-    label = f"evaluating {method} {env} N={robots}{noise}{withdrawn} ({episodes} episodes)"
+    label = (
+        f"evaluating {method} {env} N={robots}{_noise(sensor.eta_fn, sensor.eta_fp)}{withdrawn} ({episodes} episodes)"
+    )
     if not make.ready():  # planning: its team is not trained yet
         later = json.dumps({**args, "team": str(getattr(make, "path", ""))}, sort_keys=True)
         _LATER[later] = (f"{label}, once its team exists", _cell_cost(method, args))
@@ -1393,8 +1399,8 @@ def plan_lines(name: str, root: Path, b: Budget) -> list[str]:
     jobs, later = outlook(name, root, b)
     if not jobs and not later:
         return [f"{name}: nothing to train or evaluate in {root}: a run only writes its figure from the cache"]
-    teams = [j for j in jobs if j.label.startswith("training")]
-    cells = [j for j in jobs if not j.label.startswith("training")]
+    cells = [j for j in jobs if j.fn is _cell_job]
+    teams = [j for j in jobs if j.fn is not _cell_job]
     total = sum(j.weight for j in jobs) + sum(w for _, w in later)
 
     def hours(seconds: float) -> str:
