@@ -1,6 +1,6 @@
 """API fuzzing with a peer's tool: Schemathesis, every check, from the OpenAPI document a
-training-server process serves, with the operator token, the agent token and none, on each
-database backend. Zero findings.
+training-server process serves, with the operator token, the agent token and none on SQLite and
+the operator token on PostgreSQL. Zero findings.
 
 The server runs with a high --sign-in-limit: Schemathesis sends wrong tokens on purpose (its
 ignored_auth check), and after ten of them the default limit answers 429 to everything from that
@@ -47,7 +47,10 @@ def test_schemathesis_finds_nothing_with_any_token(tmp_path, database_url):
     extra = ["--sign-in-limit", "1000000"] + (["--database-url", database_url] if database_url else [])
     proc, base, _endpoint = start_server(["--env", "office"], data, 2, Sensor(), logs, extra)
     try:
-        for who in ("operator", "agent", None):
+        # every token on SQLite; on PostgreSQL the operator's, whose requests reach every handler
+        # and the store: the agent's and no token differ from it in authentication and scopes,
+        # above the store, and the agents' records on PostgreSQL are fuzzed by test_ingest_fuzz.py
+        for who in ("operator", "agent", None) if database_url is None else ("operator",):
             token = (data / f"{who}.token").read_text().strip() if who else None
             code, report = schemathesis(base, token, EXAMPLES, tmp_path)
             cases = re.search(r"(\d+) generated", report)

@@ -55,12 +55,12 @@ def _fly_many(fleet, seeds):
 
 
 def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
-    """300 missions of the initial policy through the whole chain vs `mures evaluate` of the same
+    """200 missions of the initial policy through the whole chain vs `mures evaluate` of the same
     policy: the capture times agree within their 95% CIs; every record is stored once; each robot's
     moves follow from its own record alone (no information from the other robots)."""
-    ct = _fly_many(fleet, range(300))
+    ct = _fly_many(fleet, range(200))
     stats = fleet.api.get("/api/v1/episodes/stats")
-    assert stats["stored"] == 900 and stats["missions"] == 300 and stats["by_policy_version"] == {"1": 900}
+    assert stats["stored"] == 600 and stats["missions"] == 200 and stats["by_policy_version"] == {"1": 600}
     assert stats["rejected"] == {}
     g = fleet.graph
     snap = _snapshot(fleet, 1)
@@ -80,7 +80,7 @@ def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
     mission = fleet.api.get(f"/api/v1/missions/{items[0]['mission_id']}")
     for robot in ROBOTS:
         replay(fleet, robot, mission)
-    # the agents have pulled a policy and flown 301 missions: torch was never loaded, and they stay small
+    # the agents have pulled a policy and flown 201 missions: torch was never loaded, and they stay small
     for robot, proc in fleet.agents.items():
         maps = Path(f"/proc/{proc.pid}/maps").read_text()
         assert "libtorch" not in maps and "/site-packages/torch/" not in maps, robot
@@ -116,7 +116,7 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
     assert "training 30,208 episodes (30,000 asked, rounded up to whole batches of 256)" in seen
     assert done["metrics"]["train"]["episodes"] == 30_208
     assert done["version"] == 2 and fleet.api.get("/api/v1/policies/current")["version"] == 2
-    assert done["metrics"]["em"]["missions"] >= 360
+    assert done["metrics"]["em"]["missions"] >= 260
     after = _fly_many(fleet, range(1000, 1060))  # the same seeds: the same target paths
     diff = before - after
     m, h = mean_ci95(diff)
