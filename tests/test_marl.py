@@ -174,7 +174,7 @@ def test_a_fleet_flies_a_mappo_team_as_it_flies_cepg(tmp_path):
     from shared.tools.fleetsim import launch
 
     team = tmp_path / "mappo-team"
-    args = ["train", "--env", "office", "--robots", "3", "--algorithm", "mappo", "--episodes", "3000"]
+    args = ["train", "--env", "office", "--robots", "3", "--algorithm", "mappo", "--episodes", "1000"]
     assert main([*args, "--belief", "true", "--quiet", "--out", str(team)]) == 0
     g = builtin_graph("office")
     fleet = launch(
