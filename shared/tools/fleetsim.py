@@ -51,6 +51,17 @@ def wait_until(pred: Any, timeout: float, what: str, every: float = 0.05) -> Any
         time.sleep(every)
 
 
+def reap(proc: subprocess.Popen[Any], timeout: float) -> int | None:
+    """Wait up to ``timeout`` s for a signalled process to exit, and kill it if it has not: its exit
+    status, or None where it had to be killed."""
+    try:
+        return proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        return None
+
+
 @dataclass
 class Fleet:
     """Handles of a running simulated fleet (server, world, agents)."""
@@ -94,12 +105,7 @@ class Fleet:
     def stop_agent(self, robot: str, sig: int = signal.SIGTERM, timeout: float = 20.0) -> int | None:
         proc = self.agents.pop(robot)
         proc.send_signal(sig)
-        try:
-            return proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-            return None
+        return reap(proc, timeout)
 
     def online(self) -> list[str]:
         return [a["robot_id"] for a in self.api.get("/api/v1/fleet")["agents"] if a["online"]]
@@ -124,11 +130,7 @@ class Fleet:
             self.session.close()
         if self.server is not None:
             self.server.send_signal(signal.SIGTERM)
-            try:
-                self.server.wait(30)
-            except subprocess.TimeoutExpired:
-                self.server.kill()
-                self.server.wait()
+            reap(self.server, 30)
 
 
 def agent_rss_mb(pid: int) -> float:

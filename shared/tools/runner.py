@@ -135,7 +135,7 @@ def local_dask_cluster(workers: int, workdir: Path, project: Path) -> Iterator[s
     stop on SIGTERM (the nanny's own timeout) where a worker without one stops at once."""
     from distributed import Client
 
-    from shared.tools.fleetsim import free_port, wait_until
+    from shared.tools.fleetsim import free_port, reap, wait_until
 
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
@@ -159,8 +159,4 @@ def local_dask_cluster(workers: int, workdir: Path, project: Path) -> Iterator[s
             for p in group:
                 p.terminate()
             for p in group:
-                try:
-                    p.wait(30)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+                reap(p, 30)
