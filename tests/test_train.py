@@ -150,7 +150,23 @@ def test_snapshot_round_trip_and_checks(trained_run, tmp_path):
     for (k, p), (_, q) in zip(res.policy.named_parameters(), snap.policy.named_parameters(), strict=True):
         assert torch.equal(p, q), k
     assert np.allclose(snap.model.dense(), res.model.dense())
-    assert json.loads((d / "training_summary.json").read_text())["episodes"] == res.summary["episodes"]
+    summary = json.loads((d / "training_summary.json").read_text())
+    assert summary["episodes"] == res.summary["episodes"]
+    # where it was trained: the versions that make the same seeds give the same weights
+    assert summary["trained_with"]["torch"] == torch.__version__ and summary["trained_with"]["numpy"] == np.__version__
+    assert json.loads((d / "policy.json").read_text())["summary"]["trained_with"] == summary["trained_with"]
+    kept = save_snapshot(
+        tmp_path / "again",
+        res.policy,
+        g,
+        res.model,
+        s,
+        "cepg",
+        [0.5, 0.5],
+        {},
+        summary | {"trained_with": {"torch": "0.0"}},
+    )
+    assert json.loads((kept / "training_summary.json").read_text())["trained_with"] == {"torch": "0.0"}
     # the weights file is numpy-readable: the agent's reader gets the same float32 values, no torch
     from safetensors.numpy import load_file
 

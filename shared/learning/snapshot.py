@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import platform
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -78,8 +80,23 @@ def save_snapshot(
     summary: dict[str, Any],
     algorithm: str = "cepg",
 ) -> Path:
-    """Write ``policy`` as a snapshot directory (shared/core/snapshot.py ``write_snapshot``)."""
+    """Write ``policy`` as a snapshot directory (shared/core/snapshot.py ``write_snapshot``); the
+    summary gains ``trained_with`` (``provenance``) unless it has one."""
+    summary = {**summary, "trained_with": summary.get("trained_with") or provenance()}
     return write_snapshot(path, graph, policy_weights(policy), model, sensor, variant, beta, config, summary, algorithm)
+
+
+def provenance() -> dict[str, Any]:
+    """The software and machine a team is trained with: the same seeds give the same weights only
+    with the same versions (and, for some kernels, processor), so a summary says which."""
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+    }
 
 
 def load_snapshot(path: str | Path, graph: Graph, device: torch.device | str = "cpu") -> Snapshot:
