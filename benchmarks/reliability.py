@@ -48,7 +48,7 @@ from shared.core.http import ApiClient, ApiError  # noqa: E402
 from shared.core.models import Sensor, uniform_walk  # noqa: E402
 from shared.core.records import make_record  # noqa: E402
 from shared.core.wire import episode_key, zenoh_config  # noqa: E402
-from shared.tools.fleetsim import _child_env, free_port, launch, wait_until  # noqa: E402
+from shared.tools.fleetsim import _child_env, free_port, launch, reap, wait_until  # noqa: E402
 
 GRAPH = builtin_graph("office")
 
@@ -112,14 +112,11 @@ class ServerProc:
         self.proc.send_signal(signal.SIGKILL)
         self.proc.wait(30)
 
-    def stop(self) -> int:
+    def stop(self) -> int | None:
+        """SIGTERM, then SIGKILL past 30 s: the exit status, or None where it had to be killed."""
         assert self.proc is not None
         self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return self.proc.wait()
+        return reap(self.proc, 30)
 
     def children(self) -> list[int]:
         """Process ids of the server's child processes (its training process)."""
