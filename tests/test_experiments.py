@@ -76,6 +76,21 @@ def test_report_reading_follows_the_numbers(tmp_path):
     (tmp_path / "fig7" / "fig7.json").write_text(json.dumps({**setup, "rows": rows}))
     line = next(x for x in report(tmp_path, tmp_path / "r.md").read_text().splitlines() if x.startswith("- OFFICE"))
     assert "sooner than random 26.0, greedy 10.4 (paired +0.40 ± 0.30)" in line
+    # a protocol run flies one team per method: with fig5's training seeds recorded, the reading
+    # says how far a team moved with its training run there (not for quick runs, nor without fig5)
+    from shared.tools.experiments import _training_spread
+
+    assert "Each method here is one team" not in report(tmp_path, tmp_path / "r.md").read_text()
+    assert _training_spread(tmp_path, {"quick": False}) == []
+    (tmp_path / "fig5").mkdir()
+    per_seed = {"method": "cepg", "beta": 0.5, "training_seeds": [0, 1, 2], "diff_to_pg_per_seed": [-0.2, 0.9, 0.4]}
+    one_seed = {**per_seed, "beta": 0.5, "training_seeds": [0], "diff_to_pg_per_seed": [0.3]}
+    (tmp_path / "fig5" / "fig5.json").write_text(
+        json.dumps({"rows": [{"map": "museum", **per_seed}, {"map": "office", **one_seed}]})
+    )
+    text = " ".join(_training_spread(tmp_path, {"quick": False}))
+    assert "paired difference to PG ranges MUSEUM -0.20 to +0.90 over seeds [0, 1, 2];" in text
+    assert "OFFICE" not in text and _training_spread(tmp_path, {"quick": True}) == []
 
 
 def test_paired_differences_to_cepg_are_over_the_same_episodes():

@@ -1527,6 +1527,7 @@ def report(root: Path, out: Path) -> Path:
             "planners, which fly fewer episodes one at a time, by non-overlapping 95% CIs.",
             "",
         ]
+        lines += _training_spread(root, d)
         lines += _reading(rows)
         env8 = _fig8_map(rows)
         Ns8 = sorted({r["robots"] for r in rows if r["map"] == env8})
@@ -1777,6 +1778,28 @@ def _withdrawal_reading(rows: list[dict[str, Any]]) -> list[str]:
     if not out:
         return []
     return ["The paper: CE-PG does best of the learned methods when a robot is withdrawn. " + " ".join(out), ""]
+
+
+def _training_spread(root: Path, d: dict[str, Any]) -> list[str]:
+    """fig7 flies one team per method and the CI is over episodes; how far a team moves with its
+    training run, from fig5's recorded training seeds (beta 0.5 against PG, seed for seed)."""
+    f5 = root / "fig5" / "fig5.json"
+    if d["quick"] or not f5.exists():
+        return []
+    spans = []
+    for r in json.loads(f5.read_text())["rows"]:
+        per = r.get("diff_to_pg_per_seed") or []
+        if r.get("beta") == 0.5 and len(per) > 1:
+            spans.append(f"{r['map'].upper()} {min(per):+.2f} to {max(per):+.2f} over seeds {r['training_seeds']}")
+    if not spans:
+        return []
+    return [
+        "Each method here is one team (training seed 0), so a paired CI says that these teams differ, "
+        "not that the methods do: another training run moves a team. In Fig. 5 (N = 4) CE-PG's (beta 0.5) "
+        f"paired difference to PG ranges {'; '.join(spans)}; a difference here within that spread "
+        "of zero may change sign with another training run.",
+        "",
+    ]
 
 
 def _beta_reading(rows: list[dict[str, Any]]) -> list[str]:
