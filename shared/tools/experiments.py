@@ -858,17 +858,65 @@ def _plot_fig7(out: Path, rows: list[dict[str, Any]]) -> None:
                     [r["robots"] for r in pts],
                     [r["mean_capture_time"] for r in pts],
                     yerr=[r["ci95_halfwidth"] for r in pts],
-                    marker="o",
                     capsize=3,
                     label=method,
+                    **_style(method),
                 )
         ax.set_title(env.upper())
         ax.set_xlabel("robots N")
         ax.set_ylabel("capture time (steps)")
-    panels[-1][0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "fig7.png", dpi=110)
+        _team_ticks(ax, [r["robots"] for r in rows if r["map"] == env])
+    _legend(fig, [ax for ax, _ in panels])
+    fig.savefig(out / "fig7.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
+
+
+# One look per method in every plot: the CE-PG family solid, the MARL baselines dashed, the
+# planners dotted, the references (random, greedy, oracle) grey; 16 methods outrun a 10-colour cycle.
+_LOOKS = {
+    "pg": ("tab:blue", "o", "-"),
+    "cepg": ("tab:red", "o", "-"),
+    "cepg+": ("tab:purple", "o", "-"),
+    "c-cepg": ("tab:brown", "o", "-"),
+    "maddpg": ("tab:pink", "s", "--"),
+    "masac": ("tab:olive", "s", "--"),
+    "facmac": ("tab:cyan", "s", "--"),
+    "mambpo": ("tab:orange", "s", "--"),
+    "mappo": ("tab:green", "s", "--"),
+    "fhpe": ("#9467bd", "^", ":"),
+    "fhpe-sa": ("#2ca02c", "^", ":"),
+    "milp": ("#1f77b4", "^", ":"),
+    "d-milp": ("#d62728", "^", ":"),
+    "random": ("0.55", "x", "-."),
+    "greedy": ("0.35", "+", "-."),
+    "oracle": ("0.1", "*", "-."),
+}
+
+
+def _style(method: str) -> dict[str, Any]:
+    """matplotlib keywords of a method's line (``_LOOKS``; others get the default cycle)."""
+    if method not in _LOOKS:
+        return {"marker": "o"}
+    color, marker, line = _LOOKS[method]
+    return {"color": color, "marker": marker, "linestyle": line}
+
+
+def _team_ticks(ax: Any, sizes: list[int]) -> None:
+    """Team sizes on the x axis: a tick at each N drawn, half a robot of margin either side."""
+    if sizes:
+        ticks = sorted(set(sizes))
+        ax.set_xticks(ticks)
+        ax.set_xlim(ticks[0] - 0.5, ticks[-1] + 0.5)
+
+
+def _legend(fig: Any, axes: list[Any]) -> None:
+    """One legend for the whole figure, right of its panels, with every method any panel drew."""
+    seen: dict[str, Any] = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            seen.setdefault(label, handle)
+    fig.tight_layout()
+    fig.legend(list(seen.values()), list(seen), fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
 
 
 def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> None:
@@ -897,13 +945,13 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
     for method in dict.fromkeys(r["method"] for r in sel):
         pts = [r for r in sel if r["map"] == env and r["method"] == method]
         if pts:
-            ax.plot([r["robots"] for r in pts], [r["decision_ms"] for r in pts], marker="o", label=method)
+            ax.plot([r["robots"] for r in pts], [r["decision_ms"] for r in pts], label=method, **_style(method))
     ax.set_yscale("log")
     ax.set_xlabel(f"robots N ({env.upper()})")
     ax.set_ylabel("decision time per team step (ms)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "fig8.png", dpi=110)
+    _team_ticks(ax, [r["robots"] for r in sel if r["map"] == env])
+    _legend(fig, [ax])
+    fig.savefig(out / "fig8.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -1147,14 +1195,14 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
                 yerr=[r["ci95_halfwidth"] for _, r in pts],
                 capsize=2,
                 label=m,
+                color=_LOOKS[m][0] if m in _LOOKS else None,
             )
         ax.set_xticks(np.arange(len(groups)) + 0.4 - w / 2, [str(gk) for gk in groups])
         ax.set_xlabel(key)
         ax.set_title(env.upper())
         ax.set_ylabel(ylabel)
-    panels[-1][0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _legend(fig, [ax for ax, _ in panels])
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
