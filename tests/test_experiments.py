@@ -81,16 +81,17 @@ def test_report_reading_follows_the_numbers(tmp_path):
     from shared.tools.experiments import _training_spread
 
     assert "Each method here is one team" not in report(tmp_path, tmp_path / "r.md").read_text()
-    assert _training_spread(tmp_path, {"quick": False}) == []
+    assert _training_spread(tmp_path, {"quick": False, "rows": []}) == []
     (tmp_path / "fig5").mkdir()
     per_seed = {"method": "cepg", "beta": 0.5, "training_seeds": [0, 1, 2], "diff_to_pg_per_seed": [-0.2, 0.9, 0.4]}
     one_seed = {**per_seed, "beta": 0.5, "training_seeds": [0], "diff_to_pg_per_seed": [0.3]}
     (tmp_path / "fig5" / "fig5.json").write_text(
         json.dumps({"rows": [{"map": "museum", **per_seed}, {"map": "office", **one_seed}]})
     )
-    text = " ".join(_training_spread(tmp_path, {"quick": False}))
+    text = " ".join(_training_spread(tmp_path, {"quick": False, "rows": [{"training_seeds": [0]}, {}]}))
+    assert "one team (training seed 0)" in text
     assert "paired difference to PG ranges MUSEUM -0.20 to +0.90 over seeds [0, 1, 2];" in text
-    assert "OFFICE" not in text and _training_spread(tmp_path, {"quick": True}) == []
+    assert "OFFICE" not in text and _training_spread(tmp_path, {"quick": True, "rows": []}) == []
 
 
 def test_paired_differences_to_cepg_are_over_the_same_episodes():

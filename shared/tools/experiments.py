@@ -1841,8 +1841,10 @@ def _training_spread(root: Path, d: dict[str, Any]) -> list[str]:
             spans.append(f"{r['map'].upper()} {min(per):+.2f} to {max(per):+.2f} over seeds {r['training_seeds']}")
     if not spans:
         return []
+    seeds = sorted({s for r in d["rows"] for s in r.get("training_seeds") or []})
     return [
-        "Each method here is one team (training seed 0), so a paired CI says that these teams differ, "
+        f"Each method here is one team (training seed {', '.join(map(str, seeds))}), so a paired CI says "
+        "that these teams differ, "
         "not that the methods do: another training run moves a team. In Fig. 5 (N = 4) CE-PG's (beta 0.5) "
         f"paired difference to PG ranges {'; '.join(spans)}; a difference here within that spread "
         "of zero may change sign with another training run.",
