@@ -910,7 +910,8 @@ def _team_ticks(ax: Any, sizes: list[int]) -> None:
 
 
 def _legend(fig: Any, axes: list[Any]) -> None:
-    """One legend for the whole figure, right of its panels, with every method any panel drew."""
+    """Lay the panels out, then one legend for the whole figure, right of them, with every method any
+    panel drew."""
     seen: dict[str, Any] = {}
     for ax in axes:
         for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
@@ -1195,7 +1196,7 @@ def _bars(path: Path, rows: list[dict[str, Any]], key: str, ylabel: str) -> None
                 yerr=[r["ci95_halfwidth"] for _, r in pts],
                 capsize=2,
                 label=m,
-                color=_LOOKS[m][0] if m in _LOOKS else None,
+                color=_style(m).get("color"),
             )
         ax.set_xticks(np.arange(len(groups)) + 0.4 - w / 2, [str(gk) for gk in groups])
         ax.set_xlabel(key)
