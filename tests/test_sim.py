@@ -166,6 +166,22 @@ def test_the_trainers_lean_mode_plays_the_same_episodes():
         ):
             assert torch.equal(a, b)
     assert not lean.any_alive
+    # and episodes restarted in the slots of finished ones, with a noisy sensor (false alarms,
+    # captures at t = 0 pending): the same episodes again
+    sensor = Sensor(eta_fn=0.2, eta_fp=0.1)
+    full_r = SearchSim(g, uniform_walk(g), sensor, 3, 64, seed=6)
+    lean_r = SearchSim(g, uniform_walk(g), sensor, 3, 64, seed=6, check_actions=False, details=False)
+    obs_f, obs_l = full_r.reset(), lean_r.reset()
+    ended = 0
+    for _ in range(200):
+        act = searcher.act(obs_f)
+        (obs_f, res_f), (obs_l, res_l) = full_r.step(act), lean_r.step(act)
+        for a, b in ((obs_f.pos, obs_l.pos), (obs_f.z, obs_l.z), (obs_f.t, obs_l.t), (obs_f.new, obs_l.new)):
+            assert torch.equal(a, b)
+        assert torch.equal(res_f.done, res_l.done) and torch.equal(res_f.censored, res_l.censored)
+        assert torch.equal(res_f.capture_time, res_l.capture_time)
+        ended += int(res_f.done.sum())
+    assert ended > 64  # slots were restarted
     far = next(v for v in range(g.n) if v not in set(g.closed(g.start).tolist()))  # not one move from s
     full.reset()
     with pytest.raises(ValueError, match="is not in N"):

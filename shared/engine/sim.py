@@ -139,6 +139,7 @@ class SearchSim:
         self.false_alarms = torch.zeros(B, dtype=torch.long, device=dev)
         self.active = torch.ones(B, N, dtype=torch.bool, device=dev)
         self._new = torch.zeros(B, dtype=torch.bool, device=dev)
+        self.moving = torch.zeros(B, dtype=torch.bool, device=dev)  # set by each step
 
     # ------------------------------------------------------------------ internals
     def _rand(self, *shape: int) -> torch.Tensor:
@@ -170,13 +171,15 @@ class SearchSim:
         self.target = torch.where(mask, e0, self.target)
         self.pos = torch.where(m1, torch.full_like(self.pos, self.start), self.pos)
         self.t = torch.where(mask, torch.zeros_like(self.t), self.t)
-        self.active = torch.where(m1, (self.withdraw_at > 0).expand(self.B, self.N), self.active)
+        if self.withdrawals:  # otherwise every robot stays active throughout
+            self.active = torch.where(m1, (self.withdraw_at > 0).expand(self.B, self.N), self.active)
         z, in_d = self._observe()
         self.z = torch.where(m1, z, self.z)
-        hits = z & in_d & m1
-        self.false_alarms = torch.where(mask, (z & ~in_d).sum(1), self.false_alarms)
+        hits = (in_d if self.perfect else z & in_d) & m1
         self.pending = torch.where(mask, hits.any(1), self.pending)
-        self.pending_by = torch.where(mask, self._first(hits), self.pending_by)
+        if self.details:  # false alarms and who captured at t = 0 (StepResult's details)
+            self.false_alarms = torch.where(mask, (z & ~in_d).sum(1), self.false_alarms)
+            self.pending_by = torch.where(mask, self._first(hits), self.pending_by)
         self.alive = self.alive | mask
         self._new = mask
 
@@ -194,7 +197,7 @@ class SearchSim:
         if actions.shape != (self.B, self.N):
             raise ValueError(f"expected actions of shape {(self.B, self.N)}, got {tuple(actions.shape)}")
         actions = actions.to(device=self.device, dtype=torch.long)
-        moving = self.alive & ~self.pending  # (B,)
+        moving = self.moving = self.alive & ~self.pending  # (B,) the episodes this step advances
         act = torch.where(
             self.active & moving.unsqueeze(1) if self.withdrawals else moving.unsqueeze(1), actions, self.pos
         )

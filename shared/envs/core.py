@@ -117,13 +117,27 @@ class EnvCore:
         self.n, self.N, self.B, self.d = g.n, scenario.robots, batch, scenario.d
         self.device = torch.device(device)
         self.sim = SearchSim(
-            g, scenario.target, scenario.sensor, scenario.robots, batch, seed=seed, device=device, auto_reset=False
+            g,
+            scenario.target,
+            scenario.sensor,
+            scenario.robots,
+            batch,
+            seed=seed,
+            device=device,
+            auto_reset=False,
+            # ``destinations`` only leads into N[p], and nothing here reads false alarms or who
+            # captured: the simulator's own action check and that bookkeeping are skipped
+            check_actions=False,
+            details=False,
         )
         self.belief = BatchedBelief(g, scenario.belief_model, scenario.sensor, self.device)
         self.nbr = torch.as_tensor(g.nbr, device=self.device)  # (n, d)
         deg = torch.as_tensor(g.deg_closed, device=self.device)
         self.valid = torch.arange(self.d, device=self.device) < deg.unsqueeze(1)  # (n, d)
-        self.nbr_flat, self.valid_flat = self.nbr.reshape(-1), self.valid.reshape(-1)  # (n d,) row p*d + k
+        # (n d,) entry p d + k: the node action k leads to from p; a masked k means staying (N[p]'s
+        # first entry, p itself): one gather turns actions into destinations
+        self.dest_flat = torch.where(self.valid, self.nbr, self.nbr[:, :1]).reshape(-1)
+        self.eye = torch.eye(self.n, dtype=torch.float32, device=self.device)  # onehot(p) rows
         self.offsets = torch.arange(self.N + 1, device=self.device) * self.n  # state's onehot blocks
         self.b = torch.zeros(batch, self.N, self.n, device=self.device)  # (B, N, n) beliefs
         self.capture_time = torch.zeros(batch, dtype=torch.long, device=self.device)
@@ -159,18 +173,17 @@ class EnvCore:
         if action.shape != (self.B, self.N):
             raise ValueError(f"expected actions of shape {(self.B, self.N)}, got {tuple(action.shape)}")
         action = action.to(device=self.device, dtype=torch.long)
-        if bool(((action < 0) | (action >= self.d)).any()):
-            raise ValueError(
-                f"action indices must be in [0, {self.d}), got {action.min().item()}..{action.max().item()}"
-            )
-        moving = self.sim.alive & ~self.sim.pending
+        lo, hi = (int(x) for x in torch.aminmax(action))
+        if lo < 0 or hi >= self.d:
+            raise ValueError(f"action indices must be in [0, {self.d}), got {lo}..{hi}")
         obs, res = self.sim.step(self.destinations(self.sim.pos, action))
+        moving = self.sim.moving
         lik = self.belief.likelihood(obs.pos, obs.z)
         b = self.belief.update(self.b, lik)  # Eq. 1
         self.b = b if bool(moving.all()) else torch.where(moving.view(-1, 1, 1), b, self.b)
         reward = -moving.to(torch.float32)
-        terminated = res.done & ~res.censored
-        truncated = res.done & res.censored
+        truncated = res.censored  # a censored episode is done
+        terminated = res.done ^ truncated
         self.capture_time = torch.where(res.done, res.capture_time, self.capture_time)
         self.captured |= terminated  # False from the reset until the episode ends
         ended, ct_sum, censored = self._ended
@@ -182,8 +195,8 @@ class EnvCore:
     def destinations(self, pos: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """The nodes that action indices lead to: pos, action (...) -> node rows (...); a masked
         index means staying (index 0, p itself)."""
-        flat = pos * self.d + action  # entries of the (n, d) tables
-        return self.nbr_flat[torch.where(self.valid_flat[flat], flat, flat - action)]
+        flat = torch.add(action, pos, alpha=self.d)  # entries p d + k of the (n, d) table
+        return self.dest_flat.index_select(0, flat.reshape(-1)).view(flat.shape)
 
     def take_stats(self) -> tuple[int, float, int]:
         """(episodes ended, their summed capture times, how many were censored) since the last call."""
@@ -200,14 +213,13 @@ class EnvCore:
 
     def encode_observation(self, pos: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Positions (M, N) and beliefs (M, N, n) as observations (M, N, 2n)."""
-        obs = torch.empty((*b.shape[:-1], 2 * self.n), dtype=b.dtype, device=self.device)
-        obs[..., self.n :] = b
-        obs[..., : self.n].zero_().scatter_(-1, pos.unsqueeze(-1), 1.0)
-        return obs
+        onehot = self.eye.index_select(0, pos.reshape(-1)).view(*pos.shape, self.n)
+        return torch.cat([onehot, b], dim=-1)
 
     def action_mask(self, rows: torch.Tensor | None = None) -> torch.Tensor:
         """(B, N, d) bool."""
-        return self.valid[self.sim.pos if rows is None else self.sim.pos[rows]]
+        pos = self.sim.pos if rows is None else self.sim.pos[rows]
+        return self.valid.index_select(0, pos.reshape(-1)).view(*pos.shape, self.d)
 
     def state(self, rows: torch.Tensor | None = None) -> torch.Tensor:
         """(B, S) the global state for centralised critics (module docstring)."""
@@ -220,5 +232,5 @@ class EnvCore:
         """Positions (M, N), target rows (M,) and times (M,) as global states (M, S)."""
         where = torch.cat([pos, target.unsqueeze(1)], dim=1) + self.offsets  # (M, N + 1) columns of the ones
         out = torch.zeros(len(where), self.scenario.state_size, device=self.device)
-        out[:, -1] = t.to(torch.float32) / self.scenario.t_max
+        torch.div(t, self.scenario.t_max, out=out.select(1, -1))  # true division: t.float() / T_max
         return out.scatter_(1, where, 1.0)

@@ -180,10 +180,12 @@ class MuresTorchEnv(EnvBase):
         agents = {"observation": obs, "action_mask": mask}
         if reward is not None:
             agents["reward"] = reward.view(-1, 1, 1).expand(-1, core.N, 1).clone()
-        # the device on both levels: a nested TensorDict without one costs a .to() per entry
-        return TensorDict(
+        # the device on both levels: a nested TensorDict without one costs a .to() per entry.
+        # Every entry is made here with its spec's shape, dtype and device, so the checks of
+        # TensorDict's constructor are skipped (as TorchRL's own gym-like environments do)
+        return TensorDict._new_unsafe(
             {
-                "agents": TensorDict(agents, batch_size=obs.shape[:2], device=self.device),
+                "agents": TensorDict._new_unsafe(agents, batch_size=obs.shape[:2], device=self.device),
                 "state": state,
                 **{k: v.view(-1, 1) for k, v in done.items()},
             },
@@ -207,28 +209,27 @@ class MuresTorchEnv(EnvBase):
     def maybe_reset(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Restart the finished episodes of a step_mdp'd tensordict: what ``EnvBase.maybe_reset``
         does through ``reset`` (a "_reset" mask, ``_reset``, then a masked merge of every entry),
-        done directly: the restarted slots' observation, mask, state and done flags are written
-        into new tensors (the old ones are shared with the step's "next" data, which must keep the
-        final observations). Same result, entry by entry (tests/test_envs.py), with a fraction of
-        the tensor operations. A TransformedEnv around this one takes the generic path."""
+        done directly. The observation, mask and state are built afresh for every slot (the old
+        tensors are shared with the step's "next" data, which must keep the final observations;
+        a running slot's entries come out as they were, since its position and belief did not
+        change). Same result, entry by entry (tests/test_envs.py), with a fraction of the tensor
+        operations. A TransformedEnv around this one takes the generic path."""
         done = tensordict.get("done", None)
         if done is None or not bool(done.any()):
             return tensordict
         core = self.core
         core.reset(done.reshape(core.B))
-        rows = core.last_reset
-        # after the reset no slot is done; the masks are small enough to recompute for all slots
+        # after the reset no slot is done
         flags = torch.zeros(3, core.B, 1, dtype=torch.bool, device=self.device)
         fresh: dict[tuple[str, ...], torch.Tensor] = {
-            ("agents", "observation"): tensordict.get(("agents", "observation")).index_put(
-                (rows,), core.observation(rows)
-            ),
+            ("agents", "observation"): core.observation(),
             ("agents", "action_mask"): core.action_mask(),
-            ("state",): tensordict.get("state").index_put((rows,), core.state(rows)),
+            ("state",): core.state(),
             **{k: f for k, f in zip(_DONE_KEYS, flags, strict=True)},
         }
         # reset's merge: a full reset updates the reset entries only; a partial one also pads
         # every other entry (the last action, ...) with 0 in the restarted slots
+        rows = core.last_reset
         partial = len(rows) < core.B
         for key in tensordict.keys(include_nested=True, leaves_only=True, is_leaf=_is_tensor):
             k = key if isinstance(key, tuple) else (key,)
