@@ -18,11 +18,19 @@ was trained for, its mean capture time (95% CI), its paired difference to the re
 curve's capture time over the tenth of its run ending at the middle and over the last tenth
 (still falling at the end: not yet its plateau); with --out, also
 writes them as JSON.
+
+With --add, the teams' rows are added to the --out file already written (a team of the same name
+replaces its row), so that a longer budget can be compared without flying the others again. The
+setup (map, N, episodes, seed) must be the file's, and the reference must fly exactly as the
+file's did (the digest of its capture times, or for files written before the digest existed its
+mean and CI): the paired differences are to the same episodes of the same team, or the command
+stops before it writes anything.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -83,7 +91,21 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=1500)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", type=Path, help="write the rows as JSON here")
+    ap.add_argument("--add", action="store_true", help="add the teams' rows to the --out file (module docstring)")
     args = ap.parse_args()
+    setup = {"map": args.env, "robots": args.robots, "episodes": args.episodes, "seed": args.seed}
+    old_rows: list[dict] = []
+    if args.add:
+        if args.out is None or not args.out.is_file():
+            ap.error("--add needs --out naming the JSON file that an earlier run wrote")
+        try:
+            old = json.loads(args.out.read_text())
+            old_rows = list(old["rows"])
+            old_setup = {k: old[k] for k in setup}
+        except (ValueError, KeyError, TypeError) as e:
+            ap.error(f"{args.out} is not a plateau file written by this script: {e}")
+        if old_setup != setup:
+            ap.error(f"{args.out} was flown with {old_setup}, this run with {setup}: the rows would not be paired")
     missing = [str(p) for p in (args.reference, *args.teams) if not (p / "policy.json").is_file()]
     if missing:  # before any team is flown: a typo should not cost the others' minutes
         ap.error(f"not a snapshot directory (no policy.json): {', '.join(missing)}")
@@ -91,13 +113,38 @@ def main() -> None:
     t0 = time.perf_counter()
     ref_info, ref = fly(args.reference, args.env, args.robots, args.episodes, args.seed)
     m, h = mean_ci95(ref)
-    rows = [{**ref_info, "reference": True, "mean_capture_time": round(m, 3), "ci95_halfwidth": round(h, 3)}]
+    digest = hashlib.sha256(ref.astype(np.int64).tobytes()).hexdigest()
+    rows = [
+        {
+            **ref_info,
+            "reference": True,
+            "mean_capture_time": round(m, 3),
+            "ci95_halfwidth": round(h, 3),
+            "capture_times_sha256": digest,
+        }
+    ]
+    if args.add:
+        before = next((r for r in old_rows if r.get("reference")), {})
+        same = (
+            before.get("capture_times_sha256") == digest
+            if "capture_times_sha256" in before
+            else (before.get("mean_capture_time"), before.get("ci95_halfwidth")) == (round(m, 3), round(h, 3))
+        )
+        if not same:
+            ap.error(
+                f"the reference {args.reference} captures in {m:.3f} ± {h:.3f} on these episodes, the one in "
+                f"{args.out} ({before.get('team')}) in {before.get('mean_capture_time')} ± "
+                f"{before.get('ci95_halfwidth')}: not the same team, so the paired differences would not compare"
+            )
+        # the file's reference row stays as it was written (its team's training record included)
+        rows = [{**before, "capture_times_sha256": digest}, *(r for r in old_rows if not r.get("reference"))]
     print(f"{args.env.upper()} N={args.robots}, {args.episodes} episodes, seed {args.seed}")
     print(f"  reference {ref_info['algorithm']:<7} {ref_info['train_episodes']:>9,} episodes  {m:6.2f} ± {h:.2f}")
     for path in args.teams:
         info, t = fly(path, args.env, args.robots, args.episodes, args.seed)
         m, h = mean_ci95(t)
         dm, dh = mean_ci95(t - ref)
+        rows = [r for r in rows if r.get("reference") or r["team"] != info["team"]]
         rows.append(
             {
                 **info,
@@ -113,7 +160,6 @@ def main() -> None:
             f"{_said(info['curve_at_end'])} at the end"
         )
     if args.out:
-        setup = {"map": args.env, "robots": args.robots, "episodes": args.episodes, "seed": args.seed}
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({**setup, "rows": rows}, indent=1) + "\n")
         print(f"wrote {args.out} in {time.perf_counter() - t0:.0f} s")

@@ -467,6 +467,22 @@ def test_marl_experiment_and_its_report(tmp_path, monkeypatch):
     row = f"| maddpg | {rows[2]['train_episodes']:,} | {rows[2]['train_wall_seconds']:.0f} | "
     assert "### Past the budget: OFFICE, N = 4" in text and row in text
 
+    # --add: another team's row joins the file, paired with the same reference; the others stay
+    mappo = next(snaps.glob("office-N4-mappo-*-s0"))
+    subprocess.run([*argv[:4], str(mappo), *argv[6:], "--add"], check=True, capture_output=True, text=True)
+    added = json.loads(out.read_text())["rows"]
+    assert [r["algorithm"] for r in added] == ["cepg", "cepg", "maddpg", "mappo"]
+    assert added[:3] == [{**rows[0], "capture_times_sha256": added[0]["capture_times_sha256"]}, *rows[1:]]
+    # ... but not against another reference, nor with other episodes: an error, and the file unchanged
+    kept = out.read_text()
+    for wrong in (
+        [sys.executable, str(script), "--reference", str(team), str(mappo), *argv[6:], "--add"],
+        [*argv[:4], str(mappo), "--episodes", "31", "--out", str(out), "--add"],
+    ):
+        bad = subprocess.run(wrong, capture_output=True, text=True)
+        assert bad.returncode == 2 and ("not the same team" in bad.stderr or "would not be paired" in bad.stderr)
+        assert out.read_text() == kept
+
 
 def _rows(path):
     """An experiment's rows without their timings (which differ from run to run)."""
