@@ -482,6 +482,10 @@ def test_marl_experiment_and_its_report(tmp_path, monkeypatch):
         bad = subprocess.run(wrong, capture_output=True, text=True)
         assert bad.returncode == 2 and ("not the same team" in bad.stderr or "would not be paired" in bad.stderr)
         assert out.read_text() == kept
+    # teams paired with another reference go to a file of their own: one table a file in the report
+    (out.parent / "plateau-b.json").write_text(kept)
+    text = report(tmp_path, tmp_path / "results.md").read_text()
+    assert text.count("### Past the budget: OFFICE, N = 4") == 2 and "(marl/plateau-b.json)" in text
 
 
 def _rows(path):

@@ -2032,15 +2032,16 @@ def _marl_report(root: Path, rel: str) -> list[str]:
 
 
 def _plateau_report(root: Path) -> list[str]:
-    """Teams trained past their budget (benchmarks/marl_plateau.py -> marl/plateau.json), paired
-    with the reference team on the same episodes."""
-    f = root / "marl" / "plateau.json"
-    if not f.exists():
-        return []
+    """Teams trained past their budget (benchmarks/marl_plateau.py -> marl/plateau*.json, one table
+    a file: each file's teams are paired with its own reference team on the same episodes)."""
+    return [line for f in sorted((root / "marl").glob("plateau*.json")) for line in _plateau_table(f)]
+
+
+def _plateau_table(f: Path) -> list[str]:
     d = json.loads(f.read_text())
     ref = next(r for r in d["rows"] if r.get("reference"))
     lines = [
-        f"### Past the budget: {d['map'].upper()}, N = {d['robots']}",
+        f"### Past the budget: {d['map'].upper()}, N = {d['robots']} (marl/{f.name})",
         "",
         f"Teams of one method trained for growing budgets (seed {ref['training_seed']}), each flown on the same "
         f"{d['episodes']} episodes (seed {d['seed']}) as the reference, {ref['algorithm']} trained for "
