@@ -162,13 +162,17 @@ def test_fp_sweep_reading_says_whether_the_capture_time_moved():
 
 
 def test_marl_budgets_per_method():
-    """The protocol trains MAPPO for 4x10^5 episodes, MADDPG and MASAC for 3x10^5 (10^5 was not their
-    plateau), the other baselines for 10^5; --train-episodes sets every learned team's budget alike."""
+    """The protocol trains MAPPO for 4x10^5 episodes, MADDPG and MASAC for 3x10^5, MAMBPO for 2x10^5
+    (10^5 was not their plateau), FACMAC for 10^5; --train-episodes sets every learned team's budget alike."""
     from shared.tools.experiments import FULL, _marl_budget, _setup
 
     assert FULL.marl_episodes("mappo") == 400_000 and FULL.marl_episodes("maddpg") == 300_000
     assert FULL.marl_episodes("masac") == 300_000 and FULL.marl_episodes("facmac") == 100_000
-    assert _marl_budget(_setup("fig7", FULL)) == "100,000 episodes (MAPPO 400,000, MADDPG 300,000, MASAC 300,000)"
+    assert FULL.marl_episodes("mambpo") == 200_000
+    assert (
+        _marl_budget(_setup("fig7", FULL))
+        == "100,000 episodes (MAPPO 400,000, MADDPG 300,000, MASAC 300,000, MAMBPO 200,000)"
+    )
     b = FULL.with_train(5_000)
     assert b.marl_episodes("mappo") == b.marl_episodes("masac") == 5_000
     assert _marl_budget(_setup("fig7", b)) == "5,000 episodes"

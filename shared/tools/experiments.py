@@ -222,10 +222,11 @@ class Budget:
         return tuple(default) if self.robots is None else self.robots
 
 
-# MAPPO trains for 4x10^5 episodes (as CE-PG), MADDPG and MASAC for 3x10^5: at 10^5 none had reached
-# its plateau (OFFICE, N = 4, the same 1500 episodes; benchmarks/marl_plateau.py): MAPPO 8.54 +- 0.41
-# at 10^5, 7.88 +- 0.36 at 4x10^5; MADDPG 11.54 +- 0.51 at 10^5, 9.92 +- 0.43 at 3x10^5; MASAC
-# 8.10 +- 0.43 at 10^5, 7.31 +- 0.30 at 3x10^5
+# MAPPO trains for 4x10^5 episodes (as CE-PG), MADDPG and MASAC for 3x10^5, MAMBPO for 2x10^5: at
+# 10^5 none had reached its plateau (OFFICE, N = 4, the same 1500 episodes; benchmarks/marl_plateau.py,
+# results/marl/plateau*.json): MAPPO 8.54 +- 0.41 at 10^5, 7.88 +- 0.36 at 4x10^5; MADDPG 11.54 +- 0.51
+# at 10^5, 9.92 +- 0.43 at 3x10^5; MASAC 8.10 +- 0.43 at 10^5, 7.31 +- 0.30 at 3x10^5; MAMBPO 8.05 +-
+# 0.39 at 10^5, 7.60 +- 0.31 at 2x10^5 (paired -0.45 +- 0.32). FACMAC's curve is flat at 10^5
 FULL = Budget(
     False,
     1500,
@@ -236,7 +237,7 @@ FULL = Budget(
     marl_train=100_000,
     seeds=(0, 1, 2),
     d_milp=30,
-    marl_train_for=(("mappo", 400_000), ("maddpg", 300_000), ("masac", 300_000)),
+    marl_train_for=(("mappo", 400_000), ("maddpg", 300_000), ("masac", 300_000), ("mambpo", 200_000)),
 )
 QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4), marl_train=1_000)
 MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.MARL_ALGORITHMS
@@ -2034,7 +2035,8 @@ def _marl_report(root: Path, rel: str) -> list[str]:
 def _plateau_report(root: Path) -> list[str]:
     """Teams trained past their budget (benchmarks/marl_plateau.py -> marl/plateau*.json, one table
     a file: each file's teams are paired with its own reference team on the same episodes)."""
-    return [line for f in sorted((root / "marl").glob("plateau*.json")) for line in _plateau_table(f)]
+    files = sorted((root / "marl").glob("plateau*.json"), key=lambda f: (f.name != "plateau.json", f.name))
+    return [line for f in files for line in _plateau_table(f)]
 
 
 def _plateau_table(f: Path) -> list[str]:
