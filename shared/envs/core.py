@@ -205,28 +205,23 @@ class EnvCore:
         return int(e), float(ct), int(c)
 
     # ------------------------------------------------------------------ views
-    def observation(self, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, N, 2n): onehot(p^i) and b^i; only the episode slots ``rows`` (k,) when given."""
-        if rows is None:
-            return self.encode_observation(self.sim.pos, self.b)
-        return self.encode_observation(self.sim.pos[rows], self.b[rows])
+    def observation(self) -> torch.Tensor:
+        """(B, N, 2n): onehot(p^i) and b^i."""
+        return self.encode_observation(self.sim.pos, self.b)
 
     def encode_observation(self, pos: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Positions (M, N) and beliefs (M, N, n) as observations (M, N, 2n)."""
         onehot = self.eye.index_select(0, pos.reshape(-1)).view(*pos.shape, self.n)
         return torch.cat([onehot, b], dim=-1)
 
-    def action_mask(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+    def action_mask(self) -> torch.Tensor:
         """(B, N, d) bool."""
-        pos = self.sim.pos if rows is None else self.sim.pos[rows]
+        pos = self.sim.pos
         return self.valid.index_select(0, pos.reshape(-1)).view(*pos.shape, self.d)
 
-    def state(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+    def state(self) -> torch.Tensor:
         """(B, S) the global state for centralised critics (module docstring)."""
-        sim = self.sim
-        if rows is None:
-            return self.encode_state(sim.pos, sim.target, sim.t)
-        return self.encode_state(sim.pos[rows], sim.target[rows], sim.t[rows])
+        return self.encode_state(self.sim.pos, self.sim.target, self.sim.t)
 
     def encode_state(self, pos: torch.Tensor, target: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """Positions (M, N), target rows (M,) and times (M,) as global states (M, S)."""

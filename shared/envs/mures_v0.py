@@ -164,19 +164,12 @@ class MuresTorchEnv(EnvBase):
     def graph(self) -> Graph:
         return self.scenario.graph
 
-    def _observe(
-        self, rows: torch.Tensor | None = None, reward: torch.Tensor | None = None, **done: torch.Tensor
-    ) -> TensorDict:
-        """Observations of every slot, or of the slots ``rows`` only: the others are zeros, which
-        TorchRL never reads (a partial reset keeps the other slots' data, ``_update_during_reset``);
-        with the team's ``reward`` (B,) and the done flags (B,) when given."""
+    def _observe(self, reward: torch.Tensor | None = None, **done: torch.Tensor) -> TensorDict:
+        """Observations of every slot (after a partial reset TorchRL reads the restarted slots'
+        only, ``_update_during_reset``), with the team's ``reward`` (B,) and the done flags (B,)
+        when given."""
         core = self.core
-        obs, mask, state = core.observation(rows), core.action_mask(rows), core.state(rows)
-        if rows is not None:
-            full = [torch.zeros((core.B, *x.shape[1:]), dtype=x.dtype, device=x.device) for x in (obs, mask, state)]
-            for f, x in zip(full, (obs, mask, state), strict=True):
-                f[rows] = x
-            obs, mask, state = full
+        obs, mask, state = core.observation(), core.action_mask(), core.state()
         agents = {"observation": obs, "action_mask": mask}
         if reward is not None:
             agents["reward"] = reward.view(-1, 1, 1).expand(-1, core.N, 1).clone()
@@ -198,9 +191,8 @@ class MuresTorchEnv(EnvBase):
         if tensordict is not None and "_reset" in tensordict.keys():  # noqa: SIM118 - a TensorDict's keys
             mask = tensordict.get("_reset").reshape(self.core.B)
         self.core.reset(mask)
-        rows = None if mask is None or bool(mask.all()) else self.core.last_reset
         flags = torch.zeros(3, self.core.B, dtype=torch.bool, device=self.device)
-        return self._observe(rows, done=flags[0], terminated=flags[1], truncated=flags[2])
+        return self._observe(done=flags[0], terminated=flags[1], truncated=flags[2])
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
         reward, term, trunc = self.core.step(tensordict.get(("agents", "action")))
