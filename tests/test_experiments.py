@@ -76,6 +76,13 @@ def test_report_reading_follows_the_numbers(tmp_path):
     (tmp_path / "fig7" / "fig7.json").write_text(json.dumps({**setup, "rows": rows}))
     line = next(x for x in report(tmp_path, tmp_path / "r.md").read_text().splitlines() if x.startswith("- OFFICE"))
     assert "sooner than random 26.0, greedy 10.4 (paired +0.40 ± 0.30)" in line
+    # a team that captures exactly when CE-PG does in every episode (C-CE-PG at N = 1) is said so
+    rows.append({**rows[0], "method": "c-cepg", "diff_to_cepg": 0.0, "diff_to_cepg_ci95": 0.0})
+    (tmp_path / "fig7" / "fig7.json").write_text(json.dumps({**setup, "rows": rows}))
+    line = next(x for x in report(tmp_path, tmp_path / "r.md").read_text().splitlines() if x.startswith("- OFFICE"))
+    assert line.endswith("; the same capture time as CE-PG in every episode: c-cepg; oracle bound 5.0.")
+    assert "not separated from c-cepg" not in line
+    rows.pop()
     # a protocol run flies one team per method: with fig5's training seeds recorded, the reading
     # says how far a team moved with its training run there (not for quick runs, nor without fig5)
     from shared.tools.experiments import _training_spread
@@ -92,6 +99,34 @@ def test_report_reading_follows_the_numbers(tmp_path):
     assert "one team (training seed 0)" in text
     assert "paired difference to PG ranges MUSEUM -0.20 to +0.90 over seeds [0, 1, 2];" in text
     assert "OFFICE" not in text and _training_spread(tmp_path, {"quick": True, "rows": []}) == []
+
+
+def test_fig8_tables_and_plots_every_map(tmp_path):
+    """Decision times are reported for every map fig7 covers, in fig7's order, each with its own
+    team sizes, and plotted one panel per map."""
+    from shared.tools.experiments import _plot_fig8
+
+    rows = [
+        {"map": env, "robots": n, "method": m, "decision_ms": ms, "episodes": 10, "seed": 1}
+        | {"mean_capture_time": 9.0, "ci95_halfwidth": 1.0, "censored_fraction": 0.0, "team_steps": 1}
+        for env, sizes in (("office", (1, 4)), ("museum", (4,)))
+        for n in sizes
+        for m, ms in (("cepg", 1.0 * n), ("milp", 1000.0))
+    ]
+    setup = {"quick": True, "machine": {"cpus": 2, "date": "today"}, "milp_time_limit_s": 1.0, "seed": 1}
+    setup |= {"episodes": 10, "planner_episodes": 2, "fhpe_sa_episodes": 8, "training_episodes": 10}
+    setup |= {"horizons": {}, "discount": 0.97, "wall_seconds": 1.0}
+    (tmp_path / "fig7").mkdir()
+    (tmp_path / "fig7" / "fig7.json").write_text(json.dumps({**setup, "rows": rows}))
+    _plot_fig8(tmp_path / "fig8", rows, setup)
+    assert len(json.loads((tmp_path / "fig8" / "fig8.json").read_text())["rows"]) == 6
+    assert (tmp_path / "fig8" / "fig8.png").stat().st_size > 1000
+    section = report(tmp_path, tmp_path / "results.md").read_text().split("## Fig. 8")[1].split("\n## ")[0]
+    office, museum = section.index("OFFICE:"), section.index("MUSEUM:")
+    assert office < museum
+    assert "| method | N=1 | N=4 |" in section[office:museum] and "| method | N=4 |" in section[museum:]
+    assert "| cepg | 1 | 4 |" in section[office:museum] and "| cepg | 4 |" in section[museum:]
+    assert "OFFICE: milp / cepg = 250x" in section and "MUSEUM: milp / cepg = 250x" in section
 
 
 def test_paired_differences_to_cepg_are_over_the_same_episodes():

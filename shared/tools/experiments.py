@@ -942,25 +942,20 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
         },
         sel,
     )
-    env = _fig8_map(sel)
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for method in dict.fromkeys(r["method"] for r in sel):
-        pts = [r for r in sel if r["map"] == env and r["method"] == method]
-        if pts:
-            ax.plot([r["robots"] for r in pts], [r["decision_ms"] for r in pts], label=method, **_style(method))
-    ax.set_yscale("log")
-    ax.set_xlabel(f"robots N ({env.upper()})")
-    ax.set_ylabel("decision time per team step (ms)")
-    _team_ticks(ax, [r["robots"] for r in sel if r["map"] == env])
-    _legend(fig, [ax])
+    fig, panels = _panels(plt, sel)  # one panel per map, as fig7's
+    for ax, env in panels:
+        for method in dict.fromkeys(r["method"] for r in sel):
+            pts = [r for r in sel if r["map"] == env and r["method"] == method]
+            if pts:
+                ax.plot([r["robots"] for r in pts], [r["decision_ms"] for r in pts], label=method, **_style(method))
+        ax.set_yscale("log")
+        ax.set_title(env.upper())
+        ax.set_xlabel("robots N")
+        ax.set_ylabel("decision time per team step (ms)")
+        _team_ticks(ax, [r["robots"] for r in sel if r["map"] == env])
+    _legend(fig, [ax for ax, _ in panels])
     fig.savefig(out / "fig8.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
-
-
-def _fig8_map(rows: list[dict[str, Any]]) -> str:
-    """The map Fig. 8 shows: the paper's, MUSEUM (the larger), when the rows have it."""
-    maps = maps_in(rows)
-    return "museum" if "museum" in maps or not maps else maps[0]
 
 
 # ---------------------------------------------------------------------- fig5, fig6
@@ -1579,37 +1574,41 @@ def report(root: Path, out: Path) -> Path:
         ]
         lines += _training_spread(root, d)
         lines += _reading(rows)
-        env8 = _fig8_map(rows)
-        Ns8 = sorted({r["robots"] for r in rows if r["map"] == env8})
         lines += [
             "",
             "## Fig. 8: decision time per team step",
             "",
             "Milliseconds per team step, one episode at a time (batch 1), the simulator's step included "
-            f"(about 0.1 ms), {env8.upper()}:",
-            "",
-            "| method | " + " | ".join(f"N={n}" for n in Ns8) + " |",
-            "| --- |" + " --- |" * len(Ns8),
+            "(about 0.1 ms), measured as Fig. 7's cells ran. The paper shows MUSEUM.",
         ]
-        for m in methods:
-            cells = []
-            for n in Ns8:
-                r = next((x for x in rows if x["map"] == env8 and x["robots"] == n and x["method"] == m), None)
-                cells.append("—" if r is None else f"{r['decision_ms']:.3g}")
-            lines.append(f"| {m} | " + " | ".join(cells) + " |")
-        r4 = {r["method"]: r for r in rows if r["map"] == env8 and r["robots"] == 4}
-        if "cepg" in r4:
-            ratios = [
-                f"{m} / cepg = {r4[m]['decision_ms'] / r4['cepg']['decision_ms']:.0f}x"
-                for m in ("fhpe-sa", "milp", "d-milp")
-                if m in r4
-            ]
+        for env in maps_in(rows):
+            Ns8 = sorted({r["robots"] for r in rows if r["map"] == env})
             lines += [
                 "",
-                f"Decision-time ratios at N = 4 on {env8.upper()}: {', '.join(ratios)}. HiGHS stops each MILP "
-                f"solve at {d['milp_time_limit_s']} s (d-milp solves once per robot), so the MILPs' times "
-                "here are bounded by that limit, not by what an optimal solve would take.",
+                f"{env.upper()}:",
+                "",
+                "| method | " + " | ".join(f"N={n}" for n in Ns8) + " |",
+                "| --- |" + " --- |" * len(Ns8),
             ]
+            for m in methods:
+                cells = []
+                for n in Ns8:
+                    r = next((x for x in rows if x["map"] == env and x["robots"] == n and x["method"] == m), None)
+                    cells.append("—" if r is None else f"{r['decision_ms']:.3g}")
+                lines.append(f"| {m} | " + " | ".join(cells) + " |")
+            r4 = {r["method"]: r for r in rows if r["map"] == env and r["robots"] == 4}
+            if "cepg" in r4:
+                ratios = [
+                    f"{m} / cepg = {r4[m]['decision_ms'] / r4['cepg']['decision_ms']:.0f}x"
+                    for m in ("fhpe-sa", "milp", "d-milp")
+                    if m in r4
+                ]
+                lines += ["", f"Decision-time ratios at N = 4 on {env.upper()}: {', '.join(ratios)}."]
+        lines += [
+            "",
+            f"HiGHS stops each MILP solve at {d['milp_time_limit_s']} s (d-milp solves once per robot), so "
+            "the MILPs' times here are bounded by that limit, not by what an optimal solve would take.",
+        ]
         lines += ["", f"![fig8]({rel}/fig8/fig8.png)", ""]
     ct, fa = ("mean_capture_time", "ci95_halfwidth"), ("false_alarms_per_episode", "false_alarms_ci95_halfwidth")
     tables = (  # figure, title, table rows by, columns by, value, a note on the setup
@@ -2104,11 +2103,15 @@ def _reading(rows: list[dict[str, Any]]) -> list[str]:
             worse: list[str] = []
             tied: list[str] = []
             few: list[str] = []
+            same: list[str] = []
             for m, r in cell.items():
                 if m in ("cepg", "oracle"):
                     continue
                 if r["episodes"] < 2 or not math.isfinite(r["ci95_halfwidth"]):
                     few.append(f"{m} {r['mean_capture_time']:.1f}")
+                    continue
+                if r.get("diff_to_cepg") == 0 and r.get("diff_to_cepg_ci95") == 0:
+                    same.append(m)  # every paired difference 0: C-CE-PG at N = 1 is CE-PG
                     continue
                 gap, sep = _gap(r, c)
                 text = f"{m} {r['mean_capture_time']:.1f}" + (
@@ -2122,6 +2125,8 @@ def _reading(rows: list[dict[str, Any]]) -> list[str]:
                 line += f"; later than {', '.join(worse)}"
             if tied:
                 line += f"; not separated from {', '.join(tied)}"
+            if same:
+                line += f"; the same capture time as CE-PG in every episode: {', '.join(same)}"
             if few:
                 line += f"; one episode only, not compared: {', '.join(few)}"
             if "oracle" in cell:
