@@ -19,6 +19,10 @@ curve's capture time over the tenth of its run ending at the middle and over the
 (still falling at the end: not yet its plateau); with --out, also
 writes them as JSON.
 
+Each row also keeps its capture times, episode by episode, so that a team is paired with the same
+method's next shorter budget in the file as well (team - shorter team, 95% CI): the plateau test
+proper, since a budget that no longer captures sooner than half of it is past the plateau.
+
 With --add, the teams' rows are added to the --out file already written (a team of the same name
 replaces its row), so that a longer budget can be compared without flying the others again. The
 setup (map, N, episodes, seed) must be the file's, and the reference must fly exactly as the
@@ -32,6 +36,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import re
 import time
 from pathlib import Path
 
@@ -82,6 +87,38 @@ def _said(x: float | None) -> str:
     return "—" if x is None else f"{x:.2f}"
 
 
+def pair_budgets(rows: list[dict]) -> list[dict]:
+    """The reference first, then each method's rows by budget (the reference's method first); every row that has capture times and
+    a shorter budget of its method with them gets its paired difference to the longest such one:
+    diff_to_shorter_budget (this team - that team, steps; negative: the longer run captures sooner),
+    its 95% CI half-width, and shorter_budget_episodes (that team's training episodes)."""
+    first = sorted(rows, key=lambda r: not r.get("reference"))  # the reference's method, then by appearance
+    order = {a: i for i, a in enumerate(dict.fromkeys(r["algorithm"] for r in first))}
+    out = sorted(rows, key=lambda r: (not r.get("reference"), order[r["algorithm"]], r["train_episodes"] or 0))
+    keys = ("diff_to_shorter_budget", "diff_to_shorter_budget_ci95", "shorter_budget_episodes")
+    for r in out:
+        for k in keys:
+            r.pop(k, None)
+        shorter = [
+            q
+            for q in out
+            if q["algorithm"] == r["algorithm"]
+            and "capture_times" in q
+            and (q["train_episodes"] or 0) < (r["train_episodes"] or 0)
+        ]
+        if "capture_times" in r and shorter:
+            q = max(shorter, key=lambda q: q["train_episodes"])
+            dm, dh = mean_ci95(np.asarray(r["capture_times"], float) - np.asarray(q["capture_times"], float))
+            r.update(zip(keys, (round(dm, 3), round(dh, 3), q["train_episodes"]), strict=True))
+    return out
+
+
+def _dumps(d: dict) -> str:
+    """JSON, indented, with each row's capture times on one line."""
+    text = json.dumps(d, indent=1)
+    return re.sub(r"\[\n\s*(-?\d+(?:,\n\s*-?\d+)*)\n\s*\]", lambda m: "[" + re.sub(r"\s+", " ", m.group(1)) + "]", text)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("teams", nargs="+", type=Path, help="snapshot directories to compare")
@@ -121,6 +158,7 @@ def main() -> None:
             "mean_capture_time": round(m, 3),
             "ci95_halfwidth": round(h, 3),
             "capture_times_sha256": digest,
+            "capture_times": ref.astype(int).tolist(),
         }
     ]
     if args.add:
@@ -137,7 +175,10 @@ def main() -> None:
                 f"{before.get('ci95_halfwidth')}: not the same team, so the paired differences would not compare"
             )
         # the file's reference row stays as it was written (its team's training record included)
-        rows = [{**before, "capture_times_sha256": digest}, *(r for r in old_rows if not r.get("reference"))]
+        rows = [
+            {**before, "capture_times_sha256": digest, "capture_times": ref.astype(int).tolist()},
+            *(r for r in old_rows if not r.get("reference")),
+        ]
     print(f"{args.env.upper()} N={args.robots}, {args.episodes} episodes, seed {args.seed}")
     print(f"  reference {ref_info['algorithm']:<7} {ref_info['train_episodes']:>9,} episodes  {m:6.2f} ± {h:.2f}")
     for path in args.teams:
@@ -152,6 +193,7 @@ def main() -> None:
                 "ci95_halfwidth": round(h, 3),
                 "diff_to_reference": round(dm, 3),
                 "diff_to_reference_ci95": round(dh, 3),
+                "capture_times": t.astype(int).tolist(),
             }
         )
         print(
@@ -159,9 +201,16 @@ def main() -> None:
             f"paired vs reference {dm:+.2f} ± {dh:.2f}   training curve {_said(info['curve_at_half'])} at half, "
             f"{_said(info['curve_at_end'])} at the end"
         )
+    rows = pair_budgets(rows)
+    for r in rows:
+        if "diff_to_shorter_budget" in r:
+            print(
+                f"  {r['algorithm']} {r['train_episodes']:,} - {r['shorter_budget_episodes']:,} episodes, paired: "
+                f"{r['diff_to_shorter_budget']:+.2f} ± {r['diff_to_shorter_budget_ci95']:.2f}"
+            )
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({**setup, "rows": rows}, indent=1) + "\n")
+        args.out.write_text(_dumps({**setup, "rows": rows}) + "\n")
         print(f"wrote {args.out} in {time.perf_counter() - t0:.0f} s")
 
 

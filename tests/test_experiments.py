@@ -527,6 +527,64 @@ def test_marl_experiment_and_its_report(tmp_path, monkeypatch):
     assert text.count("### Past the budget: OFFICE, N = 4") == 2 and "(marl/plateau-b.json)" in text
 
 
+def test_plateau_pairs_each_budget_with_the_methods_next_shorter_one(tmp_path):
+    """benchmarks/marl_plateau.py's plateau test: each team against the same method's longest shorter
+    budget, episode by episode; rows without capture times (files written before they were kept) and
+    a method's shortest budget get none. The report shows the column."""
+    import importlib.util
+
+    from shared.tools.experiments import _plateau_report
+
+    spec = importlib.util.spec_from_file_location(
+        "marl_plateau", Path(__file__).parents[1] / "benchmarks" / "marl_plateau.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    def row(alg, eps, times=None, **kw):
+        r = {"algorithm": alg, "train_episodes": eps, "team": f"{alg}-{eps}", **kw}
+        return r if times is None else {**r, "capture_times": times}
+
+    rows = mod.pair_budgets(
+        [
+            row("mambpo", 400, [4, 6, 6, 4]),
+            row("cepg", 400, [5, 5, 5, 5], reference=True),
+            row("mambpo", 100, [9, 9, 9, 9]),
+            row("mambpo", 200, [5, 7, 5, 7]),
+            row("masac", 300),  # no capture times kept
+            row("masac", 600, [1, 2, 3, 4]),
+            row("cepg", 800, [4, 4, 4, 4]),
+        ]
+    )
+    assert [(r["algorithm"], r["train_episodes"]) for r in rows] == [
+        ("cepg", 400),
+        ("cepg", 800),
+        ("mambpo", 100),
+        ("mambpo", 200),
+        ("mambpo", 400),
+        ("masac", 300),
+        ("masac", 600),
+    ]
+    by = {(r["algorithm"], r["train_episodes"]): r for r in rows}
+    assert by["mambpo", 200]["diff_to_shorter_budget"] == -3.0 and by["mambpo", 200]["shorter_budget_episodes"] == 100
+    assert by["mambpo", 400]["diff_to_shorter_budget"] == -1.0 and by["mambpo", 400]["shorter_budget_episodes"] == 200
+    assert by["mambpo", 400]["diff_to_shorter_budget_ci95"] > 0  # the differences -1, -1, +1, -3 vary
+    assert by["cepg", 800]["diff_to_shorter_budget"] == -1.0 and by["cepg", 800]["diff_to_shorter_budget_ci95"] == 0
+    assert all("diff_to_shorter_budget" not in by[k] for k in (("cepg", 400), ("mambpo", 100), ("masac", 600)))
+    text = mod._dumps({"rows": rows})
+    assert '"capture_times": [5, 5, 5, 5]' in text and json.loads(text) == {"rows": rows}
+
+    f = tmp_path / "marl" / "plateau.json"
+    f.parent.mkdir()
+    common = {"training_seed": 0, "train_wall_seconds": 1.0, "mean_capture_time": 5.0, "ci95_halfwidth": 1.0}
+    for r in rows:
+        r.update(common, diff_to_reference=0.0, diff_to_reference_ci95=0.0)
+    f.write_text(mod._dumps({"map": "office", "robots": 4, "episodes": 4, "seed": 1, "rows": rows}))
+    text = "\n".join(_plateau_report(tmp_path))  # the MARL section's tail (that section needs marl.json)
+    assert "| mambpo | 400 | 1 | 5.00 ± 1.00 | +0.00 ± 0.00 | -1.00 ± " in text and "(vs 200) |" in text
+    assert "| masac | 600 | 1 | 5.00 ± 1.00 | +0.00 ± 0.00 | — |" in text
+
+
 def _rows(path):
     """An experiment's rows without their timings (which differ from run to run)."""
     rows = json.loads(path.read_text())["rows"]

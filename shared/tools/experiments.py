@@ -2051,11 +2051,13 @@ def _plateau_table(f: Path) -> list[str]:
         "`python benchmarks/marl_plateau.py` made this table; its docstring has the training commands. "
         "Training curve: the team's capture time while it trained (exploring, on its training episodes) over the "
         "tenth of its run ending at the middle, and over the last tenth; still falling at the end means the "
-        "budget was not yet its plateau.",
+        "budget was not yet its plateau. Paired vs shorter budget: the team - the same method's next shorter "
+        "budget in this table, on the same episodes (where the file kept both teams' capture times); a longer "
+        "budget that does not capture sooner than the shorter one is past the plateau.",
         "",
         "| method | training episodes | training wall s | capture time | paired vs reference "
-        "| training curve: middle -> end |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| paired vs shorter budget | training curve: middle -> end |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
     ]
 
     def said(x: float | None, digits: int = 2) -> str:
@@ -2065,9 +2067,15 @@ def _plateau_table(f: Path) -> list[str]:
         paired = (
             "reference" if r.get("reference") else f"{r['diff_to_reference']:+.2f} ± {r['diff_to_reference_ci95']:.2f}"
         )
+        shorter = (
+            f"{r['diff_to_shorter_budget']:+.2f} ± {r['diff_to_shorter_budget_ci95']:.2f} "
+            f"(vs {r['shorter_budget_episodes']:,})"
+            if "diff_to_shorter_budget" in r
+            else "—"
+        )
         lines.append(
             f"| {r['algorithm']} | {r['train_episodes']:,} | {said(r['train_wall_seconds'], 0)} "
-            f"| {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], d['episodes'])} | {paired} "
+            f"| {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], d['episodes'])} | {paired} | {shorter} "
             f"| {said(r.get('curve_at_half'))} -> {said(r.get('curve_at_end'))} |"
         )
     return [*lines, ""]
