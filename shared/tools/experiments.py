@@ -1525,27 +1525,14 @@ def report(root: Path, out: Path) -> Path:
             "exceed 10^6.",
             "",
         ]
+
+        def capture(r: dict[str, Any]) -> str:
+            half = f" ± {r['ci95_halfwidth']:.1f}" if math.isfinite(r["ci95_halfwidth"]) else ""
+            return f"{r['mean_capture_time']:.1f}{half} ({r['episodes']})"
+
         for env in maps_in(rows):
-            Ns = sorted({r["robots"] for r in rows if r["map"] == env})
-            lines += [
-                f"### {env.upper()} (mean capture time ± 95% CI half-width, episodes)",
-                "",
-                "| method | " + " | ".join(f"N={n}" for n in Ns) + " |",
-                "| --- |" + " --- |" * len(Ns),
-            ]
-            for m in methods:
-                cells = []
-                for n in Ns:
-                    r = next((x for x in rows if x["map"] == env and x["robots"] == n and x["method"] == m), None)
-                    txt = (
-                        "—"
-                        if r is None
-                        else f"{r['mean_capture_time']:.1f}"
-                        + (f" ± {r['ci95_halfwidth']:.1f}" if math.isfinite(r["ci95_halfwidth"]) else "")
-                    )
-                    cells.append(txt if r is None else f"{txt} ({r['episodes']})")
-                lines.append(f"| {m} | " + " | ".join(cells) + " |")
-            lines.append("")
+            lines += [f"### {env.upper()} (mean capture time ± 95% CI half-width, episodes)", ""]
+            lines += [*_by_team_size(rows, env, methods, capture), ""]
         lines += [
             f"![fig7]({rel}/fig7/fig7.png)",
             "",
@@ -1582,20 +1569,8 @@ def report(root: Path, out: Path) -> Path:
             "(about 0.1 ms), measured as Fig. 7's cells ran. The paper shows MUSEUM.",
         ]
         for env in maps_in(rows):
-            Ns8 = sorted({r["robots"] for r in rows if r["map"] == env})
-            lines += [
-                "",
-                f"{env.upper()}:",
-                "",
-                "| method | " + " | ".join(f"N={n}" for n in Ns8) + " |",
-                "| --- |" + " --- |" * len(Ns8),
-            ]
-            for m in methods:
-                cells = []
-                for n in Ns8:
-                    r = next((x for x in rows if x["map"] == env and x["robots"] == n and x["method"] == m), None)
-                    cells.append("—" if r is None else f"{r['decision_ms']:.3g}")
-                lines.append(f"| {m} | " + " | ".join(cells) + " |")
+            lines += ["", f"{env.upper()}:", ""]
+            lines += _by_team_size(rows, env, methods, lambda r: f"{r['decision_ms']:.3g}")
             r4 = {r["method"]: r for r in rows if r["map"] == env and r["robots"] == 4}
             if "cepg" in r4:
                 ratios = [
@@ -2029,6 +2004,22 @@ def _marl_report(root: Path, rel: str) -> list[str]:
             f"| {_fmt(r['mean_capture_time'], r['ci95_halfwidth'], r['episodes'])} |"
         )
     return [*lines, "", *_plateau_report(root)]
+
+
+def _by_team_size(
+    rows: list[dict[str, Any]], env: str, methods: list[str], cell: Callable[[dict[str, Any]], str]
+) -> list[str]:
+    """A markdown table of one map's rows: a line per method, a column per team size N, ``cell(row)``
+    in each (— where the method has no row at that N)."""
+    Ns = sorted({r["robots"] for r in rows if r["map"] == env})
+    out = ["| method | " + " | ".join(f"N={n}" for n in Ns) + " |", "| --- |" + " --- |" * len(Ns)]
+    for m in methods:
+        at: dict[int, dict[str, Any]] = {}
+        for r in rows:
+            if r["map"] == env and r["method"] == m:
+                at.setdefault(r["robots"], r)  # the first row of a size, as the figure's own order
+        out.append(f"| {m} | " + " | ".join(cell(at[n]) if n in at else "—" for n in Ns) + " |")
+    return out
 
 
 def _plateau_report(root: Path) -> list[str]:
