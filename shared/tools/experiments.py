@@ -843,6 +843,14 @@ def fig7(root: Path, b: Budget) -> Path:
 
 
 def _plot_fig7(out: Path, rows: list[dict[str, Any]]) -> None:
+    _plot_by_team_size(out / "fig7.png", rows, "mean_capture_time", "capture time (steps)", half="ci95_halfwidth")
+
+
+def _plot_by_team_size(
+    path: Path, rows: list[dict[str, Any]], value: str, ylabel: str, half: str | None = None, log: bool = False
+) -> None:
+    """One panel per map, a line per method over the team sizes N: ``value`` (with ``half`` as
+    error bars when given; a log axis with ``log``). Fig. 7's capture times, Fig. 8's decision times."""
     if _PLAN is not None:
         return
     import matplotlib
@@ -854,21 +862,21 @@ def _plot_fig7(out: Path, rows: list[dict[str, Any]]) -> None:
     for ax, env in panels:
         for method in dict.fromkeys(r["method"] for r in rows):
             pts = [r for r in rows if r["map"] == env and r["method"] == method]
-            if pts:
-                ax.errorbar(
-                    [r["robots"] for r in pts],
-                    [r["mean_capture_time"] for r in pts],
-                    yerr=[r["ci95_halfwidth"] for r in pts],
-                    capsize=3,
-                    label=method,
-                    **_style(method),
-                )
+            if not pts:
+                continue
+            x, y = [r["robots"] for r in pts], [r[value] for r in pts]
+            if half is None:
+                ax.plot(x, y, label=method, **_style(method))
+            else:
+                ax.errorbar(x, y, yerr=[r[half] for r in pts], capsize=3, label=method, **_style(method))
+        if log:
+            ax.set_yscale("log")
         ax.set_title(env.upper())
         ax.set_xlabel("robots N")
-        ax.set_ylabel("capture time (steps)")
+        ax.set_ylabel(ylabel)
         _team_ticks(ax, [r["robots"] for r in rows if r["map"] == env])
     _legend(fig, [ax for ax, _ in panels])
-    fig.savefig(out / "fig7.png", dpi=110, bbox_inches="tight")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -924,11 +932,6 @@ def _legend(fig: Any, axes: list[Any]) -> None:
 def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> None:
     if _PLAN is not None:
         return
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     sel = [{k: r[k] for k in ("map", "robots", "method", "decision_ms")} for r in rows]
     _write(
         out,
@@ -942,20 +945,7 @@ def _plot_fig8(out: Path, rows: list[dict[str, Any]], setup: dict[str, Any]) -> 
         },
         sel,
     )
-    fig, panels = _panels(plt, sel)  # one panel per map, as fig7's
-    for ax, env in panels:
-        for method in dict.fromkeys(r["method"] for r in sel):
-            pts = [r for r in sel if r["map"] == env and r["method"] == method]
-            if pts:
-                ax.plot([r["robots"] for r in pts], [r["decision_ms"] for r in pts], label=method, **_style(method))
-        ax.set_yscale("log")
-        ax.set_title(env.upper())
-        ax.set_xlabel("robots N")
-        ax.set_ylabel("decision time per team step (ms)")
-        _team_ticks(ax, [r["robots"] for r in sel if r["map"] == env])
-    _legend(fig, [ax for ax, _ in panels])
-    fig.savefig(out / "fig8.png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
+    _plot_by_team_size(out / "fig8.png", sel, "decision_ms", "decision time per team step (ms)", log=True)
 
 
 # ---------------------------------------------------------------------- fig5, fig6
