@@ -26,7 +26,7 @@ proper, since a budget that no longer captures sooner than half of it is past th
 With --add, the teams' rows are added to the --out file already written (a team of the same name
 replaces its row), so that a longer budget can be compared without flying the others again. The
 setup (map, N, episodes, seed) must be the file's, and the reference must fly exactly as the
-file's did (the digest of its capture times, or for files written before the digest existed its
+file's did (its capture times, episode by episode, or for files written before they were kept its
 mean and CI): the paired differences are to the same episodes of the same team, or the command
 stops before it writes anything.
 """
@@ -34,7 +34,6 @@ stops before it writes anything.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import re
 import time
@@ -150,22 +149,20 @@ def main() -> None:
     t0 = time.perf_counter()
     ref_info, ref = fly(args.reference, args.env, args.robots, args.episodes, args.seed)
     m, h = mean_ci95(ref)
-    digest = hashlib.sha256(ref.astype(np.int64).tobytes()).hexdigest()
     rows = [
         {
             **ref_info,
             "reference": True,
             "mean_capture_time": round(m, 3),
             "ci95_halfwidth": round(h, 3),
-            "capture_times_sha256": digest,
             "capture_times": ref.astype(int).tolist(),
         }
     ]
     if args.add:
         before = next((r for r in old_rows if r.get("reference")), {})
         same = (
-            before.get("capture_times_sha256") == digest
-            if "capture_times_sha256" in before
+            before["capture_times"] == ref.astype(int).tolist()
+            if "capture_times" in before
             else (before.get("mean_capture_time"), before.get("ci95_halfwidth")) == (round(m, 3), round(h, 3))
         )
         if not same:
@@ -176,7 +173,7 @@ def main() -> None:
             )
         # the file's reference row stays as it was written (its team's training record included)
         rows = [
-            {**before, "capture_times_sha256": digest, "capture_times": ref.astype(int).tolist()},
+            {**before, "capture_times": ref.astype(int).tolist()},
             *(r for r in old_rows if not r.get("reference")),
         ]
     print(f"{args.env.upper()} N={args.robots}, {args.episodes} episodes, seed {args.seed}")
