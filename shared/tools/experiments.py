@@ -205,13 +205,14 @@ class Budget:
         return replace(
             self,
             train=part(self.train),
-            marl_train=None if self.marl_train is None else part(self.marl_train),
-            marl_train_for=tuple((m, part(e)) for m, e in self.marl_train_for),
+            marl_train=None,
+            marl_train_for=tuple((m, part(self.marl_episodes(m))) for m in MARL),
         )
 
-    def marl_episodes(self, method: str) -> int | None:
-        """Training episodes of a MARL baseline's teams in the figures (None: its default)."""
-        return dict(self.marl_train_for).get(method, self.marl_train)
+    def marl_episodes(self, method: str) -> int:
+        """Training episodes of a MARL baseline's teams in the figures: ``marl_train_for``'s, else
+        ``marl_train``, else the method's default budget (its plateau on OFFICE, N = 4)."""
+        return dict(self.marl_train_for).get(method) or self.marl_train or _marl_hyper_episodes(method)
 
     def planner_episodes(self, method: str) -> int:
         """Episodes a planner's cell flies: ``planner``, 4x for fhpe-sa, ``d_milp`` for d-milp."""
@@ -222,23 +223,11 @@ class Budget:
         return tuple(default) if self.robots is None else self.robots
 
 
-# MAPPO trains for 4x10^5 episodes (as CE-PG), MADDPG and MASAC for 3x10^5, MAMBPO for 2x10^5: at
-# 10^5 none had reached its plateau (OFFICE, N = 4, the same 1500 episodes; benchmarks/marl_plateau.py,
-# results/marl/plateau*.json): MAPPO 8.54 +- 0.41 at 10^5, 7.88 +- 0.36 at 4x10^5; MADDPG 11.54 +- 0.51
-# at 10^5, 9.92 +- 0.43 at 3x10^5; MASAC 8.10 +- 0.43 at 10^5, 7.31 +- 0.30 at 3x10^5; MAMBPO 8.05 +-
-# 0.39 at 10^5, 7.60 +- 0.31 at 2x10^5 (paired -0.45 +- 0.32). FACMAC's curve is flat at 10^5
-FULL = Budget(
-    False,
-    1500,
-    400_000,
-    100,
-    1.0,
-    (1, 2, 3, 4, 5),
-    marl_train=100_000,
-    seeds=(0, 1, 2),
-    d_milp=30,
-    marl_train_for=(("mappo", 400_000), ("maddpg", 300_000), ("masac", 300_000), ("mambpo", 200_000)),
-)
+# The MARL baselines train for their default budgets, each its plateau on OFFICE, N = 4
+# (benchmarks/marl_plateau.py, results/marl/plateau*.json; the values and their evidence are in
+# shared/learning/marl/<method>.py): MAPPO 4x10^5 (as CE-PG), MADDPG and MASAC 3x10^5, MAMBPO 2x10^5,
+# FACMAC 10^5
+FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5), seeds=(0, 1, 2), d_milp=30)
 QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4), marl_train=1_000)
 MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.MARL_ALGORITHMS
 SEED = 1  # evaluation seed of every cell (training seeds: 0)
@@ -809,7 +798,7 @@ def _setup(name: str, b: Budget, **extra: Any) -> dict[str, Any]:
         "episodes": b.episodes,
         "training_episodes": b.train,
         "marl_training_episodes": b.marl_train or "each method's default",
-        **({"marl_training_episodes_by_method": dict(b.marl_train_for)} if b.marl_train_for else {}),
+        **({} if b.marl_train else {"marl_training_episodes_by_method": {m: b.marl_episodes(m) for m in MARL}}),
         "seed": SEED,
         "maps": list(b.maps),
         **extra,
@@ -1247,7 +1236,7 @@ def marl(root: Path, b: Budget) -> Path:
         rows.append(_cell(env, N, "random", _reference(env, N, "random", sensor), b.episodes, latency=True))
         rows.append(_cell(env, N, "cepg", _learned(root, env, N, "cepg", b), b.episodes, latency=True))
         for m in MARL:
-            path = _marl_snapshot(root, env, N, m, b.marl_train, 0)
+            path = _marl_snapshot(root, env, N, m, b.marl_episodes(m), 0)
             summary = _summary(path)
             row = _cell(env, N, m, _learned(root, env, N, m, b), b.episodes, latency=True)
             row.update(
@@ -1625,8 +1614,9 @@ def report(root: Path, out: Path) -> Path:
             f"## {title}",
             "",
             f"Setup: {d['episodes']} episodes per cell, seed {d['seed']}; learned teams "
-            f"trained for {_trained(d)}; MARL baselines: {_marl_budget(d)}; "
-            f"quick={d['quick']}; {d['machine']['date']}. "
+            f"trained for {_trained(d)}; "
+            + (f"MARL baselines: {_marl_budget(d)}; " if any(r.get("method") in MARL for r in rows) else "")
+            + f"quick={d['quick']}; {d['machine']['date']}. "
             + (
                 f"Planners: {d['planner_episodes']} episodes (fhpe-sa {d['fhpe_sa_episodes']}, d-milp "
                 f"{d.get('d_milp_episodes', d['planner_episodes'])}), MILP time limit "
@@ -1932,8 +1922,15 @@ def _marl_budget(setup: dict[str, Any]) -> str:
     given = setup.get("marl_training_episodes")
     if given is None:
         return "(not recorded)"
-    said = f"{given:,} episodes" if isinstance(given, int) else "each method's default budget"
     by = setup.get("marl_training_episodes_by_method") or {}
+    if isinstance(given, int):
+        said = f"{given:,} episodes"
+    else:  # files from before the setup listed the defaults: they were other budgets then
+        said = (
+            "each method's default budget"
+            if by
+            else "each method's default budget when recorded (each row's training episodes)"
+        )
     return said + (" (" + ", ".join(f"{m.upper()} {e:,}" for m, e in by.items()) + ")" if by else "")
 
 

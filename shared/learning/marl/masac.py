@@ -29,7 +29,8 @@ from shared.learning.train import TrainResult
 
 @dataclass
 class MasacHyper(OffPolicyHyper):
-    episodes: int = 20_000
+    # OFFICE, N = 4: 8.11 at 10^5 episodes, 7.31 at 3x10^5 (results/marl/plateau.json)
+    episodes: int = 300_000
     lr: float = 3e-4
     critic_lr: float = 1e-3
     target_entropy: float = 0.3  # entropy target as a share of a uniform move's entropy
