@@ -29,7 +29,8 @@ from shared.learning.train import TrainResult
 
 @dataclass
 class MasacHyper(OffPolicyHyper):
-    # OFFICE, N = 4: 8.11 at 10^5 episodes, 7.31 at 3x10^5 (results/marl/plateau.json)
+    # its plateau on OFFICE, N = 4: 8.11 at 10^5 episodes, 7.31 at 3x10^5 (results/marl/plateau.json); 6x10^5
+    # against 3x10^5 +0.57 +- 0.32 steps on the same episodes (results/marl/plateau-masac.json)
     episodes: int = 300_000
     lr: float = 3e-4
     critic_lr: float = 1e-3
