@@ -377,7 +377,7 @@ def test_the_remaining_figures_are_recorded_one_map_at_a_time(tmp_path, monkeypa
 
 
 def test_budgets_scaled_keep_the_methods_ratios():
-    from shared.tools.experiments import FULL
+    from shared.tools.experiments import FULL, _marl_budget, _setup
 
     b = FULL.scaled(0.25)
     assert (b.train, b.marl_episodes("facmac"), b.marl_episodes("mappo"), b.marl_episodes("maddpg")) == (
@@ -385,6 +385,9 @@ def test_budgets_scaled_keep_the_methods_ratios():
         25_000,
         100_000,
         75_000,
+    )
+    assert _marl_budget(_setup("fig7", b)) == (
+        "each method's own budget (MADDPG 75,000, MASAC 75,000, FACMAC 25,000, MAMBPO 50,000, MAPPO 100,000)"
     )
     for bad in (0.0, 1.5, float("nan")):
         with pytest.raises(ValueError, match="--train-fraction takes a fraction in"):

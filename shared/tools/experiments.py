@@ -797,7 +797,8 @@ def _setup(name: str, b: Budget, **extra: Any) -> dict[str, Any]:
         "quick": b.quick,
         "episodes": b.episodes,
         "training_episodes": b.train,
-        "marl_training_episodes": b.marl_train or "each method's default",
+        "marl_training_episodes": b.marl_train
+        or ("each method's own" if b.marl_train_for else "each method's default"),
         **({} if b.marl_train else {"marl_training_episodes_by_method": {m: b.marl_episodes(m) for m in MARL}}),
         "seed": SEED,
         "maps": list(b.maps),
@@ -1925,12 +1926,12 @@ def _marl_budget(setup: dict[str, Any]) -> str:
     by = setup.get("marl_training_episodes_by_method") or {}
     if isinstance(given, int):
         said = f"{given:,} episodes"
+    elif given == "each method's own":  # --train-fraction: a fraction of each method's default
+        said = "each method's own budget"
+    elif by:
+        said = "each method's default budget"
     else:  # files from before the setup listed the defaults: they were other budgets then
-        said = (
-            "each method's default budget"
-            if by
-            else "each method's default budget when recorded (each row's training episodes)"
-        )
+        said = "each method's default budget when recorded (each row's training episodes)"
     return said + (" (" + ", ".join(f"{m.upper()} {e:,}" for m, e in by.items()) + ")" if by else "")
 
 
