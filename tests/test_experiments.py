@@ -198,16 +198,16 @@ def test_fp_sweep_reading_says_whether_the_capture_time_moved():
 
 def test_marl_budgets_per_method():
     """The protocol trains each MARL baseline for its default budget, its plateau on OFFICE, N = 4:
-    MAPPO 4x10^5 episodes, MADDPG and MASAC 3x10^5, MAMBPO 2x10^5, FACMAC 10^5; --train-episodes
+    MAPPO 4x10^5 episodes, MADDPG and MASAC 3x10^5, MAMBPO and FACMAC 2x10^5; --train-episodes
     sets every learned team's budget alike."""
     from shared.learning.marl import hyperparameters
     from shared.tools.experiments import FULL, MARL, _marl_budget, _setup
 
-    plateau = {"mappo": 400_000, "maddpg": 300_000, "masac": 300_000, "facmac": 100_000, "mambpo": 200_000}
+    plateau = {"mappo": 400_000, "maddpg": 300_000, "masac": 300_000, "facmac": 200_000, "mambpo": 200_000}
     assert {m: FULL.marl_episodes(m) for m in MARL} == plateau
     assert {m: hyperparameters(m).episodes for m in MARL} == plateau
     assert _marl_budget(_setup("fig7", FULL)) == (
-        "each method's default budget (MADDPG 300,000, MASAC 300,000, FACMAC 100,000, MAMBPO 200,000, MAPPO 400,000)"
+        "each method's default budget (MADDPG 300,000, MASAC 300,000, FACMAC 200,000, MAMBPO 200,000, MAPPO 400,000)"
     )
     b = FULL.with_train(5_000)
     assert b.marl_episodes("mappo") == b.marl_episodes("masac") == 5_000
@@ -382,12 +382,12 @@ def test_budgets_scaled_keep_the_methods_ratios():
     b = FULL.scaled(0.25)
     assert (b.train, b.marl_episodes("facmac"), b.marl_episodes("mappo"), b.marl_episodes("maddpg")) == (
         100_000,
-        25_000,
+        50_000,
         100_000,
         75_000,
     )
     assert _marl_budget(_setup("fig7", b)) == (
-        "each method's own budget (MADDPG 75,000, MASAC 75,000, FACMAC 25,000, MAMBPO 50,000, MAPPO 100,000)"
+        "each method's own budget (MADDPG 75,000, MASAC 75,000, FACMAC 50,000, MAMBPO 50,000, MAPPO 100,000)"
     )
     for bad in (0.0, 1.5, float("nan")):
         with pytest.raises(ValueError, match="--train-fraction takes a fraction in"):

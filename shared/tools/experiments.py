@@ -226,7 +226,7 @@ class Budget:
 # The MARL baselines train for their default budgets, each its plateau on OFFICE, N = 4
 # (benchmarks/marl_plateau.py, results/marl/plateau*.json; the values and their evidence are in
 # shared/learning/marl/<method>.py): MAPPO 4x10^5 (as CE-PG), MADDPG and MASAC 3x10^5, MAMBPO 2x10^5,
-# FACMAC 10^5
+# FACMAC 2x10^5 (better than 10^5; 4x10^5 not measured yet)
 FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5), seeds=(0, 1, 2), d_milp=30)
 QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4), marl_train=1_000)
 MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.MARL_ALGORITHMS
