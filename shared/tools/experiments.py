@@ -223,13 +223,14 @@ class Budget:
         return tuple(default) if self.robots is None else self.robots
 
 
-# The MARL baselines train for their default budgets, each its plateau on OFFICE, N = 4
-# (benchmarks/marl_plateau.py, results/marl/plateau*.json; the values and their evidence are in
-# shared/learning/marl/<method>.py): MAPPO 4x10^5 (as CE-PG), MADDPG and MASAC 3x10^5, MAMBPO 2x10^5,
-# FACMAC 2x10^5 (better than 10^5; 4x10^5 not measured yet)
+# The MARL baselines train for their default budgets (marl_train None): each method's plateau on
+# OFFICE, N = 4, set with its evidence in shared/learning/marl/<method>.py
 FULL = Budget(False, 1500, 400_000, 100, 1.0, (1, 2, 3, 4, 5), seeds=(0, 1, 2), d_milp=30)
 QUICK = Budget(True, 200, 2_000, 1, 0.05, (2, 4), marl_train=1_000)
 MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.MARL_ALGORITHMS
+# a setup's "marl_training_episodes" when no one budget is given: the defaults, or (--train-fraction)
+# a fraction of each; "marl_training_episodes_by_method" has the numbers
+MARL_DEFAULT, MARL_OWN = "each method's default", "each method's own"
 SEED = 1  # evaluation seed of every cell (training seeds: 0)
 ETAS = (0.0, 0.1, 0.3, 0.5)  # the paper's sensor-noise grid (Fig. 9-11)
 LEARNED = {"pg": ("cepg", 1.0), "cepg": ("cepg", 0.5), "cepg+": ("cepg+", 0.5), "c-cepg": ("c-cepg", 0.5)}
@@ -797,8 +798,7 @@ def _setup(name: str, b: Budget, **extra: Any) -> dict[str, Any]:
         "quick": b.quick,
         "episodes": b.episodes,
         "training_episodes": b.train,
-        "marl_training_episodes": b.marl_train
-        or ("each method's own" if b.marl_train_for else "each method's default"),
+        "marl_training_episodes": b.marl_train or (MARL_OWN if b.marl_train_for else MARL_DEFAULT),
         **({} if b.marl_train else {"marl_training_episodes_by_method": {m: b.marl_episodes(m) for m in MARL}}),
         "seed": SEED,
         "maps": list(b.maps),
@@ -1926,7 +1926,7 @@ def _marl_budget(setup: dict[str, Any]) -> str:
     by = setup.get("marl_training_episodes_by_method") or {}
     if isinstance(given, int):
         said = f"{given:,} episodes"
-    elif given == "each method's own":  # --train-fraction: a fraction of each method's default
+    elif given == MARL_OWN:
         said = "each method's own budget"
     elif by:
         said = "each method's default budget"
