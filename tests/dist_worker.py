@@ -14,7 +14,7 @@ from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
 from shared.learning.config import TrainConfig
 from shared.learning.policy import TeamPolicy
-from shared.learning.train import train
+from shared.learning.train import leave_process_group, train
 
 
 def main() -> None:
@@ -32,9 +32,7 @@ def main() -> None:
     torch.save({k: v.detach() for k, v in res.policy.named_parameters()}, out / f"rank{rank}.pt")
     (out / f"rank{rank}.json").write_text(json.dumps({k: res.summary[k] for k in ("processes", "episodes")}))
     print(f"rank {rank}: wrote its weights", file=sys.stderr, flush=True)
-    dist.barrier()  # as `mures train` leaves the group: no rank tears down while another still writes
-    dist.destroy_process_group()
-    print(f"rank {rank}: left the process group", file=sys.stderr, flush=True)
+    leave_process_group(0)  # as `mures train` leaves: no rank tears down while another still writes
 
 
 if __name__ == "__main__":

@@ -302,19 +302,8 @@ def _init_distributed(device: torch.device) -> int:
     return dist.get_rank()
 
 
-def _leave_distributed() -> None:
-    """Leave the torchrun process group together: a barrier once every rank is done (rank 0 has
-    written the snapshot), then destroy it, so that no rank tears its connections down while
-    another still works or exits with the group alive (gloo's threads then abort the process)."""
-    import torch.distributed as dist
-
-    if dist.is_available() and dist.is_initialized():
-        dist.barrier()
-        dist.destroy_process_group()
-
-
 def cmd_train(args: argparse.Namespace) -> int:
-    from shared.learning.train import train
+    from shared.learning.train import leave_process_group, train
 
     detection = "neighbourhood" if args.variant == "cepg+" else "node"
     if args.variant == "cepg+" and args.detection == "node":
@@ -428,8 +417,9 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"in {s['wall_seconds']:.1f} s, {s['episodes_per_second']:.0f} episodes/s; "
             f"last capture time {s['final_mean_capture_time']:.2f}; wrote {out}"
         )
-    _leave_distributed()
-    return 130 if res.interrupted else 0
+    code = 130 if res.interrupted else 0
+    leave_process_group(code)  # under torchrun: ends this process with ``code``
+    return code
 
 
 # ---------------------------------------------------------------------- snapshot convert
