@@ -37,9 +37,9 @@ from shared.learning.train import TrainResult
 
 @dataclass
 class FacmacHyper(OffPolicyHyper):
-    # OFFICE, N = 4: 2x10^5 episodes against 10^5 -1.06 +- 0.62 steps on the same episodes
-    # (results/marl/plateau-facmac.json), though both runs' training curves were flat or rising over
-    # their second halves; whether 4x10^5 gains more is not measured yet
+    # OFFICE, N = 4, on the same episodes (results/marl/plateau-facmac.json): 2x10^5 episodes
+    # against 10^5 -1.06 +- 0.62 steps, 4x10^5 against 2x10^5 +0.74 +- 0.62 (its curve flat over its
+    # second half), so 2x10^5 is FACMAC's plateau
     episodes: int = 200_000
     lr: float = 1e-3
     critic_lr: float = 1e-3
