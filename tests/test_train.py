@@ -333,7 +333,7 @@ def test_two_process_data_parallel_training_ends_with_identical_weights(tmp_path
         env=env,
         timeout=300,
     )
-    # on failure: how far each rank got (the worker says when it wrote and when it left) and the end
+    # on failure: how far each rank got (the worker says when it wrote; leaving the group ends it) and the end
     # and, after an abort, where Python was (the worker's faulthandler)
     said = [line for line in r.stderr.splitlines() if line.startswith(("rank ", "Fatal Python", "Current thread"))]
     fault = [line for line in r.stderr.splitlines() if line.startswith('  File "')][:30]
