@@ -4,6 +4,7 @@ decision step) with its algorithm in the metadata."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 
 import numpy as np
@@ -17,6 +18,8 @@ from shared.engine.evaluate import evaluate
 from shared.engine.searchers import RandomSearcher
 from shared.learning.config import TrainConfig
 from shared.learning.marl import MARL_ALGORITHMS, hyperparameters, train_marl
+from shared.learning.marl.common import robot_mlps
+from shared.learning.marl.offpolicy import OffPolicyHyper, TargetActorCritic
 from shared.learning.snapshot import PolicySearcher, Snapshot
 from shared.tools.cli import main
 
@@ -70,6 +73,31 @@ def test_same_seed_same_weights(algorithm):
     a, b, c = weights(3), weights(3), weights(4)
     assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
     assert not all(torch.equal(x, y) for x, y in zip(a, c, strict=True))
+
+
+def test_the_actors_step_reads_the_critic_without_its_parameter_gradients():
+    """MADDPG's and FACMAC's actor loss goes through the critic (a MultiAgentMLP, as theirs):
+    inside ``frozen_critic`` the actors get the same gradient to the bit, the critic none, and
+    its parameters are trainable again afterwards."""
+    torch.manual_seed(0)
+    actor = torch.nn.Linear(3, 2)
+    critic = robot_mlps(2, 1, robots=2, hidden=8)
+    tac = TargetActorCritic(actor, critic, OffPolicyHyper())
+    x = torch.randn(16, 2, 3)
+
+    def gradients(frozen: bool) -> tuple[list, list]:
+        for p in (*actor.parameters(), *critic.parameters()):
+            p.grad = None
+        with tac.frozen_critic() if frozen else contextlib.nullcontext():
+            q = critic(torch.tanh(actor(x)))
+        (-q.mean()).backward()
+        return [p.grad.clone() for p in actor.parameters()], [p.grad for p in critic.parameters()]
+
+    (plain, critic_plain), (frozen, critic_frozen) = gradients(False), gradients(True)
+    assert all(torch.equal(a, b) for a, b in zip(plain, frozen, strict=True))
+    assert critic_plain and all(g is not None for g in critic_plain)
+    assert all(g is None for g in critic_frozen)
+    assert all(p.requires_grad for p in critic.parameters())
 
 
 def test_cli_trains_a_baseline_into_a_snapshot_robots_can_fly(tmp_path, capsys):

@@ -81,7 +81,8 @@ class FacmacLearner(TargetActorCritic):
         self.critic_step(self.critic(b["state"], b["obs"], a), y)
 
         logits = self.actor(b["obs"], b["mask"])
-        q_pi = self.critic(b["state"], b["obs"], gumbel_actions(logits, h.gumbel_tau))  # all robots' policies at once
+        with self.frozen_critic():  # all robots' policies at once
+            q_pi = self.critic(b["state"], b["obs"], gumbel_actions(logits, h.gumbel_tau))
         self.actor_step(-q_pi.mean() + h.logit_penalty * valid_logit_penalty(logits, b["mask"]))
 
 

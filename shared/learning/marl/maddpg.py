@@ -72,7 +72,8 @@ class MaddpgLearner(TargetActorCritic):
         g = gumbel_actions(logits, h.gumbel_tau)
         # robot i's critic: the buffer's joint action with robot i's own replaced by g_i
         mixed = self.eye * g.unsqueeze(1) + (1 - self.eye) * a.unsqueeze(1)  # (M, N_i, N_j, d)
-        q_pi = self.critic(b["state"], b["obs"], mixed.flatten(-2))
+        with self.frozen_critic():
+            q_pi = self.critic(b["state"], b["obs"], mixed.flatten(-2))
         self.actor_step(-q_pi.mean() + h.logit_penalty * valid_logit_penalty(logits, b["mask"]))
 
 
