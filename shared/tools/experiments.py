@@ -617,15 +617,14 @@ def _cell(
 
 # What the jobs cost on one core of the 2-core VM this project is developed on, for the runner's
 # ETA and `--plan`'s estimate (never for results): training, ms per episode on OFFICE at N = 4,
-# the quickest of the protocol's teams of each method trained at its default budget by today's
-# code (wall_seconds / episodes of its snapshot; others shared the machine; MADDPG's from its N = 3
-# and 5 teams, its N = 4 run having shared the machine with two others); MUSEUM's cost 2.5 times
-# OFFICE's (the median of the methods' ratios there), and sqrt(4 / N) times for N robots (fewer
-# robots, longer episodes: CE-PG at N = 1 and 2 cost 1.9 and 1.2 times N = 4; the baselines'
-# N = 1 teams 1.7 to 3.6 times). Planners, seconds per team step at their 1 s limit (MILP,
+# for a baseline the quickest of today's code's runs of 10^5 episodes or more on OFFICE at N = 3
+# to 5 (wall_seconds / episodes of its snapshot; runs beside more jobs took up to twice as long);
+# MUSEUM's cost 2.5 times OFFICE's (the median of the methods' ratios there), and sqrt(4 / N)
+# times for N robots (fewer robots, longer episodes: CE-PG at N = 1 and 2 cost 1.9 and 1.2 times
+# N = 4; the baselines' N = 1 teams 1.7 to 3.6 times). Planners, seconds per team step at their 1 s limit (MILP,
 # every solve at the limit; D-MILP one solve per robot) or as measured (FHPE-SA); episodes of
 # about 8 steps on OFFICE and 17 on MUSEUM at N = 4, 4 / N times that for N robots.
-TRAIN_MS_PER_EPISODE = {"cepg": 0.42, "mappo": 2.4, "maddpg": 7.3, "masac": 5.9, "facmac": 5.4, "mambpo": 5.7}
+TRAIN_MS_PER_EPISODE = {"cepg": 0.42, "mappo": 1.7, "maddpg": 7.3, "masac": 5.5, "facmac": 5.4, "mambpo": 5.7}
 MAP_COST = {"office": 1.0, "museum": 2.5}
 STEPS_AT_N4 = {"office": 8.0, "museum": 17.0}
 PLANNER_SECONDS_PER_STEP = {"milp": 1.0, "d-milp": 1.0, "fhpe": 0.2, "fhpe-sa": 0.04}
