@@ -621,9 +621,9 @@ def _cell(
 # to 5 (wall_seconds / episodes of its snapshot; runs beside more jobs took up to twice as long);
 # MUSEUM's cost 2.5 times OFFICE's (the median of the methods' ratios there), and sqrt(4 / N)
 # times for N robots (fewer robots, longer episodes: CE-PG at N = 1 and 2 cost 1.9 and 1.2 times
-# N = 4; the baselines' N = 1 teams 1.7 to 3.6 times). Planners, seconds per team step at their 1 s limit (MILP,
-# every solve at the limit; D-MILP one solve per robot) or as measured (FHPE-SA); episodes of
-# about 8 steps on OFFICE and 17 on MUSEUM at N = 4, 4 / N times that for N robots.
+# N = 4; the baselines' N = 1 teams 1.7 to 3.6 times). Planners, seconds per team step at their
+# 1 s limit (MILP, every solve at the limit; D-MILP one solve per robot) or as measured (FHPE-SA);
+# episodes of about 8 steps on OFFICE and 17 on MUSEUM at N = 4, 4 / N times that for N robots.
 TRAIN_MS_PER_EPISODE = {"cepg": 0.42, "mappo": 1.7, "maddpg": 7.3, "masac": 5.5, "facmac": 5.4, "mambpo": 5.7}
 MAP_COST = {"office": 1.0, "museum": 2.5}
 STEPS_AT_N4 = {"office": 8.0, "museum": 17.0}
