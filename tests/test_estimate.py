@@ -160,3 +160,52 @@ def test_em_on_one_short_mission_gives_stochastic_rows():
     assert len(data.length) == 1
     est = em(g, data, init=uniform_walk(g), max_iter=300, tol=1e-5)
     np.testing.assert_allclose(est.model.dense().sum(axis=1), 1.0, atol=1e-9)
+
+
+def test_em_shared_by_worker_processes_gives_the_estimate_of_one(grid_data, monkeypatch):
+    """`em(..., workers=K)`: K groups of missions, K - 1 of them in forked processes. The estimate
+    is one process's up to the rounding of the counts' sums, and the same to the bit whether the
+    groups run in the workers or here in turn (where processes cannot be forked)."""
+    import shared.engine.estimate as estimate
+
+    g, _truth, recs = grid_data
+    data = collect_missions(enumerate(recs), g)
+    import multiprocessing
+
+    one = em(g, data)
+    seen: set[int] = set()  # the worker processes alive while EM runs
+
+    def progress(_it, _ll):
+        seen.update(p.pid for p in multiprocessing.active_children() if p.name == "mures-em")
+
+    forked = em(g, data, workers=3, progress=progress)
+    assert len(seen) == 2  # two groups of three in processes of their own
+    assert forked.iterations == one.iterations and forked.converged
+    np.testing.assert_allclose(forked.model.dense(), one.model.dense(), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(forked.model.b0, one.model.b0, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(forked.log_likelihood, one.log_likelihood, rtol=1e-12)
+    monkeypatch.setattr(estimate.multiprocessing, "get_all_start_methods", lambda: ["spawn"])
+    here = em(g, data, workers=3)
+    assert np.array_equal(here.model.dense(), forked.model.dense()) and np.array_equal(here.model.b0, forked.model.b0)
+    assert here.log_likelihood == forked.log_likelihood
+
+
+def test_em_says_which_worker_ended_and_leaves_none_behind(grid_data, monkeypatch):
+    import multiprocessing
+    import os
+
+    import shared.engine.estimate as estimate
+
+    g, _truth, recs = grid_data
+    data = collect_missions(enumerate(recs), g)
+
+    def dies(conn, data, missions):  # serves one pass, then its process ends
+        conn.recv()
+        os._exit(3)
+
+    monkeypatch.setattr(estimate, "_serve", dies)
+    with pytest.raises(RuntimeError, match=r"worker process \d+ ended \(exit code 3\)"):
+        em(g, data, workers=2)
+    assert not [p for p in multiprocessing.active_children() if p.name == "mures-em"]
+    with pytest.raises(ValueError, match="at least one worker"):
+        em(g, data, workers=0)

@@ -21,10 +21,13 @@ capturing robot's last z = 1 says e_t is inside D(p). With eta_fp = 0 this chang
 
 from __future__ import annotations
 
+import contextlib
+import multiprocessing
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
@@ -131,59 +134,158 @@ class Estimate:
 class _ForwardBackward:
     """Scaled forward-backward over M missions at once, time-major and packed by length: the
     missions sorted longest first, so that step t works on the missions [0, active[t]) that have
-    a step t instead of on every mission padded to T. Buffers are allocated once per data set
-    and reused by every pass (an EM run makes hundreds).
+    a step t instead of on every mission padded to T. Buffers, and the views of them that each
+    step reads and writes, are made once per data set and reused by every pass (an EM run makes
+    hundreds; at these sizes a slice costs about as much as the arithmetic on it).
 
-    ``__call__(G, b0)`` with G (n, n), b0 (n,) returns views of those buffers, valid until the
-    next call: alpha (T, M, n) (filtered, normalised; 0 after a mission's end), beta (T, M, n)
+    ``missions`` picks the missions (indices into ``data``, longest first; default: all of them,
+    sorted). ``__call__(G, b0)`` with G (n, n), b0 (n,) returns views of the buffers, valid until
+    the next call: alpha (T, M, n) (filtered, normalised; 0 after a mission's end), beta (T, M, n)
     (scaled; 1 after it), c (T, M) scales (1 after it; log P(observations) = sum log c), and
     xi (n, n) = sum over missions and t of alpha_t^T w_{t+1}, w_{t+1} = L_{t+1} beta_{t+1} / c_{t+1},
     so that G * xi are the expected transition counts (Baum-Welch's E-step).
     """
 
-    def __init__(self, data: MissionData) -> None:
-        order = np.argsort(-data.length, kind="stable")
-        self.L = torch.as_tensor(data.lik[order]).transpose(0, 1).contiguous()  # (T, M, n)
-        T, M, n = self.L.shape
-        self.active = (data.length[None, :] > np.arange(T)[:, None]).sum(1)  # (T,) non-increasing
+    def __init__(self, data: MissionData, missions: np.ndarray | None = None) -> None:
+        order = np.argsort(-data.length, kind="stable") if missions is None else np.asarray(missions)
+        length = data.length[order]
+        T = max(int(length.max(initial=1)), 1)
+        self.L = torch.as_tensor(data.lik[order, :T]).transpose(0, 1).contiguous()  # (T, M, n)
+        _T, M, n = self.L.shape
+        self.active = (length[None, :] > np.arange(T)[:, None]).sum(1)  # (T,) non-increasing
         self.alpha = torch.zeros_like(self.L)
         self.beta = torch.ones_like(self.L)
         self.c = torch.ones(T, M, dtype=self.L.dtype)
         self.w = torch.empty(M, n, dtype=self.L.dtype)
         self.xi = torch.empty(n, n, dtype=self.L.dtype)
+        L, alpha, beta, c = self.L, self.alpha, self.beta, self.c
+        steps = [int(k) for k in self.active if k > 0]
+        # forward, t = 1..: (alpha_{t-1}, alpha_t, L_t, c_t) on the k missions running at t
+        self._forward = [(alpha[t - 1, :k], alpha[t, :k], L[t, :k], c[t, :k]) for t, k in enumerate(steps) if t]
+        # backward, t = T-2..0: (L_{t+1}, beta_{t+1}, c_{t+1}, w, beta_t, alpha_t) on the k running at t+1
+        self._backward = [
+            (L[t + 1, :k], beta[t + 1, :k], c[t + 1, :k].unsqueeze(1), self.w[:k], beta[t, :k], alpha[t, :k].T)
+            for t, k in reversed(list(enumerate(steps[1:])))
+        ]
+        self._first = (alpha[0], L[0], c[0]) if steps else None
 
     def __call__(
         self, G: torch.Tensor, b0: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        L, active, alpha, beta, c, xi = self.L, self.active, self.alpha, self.beta, self.c, self.xi
-        T = L.shape[0]
-        # every step writes into slices of the buffers, in place: at these sizes the number of
+        alpha, beta, c, xi = self.alpha, self.beta, self.c, self.xi
+        # every step writes into views of the buffers, in place: at these sizes the number of
         # operations, not their arithmetic, sets the time
-        torch.mul(b0.unsqueeze(0), L[0], out=alpha[0])
-        for t in range(T):
-            k = int(active[t])
-            if k == 0:
-                break
-            a = alpha[t, :k]
-            if t > 0:
-                torch.mm(alpha[t - 1, :k], G, out=a)  # Eq. 6: Lambda_c Gamma^T b, as row vectors
-                a.mul_(L[t, :k])
-            s = c[t, :k]
-            torch.sum(a, 1, out=s)
-            s.clamp_min_(1e-300)
-            a.div_(s.unsqueeze(1))
+        if self._first is not None:
+            a, L0, s = self._first
+            torch.mul(b0.unsqueeze(0), L0, out=a)
+            self._normalise(a, s)
+        for prev, a, Lt, s in self._forward:
+            torch.mm(prev, G, out=a)  # Eq. 6: Lambda_c Gamma^T b, as row vectors
+            a.mul_(Lt)
+            self._normalise(a, s)
         xi.zero_()
         Gt = G.T.contiguous()
-        for t in range(T - 2, -1, -1):
-            k = int(active[t + 1])
-            if k == 0:
-                continue
-            w = self.w[:k]
-            torch.mul(L[t + 1, :k], beta[t + 1, :k], out=w)
-            w.div_(c[t + 1, :k].unsqueeze(1))
-            torch.mm(w, Gt, out=beta[t, :k])
-            xi.addmm_(alpha[t, :k].T, w)
+        for L1, beta1, c1, w, beta0, alpha0_T in self._backward:
+            torch.mul(L1, beta1, out=w)
+            w.div_(c1)
+            torch.mm(w, Gt, out=beta0)
+            xi.addmm_(alpha0_T, w)
         return alpha, beta, c, xi
+
+    @staticmethod
+    def _normalise(a: torch.Tensor, s: torch.Tensor) -> None:
+        torch.sum(a, 1, out=s)
+        s.clamp_min_(1e-300)
+        a.div_(s.unsqueeze(1))
+
+
+def _posterior(fb: _ForwardBackward, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """One forward-backward pass of a group of missions: its log-likelihood, xi (n, n) and the
+    posterior of e_0 per mission (M, n)."""
+    alpha, beta, c, xi = fb(G, b0)
+    post0 = alpha[0] * beta[0]
+    return float(c.log().sum()), xi, post0 / post0.sum(1, keepdim=True)
+
+
+def _serve(conn: Connection, data: MissionData, missions: np.ndarray) -> None:
+    """A worker process of ``_EStep``: the forward-backward of its group of missions, one pass per
+    (G, b0) received, until None."""
+    torch.set_num_threads(1)
+    fb = _ForwardBackward(data, missions)
+    try:
+        while (msg := conn.recv()) is not None:
+            ll, xi, post0 = _posterior(fb, torch.from_numpy(msg[0]), torch.from_numpy(msg[1]))
+            conn.send((ll, xi.numpy(), post0.numpy()))
+    except (EOFError, KeyboardInterrupt):  # the caller went away or was interrupted: it says why
+        pass
+
+
+class _EStep:
+    """Baum-Welch's E-step over every mission, the missions dealt into ``parts`` groups (every
+    ``parts``-th of them by length, so that the groups' work is even): the first group in this
+    process, each other one in a worker process of its own, forked once per EM run, which keeps
+    its group's buffers and gets (G, b0) each pass. Not torch's threads: the passes' operations
+    are too small for them (each would wait for the others' at its end), and Python threads
+    contend for the interpreter lock at every one of a pass's thousand operations; groups of
+    missions are independent. Where processes cannot be forked, the groups run here in turn: the
+    same numbers, no faster. The estimate depends on ``parts`` (the order of the counts' sums),
+    not on where the groups run.
+
+    ``__call__(G, b0)`` returns the log-likelihood of the observations under (G, b0), xi (n, n)
+    summed over the groups (``_ForwardBackward``) and the posterior of e_0 averaged over the
+    missions (n,): the M-step's b0.
+    """
+
+    def __init__(self, data: MissionData, parts: int) -> None:
+        order = np.argsort(-data.length, kind="stable")
+        parts = max(1, min(parts, len(order)))
+        groups = [order[i::parts] for i in range(parts)]
+        self.local = _ForwardBackward(data, groups[0])
+        self.here: list[_ForwardBackward] = []  # groups run in this process after the first
+        self.workers: list[tuple[Any, Connection]] = []  # (process, its end of the pipe)
+        if parts > 1 and "fork" in multiprocessing.get_all_start_methods():
+            ctx = multiprocessing.get_context("fork")  # the data and the code are inherited, not sent
+            for grp in groups[1:]:
+                mine, theirs = ctx.Pipe()
+                proc = ctx.Process(target=_serve, args=(theirs, data, grp), daemon=True, name="mures-em")
+                proc.start()
+                theirs.close()
+                self.workers.append((proc, mine))
+        else:
+            self.here = [_ForwardBackward(data, grp) for grp in groups[1:]]
+
+    def __call__(self, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+        if not self.workers and not self.here:
+            ll, xi, post0 = _posterior(self.local, G, b0)
+            return ll, xi, post0.mean(0)
+        for _proc, conn in self.workers:
+            conn.send((G.numpy(), b0.numpy()))
+        first = _posterior(self.local, G, b0)
+        parts = [(first[0], first[1].clone(), first[2].clone())]  # the buffers are the next pass's
+        parts += [_posterior(fb, G, b0) for fb in self.here]
+        for proc, conn in self.workers:
+            try:
+                ll, xi, post0 = conn.recv()
+            except EOFError:
+                proc.join(1)  # its exit code
+                raise RuntimeError(f"EM's worker process {proc.pid} ended (exit code {proc.exitcode})") from None
+            parts.append((ll, torch.from_numpy(xi), torch.from_numpy(post0)))
+        return (  # summed in the groups' order, wherever each ran
+            sum(p[0] for p in parts),
+            torch.stack([p[1] for p in parts]).sum(0),
+            torch.cat([p[2] for p in parts]).mean(0),
+        )
+
+    def close(self) -> None:
+        for proc, conn in self.workers:
+            with contextlib.suppress(OSError):
+                conn.send(None)
+            conn.close()
+            proc.join(5)
+            if proc.is_alive():
+                proc.kill()
+                proc.join()
+        self.workers = []
 
 
 ROW_MASS_MIN = 1e-200  # expected transitions out of a node below this are treated as none
@@ -198,6 +300,7 @@ def em(
     pseudo_count: float = 0.0,
     accelerate: bool = True,
     progress: Callable[[int, float], None] | None = None,
+    workers: int = 1,
 ) -> Estimate:
     """Baum-Welch for Gamma_hat and b0 with the sensor known (module docstring).
 
@@ -207,13 +310,41 @@ def em(
     from two EM steps it extrapolates along the EM path, keeps the result only if it raises the
     likelihood, and otherwise falls back to the plain steps, so the likelihood never decreases.
     Converged when the relative log-likelihood gain of an iteration falls below ``tol``;
-    ``iterations`` counts forward-backward passes.
+    ``iterations`` counts forward-backward passes. ``workers`` processes share the missions'
+    forward-backward (``_EStep``; 1: this process alone, with torch's threads as they are; more:
+    each on one torch thread, this one's restored at the end). The estimate depends on it only by
+    rounding: in the order of the expected counts' sums (1000 WARD missions: 2e-9 in an entry).
     """
     t0 = time.perf_counter()
     init = init or uniform_walk(graph)
     if len(data.length) == 0:
         raise ValueError("no usable missions in the records")
-    forward_backward = _ForwardBackward(data)
+    if workers < 1:
+        raise ValueError(f"EM needs at least one worker, not {workers}")
+    torch_threads = torch.get_num_threads()
+    if workers > 1:
+        torch.set_num_threads(1)  # before forking: the workers take the other cores
+    e_step = _EStep(data, workers)
+    try:
+        return _em(graph, data, init, e_step, max_iter, tol, pseudo_count, accelerate, progress, t0)
+    finally:
+        e_step.close()
+        torch.set_num_threads(torch_threads)
+
+
+def _em(
+    graph: Graph,
+    data: MissionData,
+    init: TargetModel,
+    e_step: _EStep,
+    max_iter: int,
+    tol: float,
+    pseudo_count: float,
+    accelerate: bool,
+    progress: Callable[[int, float], None] | None,
+    t0: float,
+) -> Estimate:
+    """``em``'s iterations, with its E-step made."""
     G = torch.as_tensor(init.dense())
     support = G > 0
     b0 = torch.as_tensor(init.b0)
@@ -223,8 +354,7 @@ def em(
         """One EM update; also returns the log-likelihood of its input."""
         nonlocal passes
         passes += 1
-        alpha, beta, c, xi = forward_backward(G, b0)
-        ll = float(c.log().sum())
+        ll, xi, b0_new = e_step(G, b0)
         # E-step: xi_t(u, v) = alpha_t(u) G(u, v) L_{t+1}(v) beta_{t+1}(v) / c_{t+1}, summed over t, missions
         counts = G * xi + pseudo_count * support
         rows = counts.sum(1, keepdim=True)
@@ -233,9 +363,7 @@ def em(
         # seen with one short mission, where a start node's count came out near 1e-306)
         seen = rows > ROW_MASS_MIN
         G_new = torch.where(seen, counts / torch.where(seen, rows, torch.ones_like(rows)), G)
-        post0 = alpha[0] * beta[0]
-        b0_new = (post0 / post0.sum(1, keepdim=True)).mean(0)
-        return G_new, b0_new, ll
+        return G_new, b0_new, ll  # b0_new: the posterior of e_0, averaged over the missions
 
     def project(G: torch.Tensor, b0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         G = torch.where(support, G.clamp_min(1e-10), torch.zeros_like(G))

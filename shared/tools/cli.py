@@ -211,9 +211,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------- estimate
 def cmd_estimate(args: argparse.Namespace) -> int:
-    # EM on 1000 WARD missions: 24.5 s on 1 thread and 20.3 s on 2 with both cores idle; beside three
-    # busy processes 39 s on 1 and 226 s on 2 (its element-wise operations wait for each other's threads)
-    torch.set_num_threads(args.threads)
+    # EM on 1000 WARD missions (benchmarks/bench_estimate.py): 13.7-14.4 s in one process, 8.7-8.9 s
+    # shared by two on this 2-core machine, quiet; torch's own threads gained little (18.5 s on two:
+    # each small operation waits for the other thread at its end), and lost much under load
+    torch.set_num_threads(1)
     graph = _graph(args)
     if not Path(args.episodes).is_file():
         raise CliError(f"episode file {args.episodes!r} does not exist")
@@ -236,7 +237,15 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             print(f"  EM pass {it}: log-likelihood {ll:.3f}", file=sys.stderr)
 
     if args.method == "em":
-        est = em(graph, data, max_iter=args.max_iter, tol=args.tol, pseudo_count=args.pseudo_count, progress=progress)
+        est = em(
+            graph,
+            data,
+            max_iter=args.max_iter,
+            tol=args.tol,
+            pseudo_count=args.pseudo_count,
+            progress=progress,
+            workers=args.threads,
+        )
     else:
         est = eq8(graph, data, rounds=args.rounds)
     out = est.to_json(graph, data)
@@ -644,8 +653,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--threads",
         type=positive_int,
         default=1,
-        help="torch CPU threads (default 1: EM's operations are too small to gain much from more, and "
-        "lose much when other processes keep the cores busy)",
+        help="cores EM runs on: its missions shared by that many processes, each on one torch thread "
+        "(default 1; the estimate differs only by rounding, about 1e-9)",
     )
     p.set_defaults(func=cmd_estimate)
 
