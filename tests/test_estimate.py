@@ -190,6 +190,27 @@ def test_em_shared_by_worker_processes_gives_the_estimate_of_one(grid_data, monk
     assert here.log_likelihood == forked.log_likelihood
 
 
+def _em_in_a_daemon(g, data, out):
+    out.put(em(g, data, workers=3).model.dense())
+
+
+def test_em_in_a_daemon_process_runs_its_groups_in_turn(grid_data):
+    """A daemon (the training server's runs are) may not have children: EM there runs every group
+    itself, with the numbers of the forked workers."""
+    import multiprocessing
+
+    g, _truth, recs = grid_data
+    data = collect_missions(enumerate(recs), g)
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    proc = ctx.Process(target=_em_in_a_daemon, args=(g, data, out), daemon=True)
+    proc.start()
+    got = out.get(timeout=60)
+    proc.join(30)
+    assert proc.exitcode == 0
+    assert np.array_equal(got, em(g, data, workers=3).model.dense())
+
+
 def test_em_says_which_worker_ended_and_leaves_none_behind(grid_data, monkeypatch):
     import multiprocessing
     import os

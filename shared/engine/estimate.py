@@ -220,6 +220,12 @@ def _serve(conn: Connection, data: MissionData, missions: np.ndarray) -> None:
         pass
 
 
+def _can_fork() -> bool:
+    """Worker processes can be forked here: the platform has fork, and this process is no daemon
+    (multiprocessing forbids a daemon children; the training server's runs are daemons)."""
+    return "fork" in multiprocessing.get_all_start_methods() and not multiprocessing.current_process().daemon
+
+
 class _EStep:
     """Baum-Welch's E-step over every mission, the missions dealt into ``parts`` groups (every
     ``parts``-th of them by length, so that the groups' work is even): the first group in this
@@ -227,8 +233,8 @@ class _EStep:
     its group's buffers and gets (G, b0) each pass. Not torch's threads: the passes' operations
     are too small for them (each would wait for the others' at its end), and Python threads
     contend for the interpreter lock at every one of a pass's thousand operations; groups of
-    missions are independent. Where processes cannot be forked, the groups run here in turn: the
-    same numbers, no faster. The estimate depends on ``parts`` (the order of the counts' sums),
+    missions are independent. Where processes cannot be forked (``_can_fork``), the groups run
+    here in turn: the same numbers, no faster. The estimate depends on ``parts`` (the order of the counts' sums),
     not on where the groups run.
 
     ``__call__(G, b0)`` returns the log-likelihood of the observations under (G, b0), xi (n, n)
@@ -243,7 +249,7 @@ class _EStep:
         self.local = _ForwardBackward(data, groups[0])
         self.here: list[_ForwardBackward] = []  # groups run in this process after the first
         self.workers: list[tuple[Any, Connection]] = []  # (process, its end of the pipe)
-        if parts > 1 and "fork" in multiprocessing.get_all_start_methods():
+        if parts > 1 and _can_fork():
             ctx = multiprocessing.get_context("fork")  # the data and the code are inherited, not sent
             for grp in groups[1:]:
                 mine, theirs = ctx.Pipe()
