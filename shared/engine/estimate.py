@@ -167,7 +167,8 @@ class _ForwardBackward:
             (L[t + 1, :k], beta[t + 1, :k], c[t + 1, :k].unsqueeze(1), self.w[:k], beta[t, :k], alpha[t, :k].T)
             for t, k in reversed(list(enumerate(steps[1:])))
         ]
-        self._first = (alpha[0], L[0], c[0]) if steps else None
+        k0 = steps[0] if steps else 0  # missions with a step t = 0 (all, for records that parse)
+        self._first = (alpha[0], L[0], alpha[0, :k0], c[0, :k0])
 
     def __call__(
         self, G: torch.Tensor, b0: torch.Tensor
@@ -175,10 +176,9 @@ class _ForwardBackward:
         alpha, beta, c, xi = self.alpha, self.beta, self.c, self.xi
         # every step writes into views of the buffers, in place: at these sizes the number of
         # operations, not their arithmetic, sets the time
-        if self._first is not None:
-            a, L0, s = self._first
-            torch.mul(b0.unsqueeze(0), L0, out=a)
-            self._normalise(a, s)
+        a0, L0, a, s = self._first
+        torch.mul(b0.unsqueeze(0), L0, out=a0)
+        self._normalise(a, s)
         for prev, a, Lt, s in self._forward:
             torch.mm(prev, G, out=a)  # Eq. 6: Lambda_c Gamma^T b, as row vectors
             a.mul_(Lt)
