@@ -462,6 +462,7 @@ def test_marl_experiment_and_its_report(tmp_path, monkeypatch):
     }
     for r in d["rows"]:
         assert r["episodes"] == 40 and r["robots"] == 4 and r["decision_ms"] > 0
+        assert r["timed_team_steps"] >= 150  # timed on enough steps (three episodes were about 30 here)
         if r["method"] in ("mappo", "maddpg"):
             assert r["train_episodes"] >= 300 and r["train_wall_seconds"] > 0
     assert set(d["learning_curves"]) == {"office/mappo", "office/maddpg", "ward/mappo", "ward/maddpg"}
