@@ -225,7 +225,7 @@ def test_em_says_which_worker_ended_and_leaves_none_behind(grid_data, monkeypatc
         os._exit(3)
 
     monkeypatch.setattr(estimate, "_serve", dies)
-    with pytest.raises(RuntimeError, match=r"worker process \d+ ended \(exit code 3\)"):
+    with pytest.raises(estimate.EMWorkerError, match=r"worker process \d+ ended \(exit code 3\)"):
         em(g, data, workers=2)
     assert not [p for p in multiprocessing.active_children() if p.name == "mures-em"]
     with pytest.raises(ValueError, match="at least one worker"):

@@ -216,8 +216,12 @@ def _serve(conn: Connection, data: MissionData, missions: np.ndarray) -> None:
         while (msg := conn.recv()) is not None:
             ll, xi, post0 = _posterior(fb, torch.from_numpy(msg[0]), torch.from_numpy(msg[1]))
             conn.send((ll, xi.numpy(), post0.numpy()))
-    except (EOFError, KeyboardInterrupt):  # the caller went away or was interrupted: it says why
+    except (EOFError, OSError, KeyboardInterrupt):  # the caller went away or was interrupted: it says why
         pass
+
+
+class EMWorkerError(RuntimeError):
+    """A worker process of ``em`` ended before its pass was done (killed, out of memory)."""
 
 
 def _can_fork() -> bool:
@@ -274,7 +278,9 @@ class _EStep:
                 ll, xi, post0 = conn.recv()
             except EOFError:
                 proc.join(1)  # its exit code
-                raise RuntimeError(f"EM's worker process {proc.pid} ended (exit code {proc.exitcode})") from None
+                raise EMWorkerError(
+                    f"EM's worker process {proc.pid} ended (exit code {proc.exitcode}); nothing was estimated"
+                ) from None
             parts.append((ll, torch.from_numpy(xi), torch.from_numpy(post0)))
         return (  # summed in the groups' order, wherever each ran
             sum(p[0] for p in parts),

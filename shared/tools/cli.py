@@ -30,7 +30,7 @@ from shared.core.graph import Graph, GraphError, builtin_graph, load_graph_file
 from shared.core.models import ModelError, Sensor, TargetModel, parse_target
 from shared.core.records import read_jsonl
 from shared.core.snapshot import SnapshotError
-from shared.engine.estimate import collect_missions, em, eq8, mean_row_tv
+from shared.engine.estimate import EMWorkerError, collect_missions, em, eq8, mean_row_tv
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
 from shared.learning import config as train_config
@@ -807,6 +807,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"mures: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
         return 2
+    except EMWorkerError as exc:  # not the input's fault: a worker process was killed
+        print(f"mures: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("mures: interrupted", file=sys.stderr)
         return 130
