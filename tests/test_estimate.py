@@ -220,7 +220,7 @@ def test_em_says_which_worker_ended_and_leaves_none_behind(grid_data, monkeypatc
     g, _truth, recs = grid_data
     data = collect_missions(enumerate(recs), g)
 
-    def dies(conn, data, missions):  # serves one pass, then its process ends
+    def dies(conn, data, missions, inherited):  # serves one pass, then its process ends
         conn.recv()
         os._exit(3)
 
@@ -230,3 +230,46 @@ def test_em_says_which_worker_ended_and_leaves_none_behind(grid_data, monkeypatc
     assert not [p for p in multiprocessing.active_children() if p.name == "mures-em"]
     with pytest.raises(ValueError, match="at least one worker"):
         em(g, data, workers=0)
+
+
+def _em_for_long(g, data):
+    em(g, data, workers=3, tol=-1.0, max_iter=10**7)  # never converges: runs until killed
+
+
+def _alive(pid):
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"  # a zombie has ended
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="reads /proc (Linux)")
+def test_em_workers_end_when_their_caller_is_killed(grid_data):
+    """A kill -9 of the process running EM leaves no worker behind: each sees its pipe closed."""
+    import multiprocessing
+    import os
+    import signal
+    import time
+
+    g, _truth, recs = grid_data
+    data = collect_missions(enumerate(recs), g)
+    proc = multiprocessing.get_context("fork").Process(target=_em_for_long, args=(g, data))
+    proc.start()
+    children: list[int] = []
+    deadline = time.monotonic() + 60
+    while len(children) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+        text = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text()
+        children = [int(c) for c in text.split()]
+    assert len(children) == 2, children
+    time.sleep(0.5)  # in the middle of the passes
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.join()
+    deadline = time.monotonic() + 10
+    while any(_alive(c) for c in children) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    left = [c for c in children if _alive(c)]
+    for c in left:
+        os.kill(c, signal.SIGKILL)
+    assert not left

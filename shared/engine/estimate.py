@@ -207,9 +207,13 @@ def _posterior(fb: _ForwardBackward, G: torch.Tensor, b0: torch.Tensor) -> tuple
     return float(c.log().sum()), xi, post0 / post0.sum(1, keepdim=True)
 
 
-def _serve(conn: Connection, data: MissionData, missions: np.ndarray) -> None:
+def _serve(conn: Connection, data: MissionData, missions: np.ndarray, inherited: list[Connection]) -> None:
     """A worker process of ``_EStep``: the forward-backward of its group of missions, one pass per
-    (G, b0) received, until None."""
+    (G, b0) received, until None or until the caller's end is closed (its process ended: a kill -9
+    included). ``inherited``: the caller's ends of the pipes, which the fork copied here and which
+    are closed first, or the pipe would never report the caller's end."""
+    for other in inherited:
+        other.close()
     torch.set_num_threads(1)
     fb = _ForwardBackward(data, missions)
     try:
@@ -257,7 +261,8 @@ class _EStep:
             ctx = multiprocessing.get_context("fork")  # the data and the code are inherited, not sent
             for grp in groups[1:]:
                 mine, theirs = ctx.Pipe()
-                proc = ctx.Process(target=_serve, args=(theirs, data, grp), daemon=True, name="mures-em")
+                ours = [mine, *(c for _p, c in self.workers)]
+                proc = ctx.Process(target=_serve, args=(theirs, data, grp, ours), daemon=True, name="mures-em")
                 proc.start()
                 theirs.close()
                 self.workers.append((proc, mine))
