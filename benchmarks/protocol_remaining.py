@@ -1,0 +1,60 @@
+"""What remains of the paper's protocol, given a results directory's cache: the teams still to
+train and the cells still to evaluate for the parts not yet recorded, each job counted once (a team
+that several figures fly is trained once), with `mures experiment --plan`'s estimates of their time
+on one core (shared/tools/experiments.py, TRAIN_MS_PER_EPISODE).
+
+Run: python benchmarks/protocol_remaining.py [--results results] [--list]
+
+The parts (README, "The paper's protocol: what is recorded"): fig11 and fig13 on both maps, fig7 at
+N = 1..5 on MUSEUM (its N = 4 teams were lost with a machine, and the baselines' rows move to their
+plateau budgets), fig7 at N = 1 on OFFICE (FACMAC's row at its plateau budget, flown beside a CE-PG
+team of the same run), and fig12 on MUSEUM (the baselines at their plateau budgets). Every part at
+the full budget; `--fraction F` prices fig7's N = 1, 2, 3, 5 at F times it (`--train-fraction`).
+"""
+
+import argparse
+from pathlib import Path
+
+from shared.tools import experiments as ex
+
+# (figure, maps, team sizes or None for the figure's own, a budget fraction applies)
+PARTS = [
+    ("fig11", ("office", "museum"), None, False),
+    ("fig13", ("office", "museum"), None, False),
+    ("fig7", ("museum",), (4,), False),
+    ("fig7", ("museum",), (1, 2, 3, 5), True),
+    ("fig7", ("office",), (1,), False),
+    ("fig12", ("museum",), None, False),
+]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--results", type=Path, default=Path("results"))
+    ap.add_argument("--fraction", type=float, default=None, help="fig7's N = 1, 2, 3, 5 at this budget fraction")
+    ap.add_argument("--list", action="store_true", help="every job with its estimate")
+    args = ap.parse_args()
+    jobs: dict[str, ex.Job] = {}
+    later: dict[str, float] = {}
+    for name, maps, robots, scalable in PARTS:
+        b = ex.budget(name, False, None, maps, robots, args.fraction if scalable else None, True)
+        planned, waiting = ex.outlook(name, args.results, b)
+        jobs.update((j.key, j) for j in planned)
+        later.update(waiting)
+    teams = [j for j in jobs.values() if j.fn is not ex._cell_job]
+    cells = [j for j in jobs.values() if j.fn is ex._cell_job]
+    team_s = sum(j.weight for j in teams)
+    cell_s = sum(j.weight for j in cells) + sum(later.values())
+    print(
+        f"{args.results}: {len(teams)} teams to train ({team_s / 3600:.1f} h), {len(cells)} cells to evaluate now "
+        f"and {len(later)} once their teams exist ({cell_s / 3600:.1f} h): {(team_s + cell_s) / 3600:.1f} "
+        "single-core hours in all (K workers: at best that / K)"
+    )
+    if args.list:
+        rows = [(j.weight, j.label) for j in teams + cells] + [(w, label) for label, w in later.items()]
+        for w, label in sorted(rows, reverse=True):
+            print(f"  {w / 3600:6.2f} h  {label}")
+
+
+if __name__ == "__main__":
+    main()
