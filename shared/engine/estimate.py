@@ -28,7 +28,7 @@ from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import torch
@@ -242,8 +242,8 @@ class _EStep:
     are too small for them (each would wait for the others' at its end), and Python threads
     contend for the interpreter lock at every one of a pass's thousand operations; groups of
     missions are independent. Where processes cannot be forked (``_can_fork``), the groups run
-    here in turn: the same numbers, no faster. The estimate depends on ``parts`` (the order of the counts' sums),
-    not on where the groups run.
+    here in turn: the same numbers, no faster. The estimate depends on ``parts`` (the order of
+    the counts' sums), not on where the groups run.
 
     ``__call__(G, b0)`` returns the log-likelihood of the observations under (G, b0), xi (n, n)
     summed over the groups (``_ForwardBackward``) and the posterior of e_0 averaged over the
@@ -273,25 +273,30 @@ class _EStep:
         if not self.workers and not self.here:
             ll, xi, post0 = _posterior(self.local, G, b0)
             return ll, xi, post0.mean(0)
-        for _proc, conn in self.workers:
-            conn.send((G.numpy(), b0.numpy()))
+        for proc, conn in self.workers:
+            try:
+                conn.send((G.numpy(), b0.numpy()))
+            except OSError:
+                self._lost(proc)
         first = _posterior(self.local, G, b0)
         parts = [(first[0], first[1].clone(), first[2].clone())]  # the buffers are the next pass's
         parts += [_posterior(fb, G, b0) for fb in self.here]
         for proc, conn in self.workers:
             try:
                 ll, xi, post0 = conn.recv()
-            except EOFError:
-                proc.join(1)  # its exit code
-                raise EMWorkerError(
-                    f"EM's worker process {proc.pid} ended (exit code {proc.exitcode}); nothing was estimated"
-                ) from None
+            except (EOFError, OSError):
+                self._lost(proc)
             parts.append((ll, torch.from_numpy(xi), torch.from_numpy(post0)))
         return (  # summed in the groups' order, wherever each ran
             sum(p[0] for p in parts),
             torch.stack([p[1] for p in parts]).sum(0),
             torch.cat([p[2] for p in parts]).mean(0),
         )
+
+    @staticmethod
+    def _lost(proc: Any) -> NoReturn:
+        proc.join(1)  # its exit code
+        raise EMWorkerError(f"EM's worker process {proc.pid} ended (exit code {proc.exitcode}); nothing was estimated")
 
     def close(self) -> None:
         for proc, conn in self.workers:
@@ -341,11 +346,13 @@ def em(
     torch_threads = torch.get_num_threads()
     if workers > 1:
         torch.set_num_threads(1)  # before forking: the workers take the other cores
-    e_step = _EStep(data, workers)
+    e_step = None
     try:
+        e_step = _EStep(data, workers)
         return _em(graph, data, init, e_step, max_iter, tol, pseudo_count, accelerate, progress, t0)
     finally:
-        e_step.close()
+        if e_step is not None:
+            e_step.close()
         torch.set_num_threads(torch_threads)
 
 
