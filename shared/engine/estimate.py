@@ -149,7 +149,7 @@ class _ForwardBackward:
     def __init__(self, data: MissionData, missions: np.ndarray | None = None) -> None:
         order = np.argsort(-data.length, kind="stable") if missions is None else np.asarray(missions)
         length = data.length[order]
-        T = max(int(length.max(initial=1)), 1)
+        T = int(length.max(initial=1))
         self.L = torch.as_tensor(data.lik[order, :T]).transpose(0, 1).contiguous()  # (T, M, n)
         _T, M, n = self.L.shape
         self.active = (length[None, :] > np.arange(T)[:, None]).sum(1)  # (T,) non-increasing
@@ -278,9 +278,7 @@ class _EStep:
                 conn.send((G.numpy(), b0.numpy()))
             except OSError:
                 self._lost(proc)
-        first = _posterior(self.local, G, b0)
-        parts = [(first[0], first[1].clone(), first[2].clone())]  # the buffers are the next pass's
-        parts += [_posterior(fb, G, b0) for fb in self.here]
+        parts = [_posterior(fb, G, b0) for fb in (self.local, *self.here)]  # each group its own buffers
         for proc, conn in self.workers:
             try:
                 ll, xi, post0 = conn.recv()
