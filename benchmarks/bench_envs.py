@@ -1,7 +1,7 @@
 """Step rate of the TorchRL environment against the raw simulator it wraps (issue: the TorchRL
 environment must step at least half as fast as the raw simulator).
 
-Run: python benchmarks/bench_envs.py [--batch B ...] [--seconds S] [--rounds R] [--threads T]
+Run: python benchmarks/bench_envs.py [--batch B ...] [--seconds S] [--rounds R] [--threads T] [--default-malloc]
 
 Three loops with uniformly random actions on OFFICE, N = 4, finished episodes restarted:
   sim          the engine's SearchSim alone (auto-reset), no beliefs
@@ -10,7 +10,8 @@ Three loops with uniformly random actions on OFFICE, N = 4, finished episodes re
   torchrl      mures_v0.torchrl_env: a random valid index per robot, then step_and_maybe_reset (what TorchRL's
                rollouts and collectors call), observations, masks and the global state built
 The three loops take turns for --rounds rounds of --seconds each (a shared machine's load then
-falls on all three alike); prints the median team steps per second of each and the median of the
+falls on all three alike); in a round each loop's rate is that of its fastest chunk of about
+0.1 s. Prints the median over the rounds of each loop's team steps per second and of the
 per-round ratios torchrl / sim and torchrl / sim+belief.
 """
 
@@ -29,16 +30,26 @@ from shared.envs import mures_v0
 
 
 def _rate(step, batch: int, seconds: float) -> float:
+    """Team steps per second of ``step``: the best of the chunks of about 0.1 s that fit in
+    ``seconds`` (as ``timeit`` takes the best of its repeats: on a shared machine other work only
+    ever slows a chunk down; a chunk spans enough steps for the episodes' restarts to average out)."""
     for _ in range(20):  # warm-up
         step()
-    n, t0 = 0, time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
+    t0 = time.perf_counter()
+    k = 0
+    while time.perf_counter() - t0 < 0.1:
         step()
-        n += 1
-    return n * batch / (time.perf_counter() - t0)
+        k += 1
+    best, t_end = float("inf"), time.perf_counter() + seconds
+    while time.perf_counter() < t_end:
+        t = time.perf_counter()
+        for _ in range(k):
+            step()
+        best = min(best, (time.perf_counter() - t) / k)
+    return batch / best
 
 
-def run(batch: int, seconds: float, rounds: int) -> dict[str, float]:
+def run(batch: int, seconds: float, rounds: int, tune_malloc: bool = True) -> dict[str, float]:
     g = builtin_graph("office")
     model, sensor = uniform_walk(g), Sensor()
     sim = SearchSim(g, model, sensor, n_robots=4, batch=batch, seed=0)
@@ -55,7 +66,9 @@ def run(batch: int, seconds: float, rounds: int) -> dict[str, float]:
         tracker.update(tracker.belief.likelihood(obs.pos, obs.z), obs.new)
         state["obs"] = obs
 
-    env = mures_v0.torchrl_env(map="office", robots=4, batch_size=[batch], seed=0)
+    # the environment sets the process's malloc (tune_malloc) before any loop runs: all three
+    # loops run under the same allocator settings
+    env = mures_v0.torchrl_env(map="office", robots=4, batch_size=[batch], seed=0, tune_malloc=tune_malloc)
     tds = {"td": env.reset()}
     gen = torch.Generator().manual_seed(1)
 
@@ -83,12 +96,15 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=2.0)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--default-malloc", action="store_true", help="leave glibc's malloc as it is (torchrl_env(tune_malloc=False))"
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     for b in args.batch:
-        r = run(b, args.seconds, args.rounds)
+        r = run(b, args.seconds, args.rounds, tune_malloc=not args.default_malloc)
         print(
-            f"OFFICE N=4 B={b:<5} threads={args.threads} median of {args.rounds}  sim {r['sim']:>10,.0f}  sim+belief {r['sim+belief']:>10,.0f}  "
+            f"OFFICE N=4 B={b:<5} threads={args.threads} malloc={'default' if args.default_malloc else 'tuned'} median of {args.rounds}  sim {r['sim']:>10,.0f}  sim+belief {r['sim+belief']:>10,.0f}  "
             f"torchrl {r['torchrl']:>10,.0f} team-steps/s  torchrl/sim {r['torchrl/sim']:.2f}  "
             f"torchrl/(sim+belief) {r['torchrl/(sim+belief)']:.2f}"
         )

@@ -40,7 +40,8 @@ def test_torchrl_env_passes_check_env_specs():
 def test_torchrl_envs_own_maybe_reset_equals_torchrls_generic_one():
     """``MuresTorchEnv.maybe_reset`` (the fast path step_and_maybe_reset and the collectors take)
     gives, entry by entry, what EnvBase's reset-and-merge gives: full and partial resets, and the
-    transitions in "next" keep their final observations."""
+    transitions in "next" keep their final observations; its ``_step_proc_data`` leaves a step's
+    data as the generic one makes it."""
     from torchrl.envs import EnvBase
 
     for B in (1, 7):
@@ -53,8 +54,14 @@ def test_torchrl_envs_own_maybe_reset_equals_torchrls_generic_one():
             for k, (env, td) in enumerate(zip(envs, tds, strict=True)):
                 deg = td["agents", "action_mask"].sum(-1)
                 td["agents", "action"] = (torch.rand(deg.shape, generator=gens[k]) * deg).long()
+                # a policy's other outputs ride along: padded with 0 where an episode restarts
+                td["agents", "logits"] = torch.arange(float(deg.numel())).view(deg.shape) + step
+                td["policy", "value"] = torch.full((B, 2), float(step + 1))
                 data = env.step(td)
                 final = data["next"].clone()
+                # the env's own _step_proc_data (a no-op) leaves what the generic one would make
+                generic = EnvBase._step_proc_data(env, final.clone())
+                assert set(generic.keys(True, True)) == set(final.keys(True, True)) and (generic == final).all()
                 nxt = env._step_mdp(data)
                 nxt = env.maybe_reset(nxt) if k == 0 else EnvBase.maybe_reset(env, nxt)
                 assert (data["next"] == final).all(), "the reset changed the step's data"
@@ -166,3 +173,15 @@ def test_belief_model_option_and_bad_options():
         env.step({"robot_0": 0})
     with pytest.raises(ValueError, match="action indices"):
         env.step({"robot_0": 0, "robot_1": 99})
+
+
+def test_keep_freed_memory_sets_glibcs_malloc_and_refuses_bad_thresholds():
+    import platform
+
+    from shared.engine.memory import MMAP_MAX_MIB, keep_freed_memory
+
+    if platform.libc_ver()[0] == "glibc":
+        assert keep_freed_memory() is True  # mallopt accepted both thresholds
+    for mmap_mib, trim_mib in ((0, 256), (MMAP_MAX_MIB + 1, 256), (16, 8)):
+        with pytest.raises(ValueError, match="mmap_mib"):
+            keep_freed_memory(mmap_mib, trim_mib)

@@ -140,8 +140,6 @@ class EnvCore:
         self.eye = torch.eye(self.n, dtype=torch.float32, device=self.device)  # onehot(p) rows
         self.offsets = torch.arange(self.N + 1, device=self.device) * self.n  # state's onehot blocks
         self.b = torch.zeros(batch, self.N, self.n, device=self.device)  # (B, N, n) beliefs
-        self.capture_time = torch.zeros(batch, dtype=torch.long, device=self.device)
-        self.captured = torch.zeros(batch, dtype=torch.bool, device=self.device)
         self.last_reset = torch.arange(batch, device=self.device)  # (k,) the slots the last reset started
         # per slot since the last take_stats: episodes ended, their summed capture times, censored
         self._ended = torch.zeros(3, batch, dtype=torch.long, device=self.device)
@@ -162,14 +160,13 @@ class EnvCore:
         rows = self.last_reset = mask.nonzero().squeeze(1)
         lik = self.belief.likelihood(self.sim.pos[rows], self.sim.z[rows])
         self.b[rows] = self.belief.initial(lik)
-        self.capture_time.masked_fill_(mask, 0)
-        self.captured.masked_fill_(mask, False)
 
     def step(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Move every robot of the running episodes: action (B, N) indices into N[p].
 
         Returns reward (B,), terminated (B,) and truncated (B,) (True only at the step that ends
-        an episode)."""
+        an episode). A finished slot's ``sim.t`` is its capture time (or T_max when truncated)
+        until the slot is reset."""
         if action.shape != (self.B, self.N):
             raise ValueError(f"expected actions of shape {(self.B, self.N)}, got {tuple(action.shape)}")
         action = action.to(device=self.device, dtype=torch.long)
@@ -184,8 +181,6 @@ class EnvCore:
         reward = -moving.to(torch.float32)
         truncated = res.censored  # a censored episode is done
         terminated = res.done ^ truncated
-        self.capture_time = torch.where(res.done, res.capture_time, self.capture_time)
-        self.captured |= terminated  # False from the reset until the episode ends
         ended, ct_sum, censored = self._ended
         ended += res.done
         ct_sum += res.capture_time * res.done

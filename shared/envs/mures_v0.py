@@ -24,16 +24,15 @@ from torchrl.data import Binary, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from shared.core.graph import Graph
+from shared.engine.memory import keep_freed_memory
 from shared.envs.core import EnvCore, Scenario, make_scenario
 
 __all__ = ["MuresParallelEnv", "MuresTorchEnv", "parallel_env", "torchrl_env"]
 
 
-_DONE_KEYS = (("done",), ("terminated",), ("truncated",))
-
-
-def _is_tensor(cls: type) -> bool:
-    return issubclass(cls, torch.Tensor)
+_DONE = ("done", "terminated", "truncated")
+_AGENT_OBS = ("observation", "action_mask")  # what a reset makes afresh, per robot
+_ROOT_OBS = ("agents", "state", *_DONE)
 
 
 def _agent(i: int) -> str:
@@ -100,7 +99,7 @@ class MuresParallelEnv(ParallelEnv):
         infos: dict[str, dict[str, Any]] = {a: {} for a in self.agents}
         if te or tr:
             for a in self.agents:
-                infos[a] = {"capture_time": int(self.core.capture_time[0]), "captured": bool(self.core.captured[0])}
+                infos[a] = {"capture_time": int(self.core.sim.t[0]), "captured": te}
         out = (
             obs,
             {a: r for a in self.agents},
@@ -211,25 +210,36 @@ class MuresTorchEnv(EnvBase):
             return tensordict
         core = self.core
         core.reset(done.reshape(core.B))
-        # after the reset no slot is done
-        flags = torch.zeros(3, core.B, 1, dtype=torch.bool, device=self.device)
-        fresh: dict[tuple[str, ...], torch.Tensor] = {
-            ("agents", "observation"): core.observation(),
-            ("agents", "action_mask"): core.action_mask(),
-            ("state",): core.state(),
-            **{k: f for k, f in zip(_DONE_KEYS, flags, strict=True)},
-        }
         # reset's merge: a full reset updates the reset entries only; a partial one also pads
-        # every other entry (the last action, ...) with 0 in the restarted slots
+        # every other entry (the last action, ...) with 0 in the restarted slots. The result is
+        # a new TensorDict of the same entries (its observation, mask, state and flags made
+        # afresh to their specs), so no entry is set and checked one at a time
         rows = core.last_reset
         partial = len(rows) < core.B
-        for key in tensordict.keys(include_nested=True, leaves_only=True, is_leaf=_is_tensor):
-            k = key if isinstance(key, tuple) else (key,)
-            if k in fresh:
-                tensordict.set(key, fresh[k])
-            elif partial:
-                tensordict.set(key, tensordict.get(key).index_fill(0, rows, 0))
-        return tensordict
+
+        def kept(value: Any) -> Any:  # a tensor or a nested TensorDict (a policy's outputs, ...)
+            if not partial:
+                return value
+            if isinstance(value, TensorDictBase):
+                return value.apply(lambda x: x.index_fill(0, rows, 0))
+            return value.index_fill(0, rows, 0)
+
+        agents = {k: kept(v) for k, v in tensordict.get("agents").items() if k not in _AGENT_OBS}
+        agents["observation"], agents["action_mask"] = core.observation(), core.action_mask()
+        flags = torch.zeros(3, core.B, 1, dtype=torch.bool, device=self.device)  # no slot is done now
+        root = {k: kept(v) for k, v in tensordict.items() if k not in _ROOT_OBS}
+        root["state"] = core.state()
+        root.update(zip(_DONE, flags, strict=True))
+        root["agents"] = TensorDict._new_unsafe(agents, batch_size=(core.B, core.N), device=self.device)
+        return TensorDict._new_unsafe(root, batch_size=self.batch_size, device=self.device)
+
+    def _step_proc_data(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        """``_step`` makes every entry to its spec (reward (B, N, 1), the three flags (B, 1)), so
+        the generic reshaping and completing of rewards and flags has nothing to do; with
+        ``run_type_checks`` on, the generic checks run."""
+        if self.run_type_checks:
+            return super()._step_proc_data(next_tensordict)
+        return next_tensordict
 
     def _set_seed(self, seed: int | None) -> None:
         self.core.seed(0 if seed is None else seed)
@@ -248,10 +258,17 @@ def torchrl_env(
     batch_size: list[int] | tuple[int, ...] | int = (256,),
     device: torch.device | str = "cpu",
     seed: int = 0,
+    tune_malloc: bool = True,
     **options: Any,
 ) -> MuresTorchEnv:
-    """The batched TorchRL environment (module docstring); ``options`` as ``make_scenario``'s."""
+    """The batched TorchRL environment (module docstring); ``options`` as ``make_scenario``'s.
+
+    ``tune_malloc`` (default on): set the process's malloc to keep the few-MiB blocks a step's
+    tensors take instead of mapping and unmapping them every step
+    (``shared.engine.memory.keep_freed_memory``: process-wide, glibc only)."""
     dims = [batch_size] if isinstance(batch_size, int) else list(batch_size)
     if len(dims) != 1 or dims[0] < 1:
         raise ValueError(f"batch_size must be [B] with B >= 1, got {batch_size!r}")
+    if tune_malloc:
+        keep_freed_memory()
     return MuresTorchEnv(make_scenario(map, robots, **options), dims[0], seed=seed, device=device)
