@@ -13,7 +13,6 @@ then keeps up to ``trim_mib`` of freed memory for reuse instead of returning it 
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import functools
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's malloc.h
@@ -27,11 +26,9 @@ def keep_freed_memory(mmap_mib: int = MMAP_MAX_MIB, trim_mib: int = 256) -> bool
     where the C library is not glibc (then nothing changes)."""
     if not 0 < mmap_mib <= MMAP_MAX_MIB or trim_mib < mmap_mib:
         raise ValueError(f"need 0 < mmap_mib <= {MMAP_MAX_MIB} and trim_mib >= mmap_mib, got {mmap_mib}, {trim_mib}")
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError, TypeError):
+    try:  # the process's own symbols, as shared/planners/milp.py reaches libc
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     mib = 1 << 20

@@ -32,7 +32,7 @@ __all__ = ["MuresParallelEnv", "MuresTorchEnv", "parallel_env", "torchrl_env"]
 
 _DONE = ("done", "terminated", "truncated")
 _AGENT_OBS = ("observation", "action_mask")  # what a reset makes afresh, per robot
-_ROOT_OBS = ("agents", "state", *_DONE)
+_ROOT_OBS = ("agents", "state", *_DONE)  # root entries a reset makes afresh ("agents" is rebuilt)
 
 
 def _agent(i: int) -> str:
