@@ -234,6 +234,30 @@ def test_withdrawal_reading_names_the_best_learned_team_and_each_rise():
     assert _withdrawal_reading(rows[:3]) == []
 
 
+def test_fig11_reading_ranks_cepg_among_methods_that_sense_as_it_does():
+    from shared.tools.experiments import _ranking_reading
+
+    def row(method, eta, mean, half=0.5, episodes=1500):
+        return {
+            "method": method,
+            "eta_fn": eta,
+            "mean_capture_time": mean,
+            "ci95_halfwidth": half,
+            "episodes": episodes,
+        }
+
+    rows = [row("cepg", 0.0, 8.0), row("cepg+", 0.0, 3.0), row("masac", 0.0, 6.0), row("mappo", 0.0, 7.8)]
+    rows += [row("milp", 0.0, 1.0, float("nan"), 1), row("random", 0.0, 25.0)]
+    rows += [row("cepg", 0.3, 9.0), row("random", 0.3, 26.0)]
+    (line, _blank) = _ranking_reading(rows)
+    # cepg+ (broader sensor) and a one-episode cell are left out; mappo is ahead by mean but not separated
+    assert line.endswith(
+        "eta_fn 0.0: cepg ranks 3 of 4 (8.00 ± 0.50); sooner with 95% CIs disjoint: masac 6.00 ± 0.50; "
+        "eta_fn 0.3: cepg ranks 1 of 2 (9.00 ± 0.50); none is sooner with 95% CIs disjoint."
+    )
+    assert _ranking_reading([row("random", 0.0, 25.0), row("masac", 0.0, 6.0)]) == []  # no CE-PG row
+
+
 def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
     assert main(["experiment", "fig99", "--results", str(tmp_path)]) == 2
     assert "not implemented" in capsys.readouterr().err
