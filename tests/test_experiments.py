@@ -258,6 +258,23 @@ def test_fig11_reading_ranks_cepg_among_methods_that_sense_as_it_does():
     assert _ranking_reading([row("random", 0.0, 25.0), row("masac", 0.0, 6.0)]) == []  # no CE-PG row
 
 
+def test_fig13_reading_ranks_the_teams_trained_for_five():
+    from shared.tools.experiments import _dropout_reading
+
+    def row(method, k, mean, half=0.5):
+        return {"method": method, "robots": k, "mean_capture_time": mean, "ci95_halfwidth": half, "episodes": 1500}
+
+    rows = [row("cepg trained for 5", 2, 20.0), row("masac trained for 5", 2, 15.0), row("cepg trained for k", 2, 9.0)]
+    rows += [row("cepg trained for 5", 5, 8.0), row("masac trained for 5", 5, 9.0)]
+    (line, _blank) = _dropout_reading(rows)
+    # the team trained for k is the reference, not ranked; k = 5 is the intact team
+    assert line.endswith(
+        "of the teams trained for 5: k = 2: cepg trained for 5 ranks 2 of 2 (20.00 ± 0.50); "
+        "sooner with 95% CIs disjoint: masac 15.00 ± 0.50."
+    )
+    assert _dropout_reading(rows[3:]) == []  # only the intact team
+
+
 def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
     assert main(["experiment", "fig99", "--results", str(tmp_path)]) == 2
     assert "not implemented" in capsys.readouterr().err
