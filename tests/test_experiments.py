@@ -252,8 +252,8 @@ def test_fig11_reading_ranks_cepg_among_methods_that_sense_as_it_does():
     (line, _blank) = _ranking_reading(rows)
     # cepg+ (broader sensor) and a one-episode cell are left out; mappo is ahead by mean but not separated
     assert line.endswith(
-        "eta_fn 0.0: cepg ranks 3 of 4 (8.00 ± 0.50); sooner with 95% CIs disjoint: masac 6.00 ± 0.50; "
-        "eta_fn 0.3: cepg ranks 1 of 2 (9.00 ± 0.50); none is sooner with 95% CIs disjoint."
+        "eta_fn 0.0: cepg ranks 3 of 4 (8.00 ± 0.50); sooner, separated: masac 6.00 ± 0.50 (CIs disjoint); "
+        "eta_fn 0.3: cepg ranks 1 of 2 (9.00 ± 0.50); none is sooner and separated."
     )
     assert _ranking_reading([row("random", 0.0, 25.0), row("masac", 0.0, 6.0)]) == []  # no CE-PG row
 
@@ -270,7 +270,7 @@ def test_fig13_reading_ranks_the_teams_trained_for_five():
     # the team trained for k is the reference, not ranked; k = 5 is the intact team
     assert line.endswith(
         "of the teams trained for 5: k = 2: cepg trained for 5 ranks 2 of 2 (20.00 ± 0.50); "
-        "sooner with 95% CIs disjoint: masac 15.00 ± 0.50."
+        "sooner, separated: masac 15.00 ± 0.50 (CIs disjoint)."
     )
     assert _dropout_reading(rows[3:]) == []  # only the intact team
 

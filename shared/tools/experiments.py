@@ -1773,8 +1773,9 @@ def _unmoved_reading(rows: list[dict[str, Any]], key: str) -> list[str]:
 
 def _rank(rows: list[dict[str, Any]], key: str, base_method: str, label: str = "", say: str = "") -> list[str]:
     """Per value of ``key``: ``base_method``'s rank by mean capture time among ``rows`` (cells of
-    one episode, which have no CI, left out) and the rows that capture sooner with the two 95% CIs
-    disjoint, as "SAY V: LABEL ranks R of M (mean ± h); sooner ..." phrases (SAY: ``say`` or the key)."""
+    one episode, which have no CI, left out) and the rows that capture sooner, separated from it
+    (by the paired difference's 95% CI where the row flew CE-PG's episodes, else by disjoint CIs),
+    as "SAY V: LABEL ranks R of M (mean ± h); sooner ..." phrases (SAY: ``say`` or the key)."""
     out = []
     for v in dict.fromkeys(r[key] for r in rows):
         sel = [r for r in rows if r[key] == v and r["episodes"] >= 2 and math.isfinite(r["ci95_halfwidth"])]
@@ -1787,15 +1788,16 @@ def _rank(rows: list[dict[str, Any]], key: str, base_method: str, label: str = "
         for r in ranked[: rank - 1]:
             gap, sep = _gap(r, base)
             if gap < -sep:
-                sooner.append(f"{r['method']} {r['mean_capture_time']:.2f} ± {r['ci95_halfwidth']:.2f}")
+                how = (
+                    f"paired {gap:+.2f} ± {sep:.2f}"
+                    if "diff_to_cepg" in r and base_method == "cepg"
+                    else "CIs disjoint"
+                )
+                sooner.append(f"{r['method']} {r['mean_capture_time']:.2f} ± {r['ci95_halfwidth']:.2f} ({how})")
         out.append(
             f"{say or key} {v}: {label or base_method} ranks {rank} of {len(ranked)} "
             f"({base['mean_capture_time']:.2f} ± {base['ci95_halfwidth']:.2f}); "
-            + (
-                f"sooner with 95% CIs disjoint: {', '.join(sooner)}"
-                if sooner
-                else "none is sooner with 95% CIs disjoint"
-            )
+            + (f"sooner, separated: {', '.join(sooner)}" if sooner else "none is sooner and separated")
         )
     return out
 
