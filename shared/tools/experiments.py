@@ -1774,7 +1774,8 @@ def _unmoved_reading(rows: list[dict[str, Any]], key: str) -> list[str]:
 def _rank(rows: list[dict[str, Any]], key: str, base_method: str, label: str = "", say: str = "") -> list[str]:
     """Per value of ``key``: ``base_method``'s rank by mean capture time among ``rows`` (cells of
     one episode, which have no CI, left out) and the rows that capture sooner, separated from it
-    (by the paired difference's 95% CI where the row flew CE-PG's episodes, else by disjoint CIs),
+    (``_gap``: by the paired difference's 95% CI where the row flew CE-PG's episodes, else by
+    disjoint CIs),
     as "SAY V: LABEL ranks R of M (mean ± h); sooner ..." phrases (SAY: ``say`` or the key)."""
     out = []
     for v in dict.fromkeys(r[key] for r in rows):
@@ -1788,11 +1789,7 @@ def _rank(rows: list[dict[str, Any]], key: str, base_method: str, label: str = "
         for r in ranked[: rank - 1]:
             gap, sep = _gap(r, base)
             if gap < -sep:
-                how = (
-                    f"paired {gap:+.2f} ± {sep:.2f}"
-                    if "diff_to_cepg" in r and base_method == "cepg"
-                    else "CIs disjoint"
-                )
+                how = f"paired {gap:+.2f} ± {sep:.2f}" if _paired(r, base) else "CIs disjoint"
                 sooner.append(f"{r['method']} {r['mean_capture_time']:.2f} ± {r['ci95_halfwidth']:.2f} ({how})")
         out.append(
             f"{say or key} {v}: {label or base_method} ranks {rank} of {len(ranked)} "
@@ -1806,7 +1803,7 @@ def _ranking_reading(rows: list[dict[str, Any]]) -> list[str]:
     """fig11 on one map against the paper's claim that CE-PG is among the three best methods at
     every eta_fn (MILP or D-MILP sometimes ahead of it): per eta_fn, CE-PG's rank among the
     methods that sense as it does (CE-PG+ senses N[p] and is left out) and those that capture
-    sooner with disjoint 95% CIs."""
+    sooner, separated from it (``_rank``)."""
     out = _rank([r for r in rows if r["method"] != "cepg+"], "eta_fn", "cepg")
     if not out:
         return []
@@ -1820,7 +1817,7 @@ def _ranking_reading(rows: list[dict[str, Any]]) -> list[str]:
 def _dropout_reading(rows: list[dict[str, Any]]) -> list[str]:
     """fig13 on one map against the paper's claim that CE-PG does best of the MARL methods when
     robots of a 5-robot team drop out: per k flown, the 5-robot teams ranked (CE-PG's rank, and the
-    teams that capture sooner with disjoint 95% CIs). The teams trained for k are the table's
+    teams that capture sooner, separated from it: ``_rank``). The teams trained for k are the table's
     reference, not part of the ranking."""
     five = [{**r, "method": r["method"].removesuffix(" trained for 5")} for r in rows if r["method"].endswith(" for 5")]
     out = _rank([r for r in five if r["robots"] < 5], "robots", "cepg", "cepg trained for 5", "k =")
@@ -2153,9 +2150,14 @@ def _gap(
     """(r - base, the margin it must exceed to count): CE-PG's paired difference and its CI
     half-width when ``r`` carries one (it flew CE-PG's episodes, and ``base`` is CE-PG's row), else
     the difference of the two values and the sum of their CI half-widths (the CIs must not overlap)."""
-    if "diff_to_cepg" in r and base.get("method") == "cepg" and value == "mean_capture_time":
+    if _paired(r, base, value):
         return r["diff_to_cepg"], r["diff_to_cepg_ci95"]
     return r[value] - base[value], r[half] + base[half]
+
+
+def _paired(r: dict[str, Any], base: dict[str, Any], value: str = "mean_capture_time") -> bool:
+    """Whether ``_gap`` compares ``r`` with ``base`` by CE-PG's paired difference."""
+    return "diff_to_cepg" in r and base.get("method") == "cepg" and value == "mean_capture_time"
 
 
 def _reading(rows: list[dict[str, Any]]) -> list[str]:
