@@ -146,8 +146,8 @@ def test_paired_differences_to_cepg_are_over_the_same_episodes():
 
 
 def test_fig6_reading_uses_fig7_paired_differences_where_it_has_them(tmp_path):
-    """The variants against CE-PG: fig7's paired difference for the same map and N when recorded,
-    else whether the two CIs are disjoint."""
+    """The variants against CE-PG: fig7's paired difference for the same map and N when fig7 flew
+    the same cells (both rows as fig6's), else whether the two CIs are disjoint."""
     from shared.tools.experiments import _variants_reading
 
     def row(method, mean, half, N=4):
@@ -160,9 +160,13 @@ def test_fig6_reading_uses_fig7_paired_differences_where_it_has_them(tmp_path):
     fig7 = tmp_path / "fig7"
     fig7.mkdir()
     paired = {**row("c-cepg", 21.0, 1.0), "diff_to_cepg": 1.0, "diff_to_cepg_ci95": 0.4}
-    (fig7 / "fig7.json").write_text(json.dumps({"rows": [paired]}))
+    (fig7 / "fig7.json").write_text(json.dumps({"rows": [row("cepg", 20.0, 1.0), paired]}))
     (line, _blank) = _variants_reading(rows, tmp_path)
     assert "c-cepg captures later than CE-PG (fig7's paired difference +1.00 ± 0.40)" in line
+    # a fig7 recorded with other teams (its CE-PG flew 19.5): its paired difference is not these teams'
+    (fig7 / "fig7.json").write_text(json.dumps({"rows": [row("cepg", 19.5, 1.0), paired]}))
+    (line, _blank) = _variants_reading(rows, tmp_path)
+    assert "c-cepg is not separated from CE-PG (21.00 against 20.00, 95% CIs overlap)" in line
     assert _variants_reading([row("cepg+", 7.0, 0.5)], tmp_path) == []  # no CE-PG row to compare with
 
 

@@ -1687,14 +1687,20 @@ def report(root: Path, out: Path) -> Path:
 
 def _variants_reading(rows: list[dict[str, Any]], root: Path) -> list[str]:
     """fig6 on one map against the paper's claim that CE-PG+ and C-CE-PG both capture sooner
-    than CE-PG: from fig7's paired difference (same episodes) where fig7 has that map and team
-    size, else from whether the two 95% CIs are disjoint."""
+    than CE-PG: from fig7's paired difference (same episodes) where fig7 flew these very cells
+    (the same teams: a recorded fig7 may predate fig6's teams), else from whether the two 95%
+    CIs are disjoint."""
     f7 = root / "fig7" / "fig7.json"
-    paired = {
+    f7_rows = {
         (r["map"], r["robots"], r["method"]): r
         for r in (json.loads(f7.read_text())["rows"] if f7.exists() else [])
-        if "diff_to_cepg" in r
     }
+    same = ("mean_capture_time", "ci95_halfwidth", "episodes", "seed", "train_episodes")
+
+    def flown_by_fig7(r: dict[str, Any]) -> dict[str, Any] | None:
+        q = f7_rows.get((r["map"], r["robots"], r["method"]))
+        return q if q is not None and all(q.get(k) == r.get(k) for k in same) else None
+
     out = []
     for N in dict.fromkeys(r["robots"] for r in rows):
         base = next((r for r in rows if r["robots"] == N and r["method"] == "cepg"), None)
@@ -1705,7 +1711,9 @@ def _variants_reading(rows: list[dict[str, Any]], root: Path) -> list[str]:
             r = next((x for x in rows if x["robots"] == N and x["method"] == m), None)
             if r is None:
                 continue
-            q = paired.get((r["map"], N, m))  # fig7's cell: these teams on these episodes
+            # fig7's cell, paired with fig7's CE-PG: these teams on these episodes
+            q = flown_by_fig7(r) if flown_by_fig7(base) is not None else None
+            q = q if q is not None and "diff_to_cepg" in q else None
             gap, sep = _gap(q or r, base)
             if q is not None:
                 how = f"fig7's paired difference {gap:+.2f} ± {sep:.2f}"
