@@ -154,6 +154,9 @@ def test_snapshot_round_trip_and_checks(trained_run, tmp_path):
     assert summary["episodes"] == res.summary["episodes"]
     # where it was trained: the versions that make the same seeds give the same weights
     assert summary["trained_with"]["torch"] == torch.__version__ and summary["trained_with"]["numpy"] == np.__version__
+    # and on which processor kernels (torch's vector instructions differ in their rounding)
+    assert summary["trained_with"]["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert summary["trained_with"]["processor"]
     assert json.loads((d / "policy.json").read_text())["summary"]["trained_with"] == summary["trained_with"]
     kept = save_snapshot(
         tmp_path / "again",

@@ -88,15 +88,30 @@ def save_snapshot(
 
 def provenance() -> dict[str, Any]:
     """The software and machine a team is trained with: the same seeds give the same weights only
-    with the same versions (and, for some kernels, processor), so a summary says which."""
+    with the same versions and the same processor kernels (torch picks its vector instructions,
+    ``cpu_capability``, by processor), so a summary says which."""
     return {
         "python": platform.python_version(),
         "torch": torch.__version__,
         "numpy": np.__version__,
         "platform": platform.platform(),
+        "processor": _processor_name(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "cpus": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
     }
+
+
+def _processor_name() -> str:
+    """The processor's model name (Linux's /proc/cpuinfo), else what ``platform`` knows."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
 
 
 def load_snapshot(path: str | Path, graph: Graph, device: torch.device | str = "cpu") -> Snapshot:
