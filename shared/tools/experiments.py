@@ -1692,8 +1692,7 @@ def _variants_reading(rows: list[dict[str, Any]], root: Path) -> list[str]:
     CIs are disjoint."""
     f7 = root / "fig7" / "fig7.json"
     f7_rows = {
-        (r["map"], r["robots"], r["method"]): r
-        for r in (json.loads(f7.read_text())["rows"] if f7.exists() else [])
+        (r["map"], r["robots"], r["method"]): r for r in (json.loads(f7.read_text())["rows"] if f7.exists() else [])
     }
     same = ("mean_capture_time", "ci95_halfwidth", "episodes", "seed", "train_episodes")
 
