@@ -9,8 +9,8 @@ The parts (README, "The paper's protocol: what is recorded"): fig11 and fig13 on
 N = 1..5 on MUSEUM (its N = 4 teams were lost with a machine, and the baselines' rows move to their
 plateau budgets), fig7 at N = 1 on OFFICE (FACMAC's row at its plateau budget, flown beside a CE-PG
 team of the same run), fig12 on MUSEUM (the baselines at their plateau budgets), and fig5 on both
-maps and fig10 on MUSEUM, whose recorded rows come from teams that the trainer before 43d8938
-gave (none since gives them back). Every part at the full budget; `--fraction F` prices
+maps, whose recorded rows come from teams that the trainer before 43d8938 gave (none since gives
+them back). Every part at the full budget; `--fraction F` prices
 fig7's N = 1, 2, 3, 5 at F times it (`--train-fraction`).
 """
 
@@ -28,7 +28,6 @@ PARTS = [
     ("fig7", ("office",), (1,), False),
     ("fig12", ("museum",), None, False),
     ("fig5", ("office", "museum"), None, False),
-    ("fig10", ("museum",), (4,), False),
 ]
 
 
