@@ -10,8 +10,8 @@ N = 1..5 on MUSEUM (its N = 4 teams were lost with a machine, and the baselines'
 plateau budgets), fig7 at N = 1 on OFFICE (FACMAC's row at its plateau budget, flown beside a CE-PG
 team of the same run), fig12 on MUSEUM (the baselines at their plateau budgets), and fig5 on
 MUSEUM, whose recorded rows come from teams that the trainer before 43d8938 gave (none since gives
-them back). Every part at the full budget; `--fraction F` prices
-fig7's N = 1, 2, 3, 5 at F times it (`--train-fraction`).
+them back). Every part at the full budget; `--fraction F` prices fig7's N = 1, 2, 3, 5 at F times
+it (`--train-fraction`).
 """
 
 import argparse

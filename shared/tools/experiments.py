@@ -1705,14 +1705,16 @@ def _variants_reading(rows: list[dict[str, Any]], root: Path) -> list[str]:
         base = next((r for r in rows if r["robots"] == N and r["method"] == "cepg"), None)
         if base is None:
             continue
+        same_cepg = flown_by_fig7(base) is not None  # fig7's CE-PG row is this one
         said = []
         for m in ("cepg+", "c-cepg"):
             r = next((x for x in rows if x["robots"] == N and x["method"] == m), None)
             if r is None:
                 continue
             # fig7's cell, paired with fig7's CE-PG: these teams on these episodes
-            q = flown_by_fig7(r) if flown_by_fig7(base) is not None else None
-            q = q if q is not None and "diff_to_cepg" in q else None
+            q = flown_by_fig7(r) if same_cepg else None
+            if q is not None and not _paired(q, base):
+                q = None
             gap, sep = _gap(q or r, base)
             if q is not None:
                 how = f"fig7's paired difference {gap:+.2f} ± {sep:.2f}"
