@@ -327,6 +327,12 @@ def test_plan_says_what_a_run_would_train_and_evaluate_and_runs_nothing(tmp_path
     # a team's estimate follows its method's measured cost per episode, map and team size
     assert E._train_cost("maddpg", "office", 4, 1000) > 10 * E._train_cost("cepg", "office", 4, 1000)
     assert E._train_cost("cepg", "museum", 4, 1000) > E._train_cost("cepg", "office", 4, 1000)
+    # and, as a job's steps, it lengthens with the sensor's misses: twice the steps at eta_fn 0.5
+    assert E._train_cost("masac", "office", 4, 1000, eta_fn=0.5) == pytest.approx(
+        2 * E._train_cost("masac", "office", 4, 1000)
+    )
+    cell = {"env": "office", "robots": 4, "episodes": 30, "sensor": {"eta_fn": 0.5, "eta_fp": 0.0}}
+    assert E._cell_cost("d-milp", cell) == pytest.approx(2 * E._cell_cost("d-milp", {**cell, "sensor": {"eta_fn": 0}}))
     assert main([*argv, "--plan", "--train-episodes", "10", "--train-fraction", "0.5"]) == 2
     assert "not both" in capsys.readouterr().err
 

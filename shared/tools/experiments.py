@@ -299,7 +299,7 @@ def _snapshot(
     if not _cached(root / rel, _cepg_config(*args[1:])[1]):
         noise = _noise(eta_fn, eta_fp)
         label = f"training {'PG' if beta == 1 else variant.upper()} {env} N={robots}{noise}, {episodes:,} episodes"
-        _obtain(root, Job(rel, label, _train_cepg, args, weight=_train_cost("cepg", env, robots, episodes)))
+        _obtain(root, Job(rel, label, _train_cepg, args, weight=_train_cost("cepg", env, robots, episodes, eta_fn)))
     return root / rel
 
 
@@ -371,7 +371,7 @@ def _marl_snapshot(
         noise = _noise(eta_fn, eta_fp)
         extra = f" ({', '.join(overrides)})" if overrides else ""
         label = f"training {algorithm.upper()} {env} N={robots}{noise}{extra}, {config['episodes']:,} episodes"
-        weight = _train_cost(algorithm, env, robots, config["episodes"])
+        weight = _train_cost(algorithm, env, robots, config["episodes"], eta_fn)
         _obtain(root, Job(rel, label, _train_marl, args, weight=weight))
     return root / rel
 
@@ -632,22 +632,34 @@ def _cell(
 # N = 4; the baselines' N = 1 teams 1.7 to 3.6 times). Planners, seconds per team step at their
 # 1 s limit (MILP, every solve at the limit; D-MILP one solve per robot) or as measured (FHPE-SA);
 # episodes of about 8 steps on OFFICE and 17 on MUSEUM at N = 4, 4 / N times that for N robots.
+# Both cost as many steps as the episodes take, and a sensor that misses the target with
+# probability eta_fn stretches them by about 1 / (1 - eta_fn) (each detection chance succeeds with
+# 1 - eta_fn): the cache's OFFICE teams trained under eta_fn 0.1 / 0.3 / 0.5 took 1.08-1.10 /
+# 1.34-1.38 / 1.76-1.98 times eta_fn 0's steps per episode (CE-PG, MASAC, MAPPO), against 1.11 /
+# 1.43 / 2; D-MILP's 30 episodes there averaged 8.9 / 11.2 / 14.0 steps.
 TRAIN_MS_PER_EPISODE = {"cepg": 0.42, "mappo": 1.7, "maddpg": 7.3, "masac": 5.5, "facmac": 5.4, "mambpo": 5.7}
 MAP_COST = {"office": 1.0, "museum": 2.5}
 STEPS_AT_N4 = {"office": 8.0, "museum": 17.0}
 PLANNER_SECONDS_PER_STEP = {"milp": 1.0, "d-milp": 1.0, "fhpe": 0.2, "fhpe-sa": 0.04}
 
 
-def _train_cost(method: str, env: str, robots: int, episodes: int) -> float:
+def _miss_stretch(eta_fn: float) -> float:
+    """How much longer episodes get when the sensor misses with probability ``eta_fn``
+    (see TRAIN_MS_PER_EPISODE)."""
+    return 1.0 / (1.0 - min(float(eta_fn), 0.9))
+
+
+def _train_cost(method: str, env: str, robots: int, episodes: int, eta_fn: float = 0.0) -> float:
     """A team's expected training time in seconds on one core (see TRAIN_MS_PER_EPISODE)."""
     per = TRAIN_MS_PER_EPISODE.get(method, TRAIN_MS_PER_EPISODE["cepg"]) / 1000
-    return episodes * per * MAP_COST.get(env, 1.0) * (4 / robots) ** 0.5
+    return episodes * per * MAP_COST.get(env, 1.0) * (4 / robots) ** 0.5 * _miss_stretch(eta_fn)
 
 
 def _cell_cost(method: str, args: dict[str, Any]) -> float:
     """A cell's expected time in seconds on one core (see TRAIN_MS_PER_EPISODE): a planner's
     decisions, or a learned team's batched episodes (and its decision timing with ``latency``)."""
     steps = args["episodes"] * STEPS_AT_N4.get(args["env"], 10.0) * 4 / args["robots"]
+    steps *= _miss_stretch(args["sensor"]["eta_fn"])
     if method in PLANNER_SECONDS_PER_STEP:
         per_step = PLANNER_SECONDS_PER_STEP[method] * (args["robots"] if method == "d-milp" else 1)
         return steps * per_step
