@@ -301,6 +301,8 @@ def test_every_experiment_plans_from_an_empty_cache(tmp_path):
     for name in ("fig5", "fig6", "fig7", "fig9", "fig10", "fig11", "fig12", "fig13", "marl"):
         jobs = experiments.plan(name, tmp_path, experiments.QUICK)
         assert jobs and all(j.label.startswith(("training", "evaluating")) for j in jobs), name
+        # a progress line names its job: fig5's teams differ by beta and seed only, its cells by team
+        assert len({j.label for j in jobs}) == len(jobs), name
     assert not any(tmp_path.iterdir())
 
 

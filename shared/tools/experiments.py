@@ -298,7 +298,8 @@ def _snapshot(
     args = (rel, env, robots, beta, episodes, seed, variant, eta_fn, eta_fp)
     if not _cached(root / rel, _cepg_config(*args[1:])[1]):
         noise = _noise(eta_fn, eta_fp)
-        label = f"training {'PG' if beta == 1 else variant.upper()} {env} N={robots}{noise}, {episodes:,} episodes"
+        which = "PG" if beta == 1 else variant.upper() + (f" beta {beta}" if beta != LEARNED[variant][1] else "")
+        label = f"training {which} {env} N={robots}{noise}, {episodes:,} episodes{_seed_label(seed)}"
         _obtain(root, Job(rel, label, _train_cepg, args, weight=_train_cost("cepg", env, robots, episodes, eta_fn)))
     return root / rel
 
@@ -344,6 +345,11 @@ def _train_cepg(
         return directory_files(Path(tmp) / rel, Path(tmp))
 
 
+def _seed_label(seed: int) -> str:
+    """A job label's training seed, named where it is not the default 0 (fig5's seeds tell its teams apart)."""
+    return f", seed {seed}" if seed else ""
+
+
 def _obtain(root: Path, job: Job) -> None:
     """Run a training job now, in this process, or collect it while planning."""
     if _PLAN is not None:
@@ -370,7 +376,10 @@ def _marl_snapshot(
     if not _cached(root / rel, config):
         noise = _noise(eta_fn, eta_fp)
         extra = f" ({', '.join(overrides)})" if overrides else ""
-        label = f"training {algorithm.upper()} {env} N={robots}{noise}{extra}, {config['episodes']:,} episodes"
+        label = (
+            f"training {algorithm.upper()} {env} N={robots}{noise}{extra}, {config['episodes']:,} episodes"
+            f"{_seed_label(seed)}"
+        )
         weight = _train_cost(algorithm, env, robots, config["episodes"], eta_fn)
         _obtain(root, Job(rel, label, _train_marl, args, weight=weight))
     return root / rel
@@ -591,8 +600,10 @@ def _cell(
         "latency": latency,
     }
     withdrawn = f", withdrawn {withdraw_at}" if withdraw_at else ""
+    team = f", team {make.path.name}" if isinstance(make, _Team) else ""  # fig5 flies several teams of one method
     label = (
         f"evaluating {method} {env} N={robots}{_noise(sensor.eta_fn, sensor.eta_fp)}{withdrawn} ({episodes} episodes)"
+        f"{team}"
     )
     if not make.ready():  # planning: its team is not trained yet
         later = json.dumps({**args, "team": str(getattr(make, "path", ""))}, sort_keys=True)
