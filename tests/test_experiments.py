@@ -496,6 +496,11 @@ def test_sensor_noise_and_variant_experiments_and_their_report(tmp_path):
     assert "## Fig. 10: eta_fp" in text and "| N | eta_fp 0.0 | eta_fp 0.1 | eta_fp 0.3 | eta_fp 0.5 |" in text
     assert "| 2 | 0.00 ± 0.00 |" in text  # N = 2, eta_fp = 0: no false alarm in any episode
     assert "| cepg+ |" in text and "fig6" not in text.split("## Not recorded")[1]
+    # every learned row names the snapshot that flew it, and the figure's cost counts those teams' training
+    assert all((tmp_path / "snapshots" / r["team"] / "policy.json").exists() for r in rows)
+    section = text.split("## Fig. 6")[1].split("\n## ")[0]
+    assert f"training the {len({r['team'] for r in rows})} teams its rows name " in section
+    assert "recorded before rows named their team" not in section
 
 
 def test_marl_experiment_and_its_report(tmp_path, monkeypatch):

@@ -629,6 +629,8 @@ def _cell(
             cached.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(cached, json.dumps(row).encode())
     out = {k: v for k, v in row.items() if k != "capture_times"}
+    if isinstance(make, _Team):  # the row names its team: results/snapshots/<team> flies it again
+        out["team"] = make.path.name
     if times:
         out["capture_times"] = np.asarray(row["capture_times"], dtype=np.float64)
     return out
@@ -1002,13 +1004,23 @@ def fig5_rows(root: Path, env: str, b: Budget, N: int = 4) -> list[dict[str, Any
     sensor = sensor_for("cepg")
     times: dict[tuple[float, int], np.ndarray] = {}
     trained: dict[float, Any] = {}  # the episodes the teams ran (whole batches), as the cells say
+    cells: dict[float, list[dict[str, Any]]] = {beta: [] for beta in BETAS}
     for beta in BETAS:
         for s in b.seeds:
             team = _flown(_snapshot(root, env, N, beta, b.train, s), env, sensor, N)
             cell = _cell(env, N, "pg" if beta == 1.0 else "cepg", team, b.episodes, times=True)
             times[beta, s] = cell.pop("capture_times", np.zeros(0))
             trained[beta] = cell.get("train_episodes", b.train)
-    return [{**_beta_row(env, N, beta, b, times), "train_episodes": trained[beta]} for beta in BETAS]
+            cells[beta].append(cell)
+    return [
+        {
+            **_beta_row(env, N, beta, b, times),
+            "train_episodes": trained[beta],
+            "teams": [c.get("team") for c in cells[beta]],  # one per training seed
+            "wall_seconds": round(sum(c.get("wall_seconds", 0.0) for c in cells[beta]), 2),
+        }
+        for beta in BETAS
+    ]
 
 
 def _beta_row(env: str, N: int, beta: float, b: Budget, times: dict[tuple[float, int], np.ndarray]) -> dict[str, Any]:
@@ -1462,22 +1474,13 @@ def plan_lines(name: str, root: Path, b: Budget) -> list[str]:
     teams = [j for j in jobs if j.fn is not _cell_job]
     total = sum(j.weight for j in jobs) + sum(w for _, w in later)
 
-    def hours(seconds: float) -> str:
-        return (
-            f"{seconds / 3600:.1f} h"
-            if seconds >= 360
-            else f"{seconds / 60:.0f} min"
-            if seconds >= 60
-            else f"{seconds:.0f} s"
-        )
-
     lines = [
         f"{name} in {root}: {len(teams)} teams to train, {len(cells)} cells to evaluate now and {len(later)} once "
-        f"their teams exist; about {hours(total)} on one core (K workers: at best that / K), estimated from this "
+        f"their teams exist; about {_duration(total)} on one core (K workers: at best that / K), estimated from this "
         "project's measured rates (shared/tools/experiments.py, TRAIN_MS_PER_EPISODE); nothing was run"
     ]
-    lines += [f"  {hours(j.weight):>7}  {j.label}" for j in sorted(jobs, key=lambda j: -j.weight)]
-    lines += [f"  {hours(w):>7}  {label}" for label, w in sorted(later, key=lambda x: -x[1])]
+    lines += [f"  {_duration(j.weight):>7}  {j.label}" for j in sorted(jobs, key=lambda j: -j.weight)]
+    lines += [f"  {_duration(w):>7}  {label}" for label, w in sorted(later, key=lambda x: -x[1])]
     return lines
 
 
@@ -1524,9 +1527,8 @@ def report(root: Path, out: Path) -> Path:
             f"{d['horizons']}, discount {d['discount']}, MILP time limit {d['milp_time_limit_s']} s per solve "
             f"(HiGHS); quick={d['quick']}; {d['machine']['cpus']} CPUs, {d['machine']['date']}; maps "
             f"{', '.join(m.upper() for m in d.get('maps', PAPER_MAPS))}, N = "
-            f"{', '.join(str(n) for n in d.get('team_sizes', range(1, 6)))}; evaluating the cells took "
-            f"{sum(r.get('wall_seconds', 0.0) for r in rows):.0f} s (training the teams not included; the "
-            f"last run, its cells cached or not, {d['wall_seconds']:.0f} s). "
+            f"{', '.join(str(n) for n in d.get('team_sizes', range(1, 6)))}; the last run, its cells cached "
+            f"or not, took {d['wall_seconds']:.0f} s. "
             "MARL baselines (maddpg, masac, facmac, mambpo, mappo) trained "
             f"for {_marl_budget(d)} with EM-estimated beliefs, executed decentralised as CE-PG.",
             "",
@@ -1537,6 +1539,8 @@ def report(root: Path, out: Path) -> Path:
             "node); c-cepg robots share all observations (collective belief); oracle robots see the target "
             "(a lower bound, exact DP, N <= 2 only). fhpe is not run for N > 3: the joint paths per decision "
             "exceed 10^6.",
+            "",
+            _cost_line(root, rows),
             "",
         ]
 
@@ -1665,6 +1669,8 @@ def report(root: Path, out: Path) -> Path:
             + note,
             "",
             *_runs_lines(d),
+            _cost_line(root, rows),
+            "",
         ]
         for env in maps_in(rows):
             sel = [r for r in rows if r["map"] == env]
@@ -1989,6 +1995,32 @@ def _runs(setup: dict[str, Any]) -> list[dict[str, Any]]:
     """The runs a figure's rows come from, when more than one (`--add`; ``_merge``), else []."""
     parts = setup.get("parts") or []
     return parts if len(parts) > 1 else []
+
+
+def _cost_line(root: Path, rows: list[dict[str, Any]]) -> str:
+    """What a figure cost on the machines that made it: its cells' evaluation and the training of the
+    teams its rows name (each team once, from its snapshot's wall time in ``root``'s cache)."""
+    said = f"evaluating the cells of its {len(rows)} rows {_duration(sum(r.get('wall_seconds', 0.0) for r in rows))}"
+    teams = {t for r in rows for t in (r.get("teams") or [r.get("team")]) if t}
+    walls = [
+        float(json.loads(meta.read_text()).get("summary", {}).get("wall_seconds", 0.0))
+        for meta in (root / "snapshots" / t / "policy.json" for t in sorted(teams))
+        if meta.exists()
+    ]
+    if teams:
+        cached = "" if len(walls) == len(teams) else f" ({len(walls)} of them in the cache)"
+        said += f"; training the {len(teams)} teams its rows name{cached} {_duration(sum(walls))}"
+    unnamed = sum(1 for r in rows if r.get("train_episodes") is not None and not ({"team", "teams"} & r.keys()))
+    if unnamed:
+        said += f"; {unnamed} learned rows were recorded before rows named their team, their training not counted"
+    return f"Cost (wall time, one core a job, often beside another job): {said}."
+
+
+def _duration(seconds: float) -> str:
+    """A duration as a reader takes it in: seconds, minutes or hours."""
+    if seconds >= 360:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.0f} min" if seconds >= 60 else f"{seconds:.0f} s"
 
 
 def _trained(setup: dict[str, Any]) -> str:
