@@ -658,7 +658,8 @@ PLANNER_SECONDS_PER_STEP = {"milp": 1.0, "d-milp": 1.0, "fhpe": 0.2, "fhpe-sa": 
 
 def _miss_stretch(eta_fn: float) -> float:
     """How much longer episodes get when the sensor misses with probability ``eta_fn``
-    (see TRAIN_MS_PER_EPISODE)."""
+    (see TRAIN_MS_PER_EPISODE); at most 10x: a sensor that never detects runs every episode to
+    T_max, a bounded length, where 1 / (1 - eta_fn) would be infinite."""
     return 1.0 / (1.0 - min(float(eta_fn), 0.9))
 
 
