@@ -2003,11 +2003,8 @@ def _cost_line(root: Path, rows: list[dict[str, Any]]) -> str:
     teams its rows name (each team once, from its snapshot's wall time in ``root``'s cache)."""
     said = f"evaluating the cells of its {len(rows)} rows {_duration(sum(r.get('wall_seconds', 0.0) for r in rows))}"
     teams = {t for r in rows for t in (r.get("teams") or [r.get("team")]) if t}
-    walls = [
-        float(json.loads(meta.read_text()).get("summary", {}).get("wall_seconds", 0.0))
-        for meta in (root / "snapshots" / t / "policy.json" for t in sorted(teams))
-        if meta.exists()
-    ]
+    snaps = [root / "snapshots" / t for t in sorted(teams)]
+    walls = [float(_summary(d).get("wall_seconds", 0.0)) for d in snaps if (d / "policy.json").exists()]
     if teams:
         cached = "" if len(walls) == len(teams) else f" ({len(walls)} of them in the cache)"
         said += f"; training the {len(teams)} teams its rows name{cached} {_duration(sum(walls))}"
