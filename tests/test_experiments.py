@@ -335,6 +335,11 @@ def test_plan_says_what_a_run_would_train_and_evaluate_and_runs_nothing(tmp_path
     )
     cell = {"env": "office", "robots": 4, "episodes": 30, "sensor": {"eta_fn": 0.5, "eta_fp": 0.0}}
     assert E._cell_cost("d-milp", cell) == pytest.approx(2 * E._cell_cost("d-milp", {**cell, "sensor": {"eta_fn": 0}}))
+    # a planner's step costs more with every robot it plans for (D-MILP a solve each, FHPE-SA's
+    # annealing per robot, FHPE's joint paths), and more on the larger map
+    for m in ("d-milp", "fhpe-sa", "fhpe"):
+        assert E._planner_step_cost(m, "office", 3) > E._planner_step_cost(m, "office", 1)
+    assert E._planner_step_cost("fhpe-sa", "museum", 4) > E._planner_step_cost("fhpe-sa", "office", 4)
     assert main([*argv, "--plan", "--train-episodes", "10", "--train-fraction", "0.5"]) == 2
     assert "not both" in capsys.readouterr().err
 

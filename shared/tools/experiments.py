@@ -642,9 +642,14 @@ def _cell(
 # to 5 (wall_seconds / episodes of its snapshot; runs beside more jobs took up to twice as long);
 # MUSEUM's cost 2.5 times OFFICE's (the median of the methods' ratios there), and sqrt(4 / N)
 # times for N robots (fewer robots, longer episodes: CE-PG at N = 1 and 2 cost 1.9 and 1.2 times
-# N = 4; the baselines' N = 1 teams 1.7 to 3.6 times). Planners, seconds per team step at their
-# 1 s limit (MILP, every solve at the limit; D-MILP one solve per robot) or as measured (FHPE-SA);
-# episodes of about 8 steps on OFFICE and 17 on MUSEUM at N = 4, 4 / N times that for N robots.
+# N = 4; the baselines' N = 1 teams 1.7 to 3.6 times). Planners, seconds per team step: MILP at
+# its 1 s limit (every solve at N >= 2 reaches it; 0.6 s at N = 1), D-MILP one such solve per
+# robot (0.6 s a step at N = 1, 3.0-3.8 s at N = 4), FHPE-SA about 5 ms per robot on OFFICE
+# (7.5 / 9 / 12 / 14 / 24 ms a step at N = 1..5) and FHPE, which searches the joint paths, 0.5 /
+# 1.0 / 11 ms a step at N = 1 / 2 / 3 (fig8 OFFICE and the cache's wall_seconds / team_steps; FHPE
+# runs at N <= 3 only); MUSEUM's planner steps cost MAP_COST times OFFICE's (FHPE-SA at N = 4: 36
+# against 14 ms; FHPE not measured there); episodes of about 8 steps on OFFICE and 17 on MUSEUM
+# at N = 4, 4 / N times that for N robots.
 # Both cost as many steps as the episodes take, and a sensor that misses the target with
 # probability eta_fn stretches them by about 1 / (1 - eta_fn) (each detection chance succeeds with
 # 1 - eta_fn): the cache's OFFICE teams trained under eta_fn 0.1 / 0.3 / 0.5 took 1.08-1.10 /
@@ -653,7 +658,7 @@ def _cell(
 TRAIN_MS_PER_EPISODE = {"cepg": 0.42, "mappo": 1.7, "maddpg": 7.3, "masac": 5.5, "facmac": 5.4, "mambpo": 5.7}
 MAP_COST = {"office": 1.0, "museum": 2.5}
 STEPS_AT_N4 = {"office": 8.0, "museum": 17.0}
-PLANNER_SECONDS_PER_STEP = {"milp": 1.0, "d-milp": 1.0, "fhpe": 0.2, "fhpe-sa": 0.04}
+FHPE_SECONDS_PER_STEP = {1: 0.001, 2: 0.002, 3: 0.015}  # by N; beyond N = 3 (not run) the joint search explodes
 
 
 def _miss_stretch(eta_fn: float) -> float:
@@ -674,10 +679,21 @@ def _cell_cost(method: str, args: dict[str, Any]) -> float:
     decisions, or a learned team's batched episodes (and its decision timing with ``latency``)."""
     steps = args["episodes"] * STEPS_AT_N4.get(args["env"], 10.0) * 4 / args["robots"]
     steps *= _miss_stretch(args["sensor"]["eta_fn"])
-    if method in PLANNER_SECONDS_PER_STEP:
-        per_step = PLANNER_SECONDS_PER_STEP[method] * (args["robots"] if method == "d-milp" else 1)
-        return steps * per_step
+    if method in PLANNERS:
+        return steps * _planner_step_cost(method, args["env"], args["robots"])
     return steps * 2e-4 + (20.0 if args.get("latency") else 0.0)
+
+
+def _planner_step_cost(method: str, env: str, robots: int) -> float:
+    """A planner's seconds per team step on one core (see TRAIN_MS_PER_EPISODE)."""
+    if method == "milp":
+        return 1.0  # the solver's time limit
+    if method == "d-milp":
+        return 1.0 * robots  # one solve per robot
+    per_map = MAP_COST.get(env, 1.0)
+    if method == "fhpe-sa":
+        return 0.005 * robots * per_map
+    return FHPE_SECONDS_PER_STEP.get(robots, 1.0) * per_map
 
 
 def _cell_job(key: str, args: dict[str, Any], make: Any, files: dict[str, bytes] | None) -> dict[str, bytes]:
