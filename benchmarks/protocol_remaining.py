@@ -6,9 +6,8 @@ on one core (shared/tools/experiments.py, TRAIN_MS_PER_EPISODE).
 Run: python benchmarks/protocol_remaining.py [--results results] [--list]
 
 The parts (README, "The paper's protocol: what is recorded"): fig11 on MUSEUM (OFFICE's is
-recorded), fig13 on both maps, fig7 at N = 1, 2, 3, 5 on MUSEUM, and fig7 at N = 1 on OFFICE
-(FACMAC's row at its plateau budget, flown beside a CE-PG team of the same run). Every part at the
-full budget; `--fraction F` prices fig7's N = 1, 2, 3, 5 at F times it (`--train-fraction`).
+recorded), fig13 on both maps and fig7 at N = 1, 2, 3, 5 on MUSEUM. Every part at the full
+budget; `--fraction F` prices fig7's N = 1, 2, 3, 5 at F times it (`--train-fraction`).
 """
 
 import argparse
@@ -21,7 +20,6 @@ PARTS = [
     ("fig11", ("museum",), None, False),
     ("fig13", ("office", "museum"), None, False),
     ("fig7", ("museum",), (1, 2, 3, 5), True),
-    ("fig7", ("office",), (1,), False),
 ]
 
 
