@@ -340,6 +340,12 @@ def test_plan_says_what_a_run_would_train_and_evaluate_and_runs_nothing(tmp_path
     for m in ("d-milp", "fhpe-sa", "fhpe"):
         assert E._planner_step_cost(m, "office", 3) > E._planner_step_cost(m, "office", 1)
     assert E._planner_step_cost("fhpe-sa", "museum", 4) > E._planner_step_cost("fhpe-sa", "office", 4)
+    # a MILP cell is priced at the time limit it solves under (--quick's 0.05 s, the protocol's 1 s)
+    from shared.core.models import Sensor
+
+    quick, full = (E._reference("office", 4, "milp", Sensor(), time_limit=t) for t in (0.05, 1.0))
+    cell0 = {**cell, "sensor": {"eta_fn": 0}}
+    assert E._cell_cost("milp", cell0, quick) == pytest.approx(0.05 * E._cell_cost("milp", cell0, full))
     assert main([*argv, "--plan", "--train-episodes", "10", "--train-fraction", "0.5"]) == 2
     assert "not both" in capsys.readouterr().err
 

@@ -607,7 +607,7 @@ def _cell(
     )
     if not make.ready():  # planning: its team is not trained yet
         later = json.dumps({**args, "team": str(getattr(make, "path", ""))}, sort_keys=True)
-        _LATER[later] = (f"{label}, once its team exists", _cell_cost(method, args))
+        _LATER[later] = (f"{label}, once its team exists", _cell_cost(method, args, make))
         return placeholder
     what = {**args, "make": make.describe(), "version": CELL_VERSION}
     if latency and method not in PLANNERS:  # a planner's is timed on its own episodes, as before
@@ -621,7 +621,8 @@ def _cell(
         if isinstance(make, _Team):  # the worker gets the snapshot's files, not this process's objects
             files = directory_files(make.path, make.path)
             make = _Team(make.path, make.env, make.sensor, make.robots)
-        _PLAN.append(Job(f"cell-{key}", label, _cell_job, (key, args, make, files), weight=_cell_cost(method, args)))
+        weight = _cell_cost(method, args, make)
+        _PLAN.append(Job(f"cell-{key}", label, _cell_job, (key, args, make, files), weight=weight))
         return placeholder
     else:
         row = _evaluate_cell(make=make, **args)
@@ -674,22 +675,25 @@ def _train_cost(method: str, env: str, robots: int, episodes: int, eta_fn: float
     return episodes * per * MAP_COST.get(env, 1.0) * (4 / robots) ** 0.5 * _miss_stretch(eta_fn)
 
 
-def _cell_cost(method: str, args: dict[str, Any]) -> float:
+def _cell_cost(method: str, args: dict[str, Any], make: Any = None) -> float:
     """A cell's expected time in seconds on one core (see TRAIN_MS_PER_EPISODE): a planner's
-    decisions, or a learned team's batched episodes (and its decision timing with ``latency``)."""
+    decisions (at the MILP time limit ``make``, a ``_Reference``, passes it; else the protocol's),
+    or a learned team's batched episodes (and its decision timing with ``latency``)."""
     steps = args["episodes"] * STEPS_AT_N4.get(args["env"], 10.0) * 4 / args["robots"]
     steps *= _miss_stretch(args["sensor"]["eta_fn"])
     if method in PLANNERS:
-        return steps * _planner_step_cost(method, args["env"], args["robots"])
+        limit = dict(getattr(make, "kw", ())).get("time_limit", FULL.milp_limit)
+        return steps * _planner_step_cost(method, args["env"], args["robots"], limit)
     return steps * 2e-4 + (20.0 if args.get("latency") else 0.0)
 
 
-def _planner_step_cost(method: str, env: str, robots: int) -> float:
-    """A planner's seconds per team step on one core (see TRAIN_MS_PER_EPISODE)."""
+def _planner_step_cost(method: str, env: str, robots: int, time_limit: float = FULL.milp_limit) -> float:
+    """A planner's seconds per team step on one core (see TRAIN_MS_PER_EPISODE); ``time_limit``
+    the MILP planners' seconds per solve."""
     if method == "milp":
-        return 1.0  # the solver's time limit
+        return time_limit  # every solve reaches it at N >= 2
     if method == "d-milp":
-        return 1.0 * robots  # one solve per robot
+        return time_limit * robots  # one solve per robot
     per_map = MAP_COST.get(env, 1.0)
     if method == "fhpe-sa":
         return 0.005 * robots * per_map
