@@ -6,6 +6,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -700,10 +701,58 @@ def test_teams_trained_by_local_processes_and_by_a_dask_cluster_give_the_same_ro
 
     with local_dask_cluster(2, tmp_path, Path(__file__).resolve().parent.parent) as address:
         experiments.run("fig6", tmp_path / "dask", quick=True, scheduler=address)
+        # with a deadline the jobs go to the cluster as its threads free up: the same rows
+        out = experiments.run("fig6", tmp_path / "dask-until", quick=True, scheduler=address, until=time.time() + 3600)
+    assert out is not None and _rows(tmp_path / "dask-until" / "fig6" / "fig6.json") == expected
     assert _rows(tmp_path / "dask" / "fig6" / "fig6.json") == expected
     assert experiments.plan("fig6", tmp_path / "dask", tiny) == []  # resumes: every team is cached
     with pytest.raises(ValueError, match="cannot reach the Dask scheduler at tcp://"):
         experiments.run("fig6", tmp_path / "nowhere", quick=True, scheduler=f"tcp://127.0.0.1:{free_port()}")
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_deadline_starts_only_the_jobs_that_fit_longest_first(tmp_path, workers):
+    """run_jobs with ``until``: a job whose estimate (UNTIL_MARGIN x its weight) would end past the
+    deadline is not started and is returned, unrun; the others run, longest first."""
+    from shared.tools.runner import UNTIL_MARGIN, Job, run_jobs
+
+    # dict(pairs) is a job that returns its files as they are given (picklable for the workers)
+    jobs = [
+        Job(name, name, dict, ([(f"{name}.txt", name.encode())],), weight=w)
+        for name, w in (("short", 1.0), ("long", 1000.0), ("mid", 2.0))
+    ]
+    said: list[str] = []
+    left = run_jobs(jobs, tmp_path, workers=workers, say=said.append, until=time.time() + 100 * UNTIL_MARGIN)
+    assert [j.key for j in left] == ["long"]
+    assert not (tmp_path / "long.txt").exists()
+    assert (tmp_path / "short.txt").read_bytes() == b"short" and (tmp_path / "mid.txt").read_bytes() == b"mid"
+    done = [line.split("] ")[1].split(" done")[0] for line in said if " done;" in line]
+    if workers == 1:
+        assert done == ["mid", "short"]  # longest first
+    else:
+        assert sorted(done) == ["mid", "short"]
+    assert "1 of 3 jobs not started" in said[-1] and "long" in said[-1]
+    assert run_jobs(jobs[:1], tmp_path / "again", until=None) == []  # no deadline: every job runs
+
+
+def test_an_experiment_stopped_by_hours_writes_no_figure(tmp_path, monkeypatch, capsys):
+    """`mures experiment --hours H` with too little time for any job: exit status 3, no figure and
+    no team written, and it says so; a bad --hours is a clear error."""
+    from shared.tools import experiments
+    from shared.tools.experiments import Budget
+
+    tiny = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,), maps=("office",))
+    monkeypatch.setattr(experiments, "QUICK", tiny)
+    root = tmp_path / "results"
+    assert main(["experiment", "fig6", "--quick", "--hours", "1e-7", "--results", str(root)]) == 3
+    out = capsys.readouterr()
+    assert "stopped at the --hours limit" in out.out and "jobs not started" in out.err
+    assert not (root / "fig6").exists() and not list(root.rglob("policy.json"))
+    for bad in ("0", "-1", "nan", "soon"):
+        with pytest.raises(SystemExit) as e:
+            main(["experiment", "fig6", "--quick", "--hours", bad, "--results", str(root)])
+        assert e.value.code == 2
+    assert "expected a number of hours above 0" in capsys.readouterr().err
 
 
 def test_fig5_pairs_each_beta_with_pg_of_the_same_training_seed(tmp_path):

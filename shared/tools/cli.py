@@ -53,6 +53,17 @@ def _eta(text: str) -> float:
     return v
 
 
+def _positive_hours(text: str) -> float:
+    """``--hours``: a finite number of hours above 0 (argparse type)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of hours above 0, got {text!r}") from None
+    if not (0.0 < v < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a number of hours above 0, got {v}")
+    return v
+
+
 def _map_names(text: str) -> tuple[str, ...]:
     """``office,museum``: comma-separated names (argparse type; `mures experiment` checks them)."""
     names = tuple(t.strip().lower() for t in text.split(",") if t.strip())
@@ -602,9 +613,16 @@ def cmd_experiment(args: argparse.Namespace) -> int:
             robots=args.robots,
             train_fraction=args.train_fraction,
             add=args.add,
+            until=None if args.hours is None else time.time() + 3600 * args.hours,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if out is None:
+        print(
+            f"{args.name}: stopped at the --hours limit with jobs left (above), nothing written but the "
+            f"finished jobs' cache; the same command goes on from there ({time.perf_counter() - t0:.0f} s)"
+        )
+        return 3
     print(f"{args.name}: wrote {out} in {time.perf_counter() - t0:.0f} s")
     return 0
 
@@ -774,6 +792,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--dask-scheduler",
         metavar="tcp://HOST:PORT",
         help="train them as tasks on this Dask distributed cluster instead (the cluster extra)",
+    )
+    p.add_argument(
+        "--hours",
+        type=_positive_hours,
+        metavar="H",
+        help="start no job whose estimate (x1.7) would end more than H hours from now, longest jobs first; if "
+        "any is left, write no figure and exit with status 3: the same command later goes on from the cache "
+        "(a job stopped mid-way would be lost: a team's files are written when it ends)",
     )
     p.set_defaults(func=cmd_experiment)
 

@@ -1418,7 +1418,8 @@ def run(
     robots: tuple[int, ...] | None = None,
     train_fraction: float | None = None,
     add: bool = False,
-) -> Path:
+    until: float | None = None,
+) -> Path | None:
     """Run one experiment (``all``: every one in turn); returns its results directory.
     ``train_episodes`` overrides the learned teams' training budget, ``train_fraction`` scales
     every method's (``Budget.scaled``); ``add`` keeps a figure's recorded rows of the maps and
@@ -1427,13 +1428,17 @@ def run(
     needs and the cache lacks are trained first and its cells evaluated (``plan``, round after
     round: a cell needs its team), as jobs of shared/tools/runner.py: in this process, in
     ``workers`` local processes, or on a Dask ``scheduler``'s cluster, each with one torch thread,
-    so the numbers are the same every way; the experiment then runs on the cached teams and cells."""
+    so the numbers are the same every way; the experiment then runs on the cached teams and cells.
+    With ``until`` (a time.time() instant; `--hours`) no job starts that its estimate says would
+    end past it (``run_jobs``); if any is left the figure is not written and None is returned:
+    the same call later goes on from the cache."""
     b = budget(name, quick, train_episodes, maps, robots, train_fraction, add)
     for _round in range(3):  # the teams (and the planners' cells), then the learned teams' cells
         jobs = plan(name, root, b)
         if not jobs:
             break
-        run_jobs(jobs, root, workers, scheduler, say=_say)  # a progress line per job, with an ETA
+        if run_jobs(jobs, root, workers, scheduler, say=_say, until=until):  # a progress line per job, an ETA
+            return None
     if name == "all":
         for e in EXPERIMENTS:
             if e != "fig8":
