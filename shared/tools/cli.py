@@ -43,25 +43,24 @@ class CliError(Exception):
     pass
 
 
-def _eta(text: str) -> float:
+def _number_where(text: str, ok: Callable[[float], bool], what: str) -> float:
+    """A float that ``ok`` accepts, else an argparse error saying ``what`` was expected."""
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 0.5], got {text!r}") from None
-    if not (0.0 <= v <= 0.5):
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 0.5], got {v}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not ok(v):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {v}")
     return v
+
+
+def _eta(text: str) -> float:
+    return _number_where(text, lambda v: 0.0 <= v <= 0.5, "a number in [0, 0.5]")
 
 
 def _positive_hours(text: str) -> float:
     """``--hours``: a finite number of hours above 0 (argparse type)."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of hours above 0, got {text!r}") from None
-    if not (0.0 < v < float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a number of hours above 0, got {v}")
-    return v
+    return _number_where(text, lambda v: 0.0 < v < float("inf"), "a number of hours above 0")
 
 
 def _map_names(text: str) -> tuple[str, ...]:
