@@ -746,13 +746,45 @@ def test_an_experiment_stopped_by_hours_writes_no_figure(tmp_path, monkeypatch, 
     root = tmp_path / "results"
     assert main(["experiment", "fig6", "--quick", "--hours", "1e-7", "--results", str(root)]) == 3
     out = capsys.readouterr()
-    assert "stopped at the --hours limit" in out.out and "jobs not started" in out.err
+    assert "stopped with jobs left (past the --hours limit, above)" in out.out and "jobs not started" in out.err
     assert not (root / "fig6").exists() and not list(root.rglob("policy.json"))
     for bad in ("0", "-1", "nan", "soon"):
         with pytest.raises(SystemExit) as e:
             main(["experiment", "fig6", "--quick", "--hours", bad, "--results", str(root)])
         assert e.value.code == 2
     assert "expected a number of hours above 0" in capsys.readouterr().err
+
+
+def test_only_runs_the_jobs_whose_labels_match(tmp_path, monkeypatch, capsys):
+    """`mures experiment --only REGEX`: --plan lists the matching jobs only; a run trains and
+    evaluates those, writes no figure while others are left (exit status 3), and the same command
+    without --only then runs just the rest; a pattern that does not compile is a clear error."""
+    from shared.tools import experiments
+    from shared.tools.experiments import Budget
+
+    tiny = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,), maps=("office",))
+    monkeypatch.setattr(experiments, "QUICK", tiny)
+    root = tmp_path / "results"
+    quick = ["experiment", "fig6", "--quick", "--results", str(root)]
+    assert main([*quick, "--plan", "--only", "^TRAINING CEPG office"]) == 0  # case ignored
+    listed = capsys.readouterr().out.splitlines()
+    # of the three teams (CE-PG, CE-PG+, C-CE-PG) and their three cells, the CE-PG team only
+    assert "(--only '^TRAINING CEPG office'): 1 teams to train, 0 cells to evaluate now and 0 once" in listed[0]
+    assert [line.split(None, 2)[2] for line in listed[1:]] == ["training CEPG office N=2, 256 episodes"]
+
+    trained: list[str] = []
+    train = experiments._train_cepg
+    monkeypatch.setattr(experiments, "_train_cepg", lambda *a: trained.append(a[0]) or train(*a))
+    assert main([*quick, "--only", "^training cepg office"]) == 3
+    out = capsys.readouterr()
+    assert "outside --only" in out.out and "3 jobs of fig6 left that --only" in out.err
+    assert not (root / "fig6").exists() and len(list(root.rglob("policy.json"))) == len(trained) == 1
+    assert main(quick) == 0  # the rest, and only the rest: two teams and the three cells
+    assert len(trained) == 3 and len(set(trained)) == 3
+    assert len(_rows(root / "fig6" / "fig6.json")) == 3
+    for extra in ([], ["--plan"]):
+        assert main([*quick, *extra, "--only", "(unclosed"]) == 2
+        assert "--only '(unclosed' is not a regular expression" in capsys.readouterr().err
 
 
 def test_fig5_pairs_each_beta_with_pg_of_the_same_training_seed(tmp_path):

@@ -598,7 +598,11 @@ def cmd_experiment(args: argparse.Namespace) -> int:
             )
         except ValueError as exc:
             raise CliError(str(exc)) from None
-        print("\n".join(plan_lines(args.name, Path(args.results), b)))
+        try:
+            lines = plan_lines(args.name, Path(args.results), b, args.only)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+        print("\n".join(lines))
         return 0
     try:
         out = run(
@@ -613,13 +617,18 @@ def cmd_experiment(args: argparse.Namespace) -> int:
             train_fraction=args.train_fraction,
             add=args.add,
             until=None if args.hours is None else time.time() + 3600 * args.hours,
+            only=args.only,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if out is None:
+        why = " or ".join(
+            w for w, given in (("past the --hours limit", args.hours), ("outside --only", args.only)) if given
+        )
         print(
-            f"{args.name}: stopped at the --hours limit with jobs left (above), nothing written but the "
-            f"finished jobs' cache; the same command goes on from there ({time.perf_counter() - t0:.0f} s)"
+            f"{args.name}: stopped with jobs left ({why}, above), nothing written but the finished jobs' cache; "
+            f"the same command{' without --only' if args.only else ''} goes on from there "
+            f"({time.perf_counter() - t0:.0f} s)"
         )
         return 3
     print(f"{args.name}: wrote {out} in {time.perf_counter() - t0:.0f} s")
@@ -799,6 +808,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="start no job whose estimate (x1.7) would end more than H hours from now, longest jobs first; if "
         "any is left, write no figure and exit with status 3: the same command later goes on from the cache "
         "(a job stopped mid-way would be lost: a team's files are written when it ends)",
+    )
+    p.add_argument(
+        "--only",
+        metavar="REGEX",
+        help="run (or with --plan list) only the jobs whose labels, as --plan shows them, match this regular "
+        "expression, case ignored (e.g. 'training (pg|c?-?cepg)' for the CE-PG family's teams); if others are "
+        "left, write no figure and exit with status 3, as --hours does",
     )
     p.set_defaults(func=cmd_experiment)
 

@@ -26,6 +26,7 @@ import json
 import math
 import os
 import platform
+import re
 import sys
 import time
 from collections.abc import Callable, Iterable
@@ -1419,6 +1420,7 @@ def run(
     train_fraction: float | None = None,
     add: bool = False,
     until: float | None = None,
+    only: str | None = None,
 ) -> Path | None:
     """Run one experiment (``all``: every one in turn); returns its results directory.
     ``train_episodes`` overrides the learned teams' training budget, ``train_fraction`` scales
@@ -1431,13 +1433,24 @@ def run(
     so the numbers are the same every way; the experiment then runs on the cached teams and cells.
     With ``until`` (a time.time() instant; `--hours`) no job starts that its estimate says would
     end past it (``run_jobs``); if any is left the figure is not written and None is returned:
-    the same call later goes on from the cache."""
+    the same call later goes on from the cache. With ``only`` (a regular expression; `--only`)
+    only the jobs whose labels (as ``plan_lines`` lists them) match it run; if others are left,
+    likewise no figure and None."""
     b = budget(name, quick, train_episodes, maps, robots, train_fraction, add)
+    match = _label_filter(only)
     for _round in range(3):  # the teams (and the planners' cells), then the learned teams' cells
-        jobs = plan(name, root, b)
+        jobs = [j for j in plan(name, root, b) if match(j.label)]
         if not jobs:
             break
         if run_jobs(jobs, root, workers, scheduler, say=_say, until=until):  # a progress line per job, an ETA
+            return None
+    if only is not None:
+        rest = plan(name, root, b)
+        if rest:
+            _say(
+                f"{len(rest)} jobs of {name} left that --only {only!r} does not match "
+                f"({_duration(sum(j.weight for j in rest))} on one core; --plan lists them)"
+            )
             return None
     if name == "all":
         for e in EXPERIMENTS:
@@ -1487,23 +1500,41 @@ def outlook(name: str, root: Path, b: Budget) -> tuple[list[Job], list[tuple[str
         _LATER.clear()
 
 
-def plan_lines(name: str, root: Path, b: Budget) -> list[str]:
+def _label_filter(only: str | None) -> Callable[[str], bool]:
+    """`--only`: a job label's test, a case-insensitive regular expression searched in the label
+    (None: every label); a pattern that does not compile is a ValueError that says so."""
+    if only is None:
+        return lambda _label: True
+    try:
+        rx = re.compile(only, re.IGNORECASE)
+    except re.error as exc:
+        raise ValueError(f"--only {only!r} is not a regular expression: {exc}") from None
+    return lambda label: rx.search(label) is not None
+
+
+def plan_lines(name: str, root: Path, b: Budget, only: str | None = None) -> list[str]:
     """`mures experiment NAME --plan`: what a run would do with this cache, each job with its
     estimated time, and the total (one core of the machine the estimates come from; K workers
-    divide it at best by K)."""
+    divide it at best by K); with ``only``, the jobs whose labels match it."""
     if name == "fig4":
         return ["fig4: its toy's runs take seconds and are made by the run itself; nothing to plan"]
+    match = _label_filter(only)
     jobs, later = outlook(name, root, b)
+    jobs, later = [j for j in jobs if match(j.label)], [(label, w) for label, w in later if match(label)]
+    if only is not None and not jobs and not later:
+        return [f"{name}: no job to run in {root} matches --only {only!r} (without it, --plan lists them all)"]
     if not jobs and not later:
         return [f"{name}: nothing to train or evaluate in {root}: a run only writes its figure from the cache"]
     cells = [j for j in jobs if j.fn is _cell_job]
     teams = [j for j in jobs if j.fn is not _cell_job]
     total = sum(j.weight for j in jobs) + sum(w for _, w in later)
+    matching = "" if only is None else f" (--only {only!r})"
 
     lines = [
-        f"{name} in {root}: {len(teams)} teams to train, {len(cells)} cells to evaluate now and {len(later)} once "
-        f"their teams exist; about {_duration(total)} on one core (K workers: at best that / K), estimated from this "
-        "project's measured rates (shared/tools/experiments.py, TRAIN_MS_PER_EPISODE); nothing was run"
+        f"{name} in {root}{matching}: {len(teams)} teams to train, {len(cells)} cells to evaluate now and "
+        f"{len(later)} once their teams exist; about {_duration(total)} on one core (K workers: at best that / K), "
+        "estimated from this project's measured rates (shared/tools/experiments.py, TRAIN_MS_PER_EPISODE); "
+        "nothing was run"
     ]
     lines += [f"  {_duration(j.weight):>7}  {j.label}" for j in sorted(jobs, key=lambda j: -j.weight)]
     lines += [f"  {_duration(w):>7}  {label}" for label, w in sorted(later, key=lambda x: -x[1])]
