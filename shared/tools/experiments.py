@@ -1714,7 +1714,8 @@ def report(root: Path, out: Path) -> Path:
             "",
             f"Setup: {d['episodes']} episodes per cell, seed {d['seed']}; learned teams "
             f"trained for {_trained(d)}; "
-            + (f"MARL baselines: {_marl_budget(d)}; " if any(r.get("method") in MARL for r in rows) else "")
+            # fig13's methods are "maddpg trained for 5" and the like
+            + (f"MARL baselines: {_marl_budget(d)}; " if any(r["method"].split()[0] in MARL for r in rows) else "")
             + f"quick={d['quick']}; {d['machine']['date']}. "
             + (
                 f"Planners: {d['planner_episodes']} episodes (fhpe-sa {d['fhpe_sa_episodes']}, d-milp "
