@@ -280,6 +280,44 @@ def test_fig13_reading_ranks_the_teams_trained_for_five():
     assert _dropout_reading(rows[3:]) == []  # only the intact team
 
 
+def test_fig13_pairs_each_team_with_cepgs_of_the_same_training(tmp_path, monkeypatch):
+    """fig13's cells of one k fly the same episodes: each team's diff_to_cepg is its paired
+    difference to CE-PG's team trained as it was (for 5, or for k). Capture times made up so that
+    the answer is known: a MARL team trained for 5 takes 2 steps less than CE-PG's in every
+    episode, one trained for k 1 + k steps more."""
+    from shared.tools import experiments as E
+
+    base = np.arange(10.0, 20.0)
+
+    def cell(env, k, method, make, episodes, times=False, **kw):
+        m, _, trained = method.partition(" trained for ")
+        shift = 0.0 if m == "cepg" else (-2.0 if trained == "5" else 1.0 + k)
+        t = base + (k if trained == "5" else 3 * k) + shift  # CE-PG's two teams differ too
+        row = {"map": env, "robots": k, "method": method, "episodes": len(t), "seed": 1}
+        return {**row, "mean_capture_time": float(t.mean()), "ci95_halfwidth": 1.0, "capture_times": t}
+
+    monkeypatch.setattr(E, "_cell", cell)
+    for stub in ("_snapshot", "_marl_snapshot", "_flown", "_learned"):
+        monkeypatch.setattr(E, stub, lambda *a, **kw: None)
+    b = E.Budget(quick=True, episodes=10, train=256, planner=1, milp_limit=0.05, teams=(4,), maps=("office",))
+    E.fig13(tmp_path, b)
+    rows = json.loads((tmp_path / "fig13" / "fig13.json").read_text())["rows"]
+    assert len(rows) == 2 * 5 * (1 + len(E.MARL)) and not any("capture_times" in r for r in rows)
+    for r in rows:
+        k, trained = r["robots"], r["method"].rsplit(" ", 1)[1]
+        if r["method"].startswith("cepg "):
+            assert "diff_to_cepg" not in r
+        else:
+            assert r["diff_to_cepg"] == (-2.0 if trained == "5" else 1.0 + k) and r["diff_to_cepg_ci95"] == 0.0
+    # the table's order: per method, k = 1..5, trained for 5 then for k
+    assert [(r["method"], r["robots"]) for r in rows[:4]] == [
+        ("cepg trained for 5", 1),
+        ("cepg trained for k", 1),
+        ("cepg trained for 5", 2),
+        ("cepg trained for k", 2),
+    ]
+
+
 def test_unknown_experiment_is_a_clear_error(tmp_path, capsys):
     assert main(["experiment", "fig99", "--results", str(tmp_path)]) == 2
     assert "not implemented" in capsys.readouterr().err

@@ -819,18 +819,18 @@ def _all_methods(root: Path, env: str, N: int, b: Budget, eta_fn: float = 0.0) -
     return rows
 
 
-def _paired_to_cepg(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Rows with "capture_times" lose them and gain, where CE-PG's row flew the same episodes,
-    the paired difference (method - cepg) with its 95% CI over those episodes: ``diff_to_cepg``
-    and ``diff_to_cepg_ci95`` (negative: the method captures sooner than CE-PG)."""
+def _paired_to_cepg(rows: list[dict[str, Any]], cepg: str = "cepg") -> list[dict[str, Any]]:
+    """Rows with "capture_times" lose them and gain, where CE-PG's row (method ``cepg``) flew the
+    same episodes, the paired difference (method - cepg) with its 95% CI over those episodes:
+    ``diff_to_cepg`` and ``diff_to_cepg_ci95`` (negative: the method captures sooner than CE-PG)."""
     from shared.engine.evaluate import mean_ci95
 
-    ref = next((r for r in rows if r["method"] == "cepg" and "capture_times" in r), None)
+    ref = next((r for r in rows if r["method"] == cepg and "capture_times" in r), None)
     out = []
     for r in rows:
         times = r.get("capture_times")
         r = {k: v for k, v in r.items() if k != "capture_times"}
-        if ref is not None and times is not None and r["method"] != "cepg":
+        if ref is not None and times is not None and r["method"] != cepg:
             base = ref["capture_times"]
             same = (r["episodes"], r["seed"]) == (ref["episodes"], ref["seed"]) and len(times) == len(base) > 1
             if same:
@@ -1180,11 +1180,13 @@ def fig12(root: Path, b: Budget) -> Path:
 
 def fig13(root: Path, b: Budget) -> Path:
     """Robustness: a team trained for 5 robots flown by k = 1..5 of them (paper Fig. 13), against
-    teams trained for k."""
+    teams trained for k. Each row's ``diff_to_cepg`` pairs it with CE-PG's team of the same
+    training (trained for 5, or for k) on the same episodes."""
 
     rows = []
     sensor = sensor_for("cepg")
     for env in b.maps:
+        cells: dict[tuple[str, int, str], dict[str, Any]] = {}
         for m in ("cepg", *MARL):
             path = (
                 _snapshot(root, env, 5, 0.5, b.train, 0)
@@ -1192,12 +1194,17 @@ def fig13(root: Path, b: Budget) -> Path:
                 else _marl_snapshot(root, env, 5, m, b.marl_episodes(m), 0)
             )
             for k in range(1, 6):
-                rows.append(
-                    {**_cell(env, k, f"{m} trained for 5", _flown(path, env, sensor, k), b.episodes), "trained_for": 5}
-                )
-                rows.append(
-                    {**_cell(env, k, f"{m} trained for k", _learned(root, env, k, m, b), b.episodes), "trained_for": k}
-                )
+                for trained, make in (("5", _flown(path, env, sensor, k)), ("k", _learned(root, env, k, m, b))):
+                    row = _cell(env, k, f"{m} trained for {trained}", make, b.episodes, times=True)
+                    cells[trained, k, m] = {**row, "trained_for": 5 if trained == "5" else k}
+        # every cell of a k flies the same episodes: each team's difference to CE-PG's of the same
+        # training (for 5, or for k) is paired episode by episode
+        for k in range(1, 6):
+            for trained in ("5", "k"):
+                group = [cells[trained, k, m] for m in ("cepg", *MARL)]
+                paired = _paired_to_cepg(group, cepg=f"cepg trained for {trained}")
+                cells.update(((trained, k, m), r) for m, r in zip(("cepg", *MARL), paired, strict=True))
+        rows += [cells[trained, k, m] for m in ("cepg", *MARL) for k in range(1, 6) for trained in ("5", "k")]
     out = root / "fig13"
     rows = _write(out, "fig13", _setup("fig13", b), rows, add=b.add)
     _bars(out / "fig13.png", rows, "robots", "capture time (steps)")
