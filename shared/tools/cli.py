@@ -596,9 +596,6 @@ def cmd_experiment(args: argparse.Namespace) -> int:
             b = budget(
                 args.name, args.quick, args.train_episodes, args.maps, args.robots, args.train_fraction, args.add
             )
-        except ValueError as exc:
-            raise CliError(str(exc)) from None
-        try:
             lines = plan_lines(args.name, Path(args.results), b, args.only)
         except ValueError as exc:
             raise CliError(str(exc)) from None

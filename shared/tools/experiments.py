@@ -1446,19 +1446,20 @@ def run(
     b = budget(name, quick, train_episodes, maps, robots, train_fraction, add)
     match = _label_filter(only)
     for _round in range(3):  # the teams (and the planners' cells), then the learned teams' cells
-        jobs = [j for j in plan(name, root, b) if match(j.label)]
+        planned = plan(name, root, b)
+        jobs = [j for j in planned if match(j.label)]
         if not jobs:
-            break
+            break  # what is planned now is what --only leaves
         if run_jobs(jobs, root, workers, scheduler, say=_say, until=until):  # a progress line per job, an ETA
             return None
-    if only is not None:
-        rest = plan(name, root, b)
-        if rest:
-            _say(
-                f"{len(rest)} jobs of {name} left that --only {only!r} does not match "
-                f"({_duration(sum(j.weight for j in rest))} on one core; --plan lists them)"
-            )
-            return None
+    else:
+        planned = plan(name, root, b) if only is not None else []
+    if only is not None and planned:
+        _say(
+            f"{len(planned)} jobs of {name} left that --only {only!r} does not match "
+            f"({_duration(sum(j.weight for j in planned))} on one core; --plan lists them)"
+        )
+        return None
     if name == "all":
         for e in EXPERIMENTS:
             if e != "fig8":
