@@ -773,6 +773,55 @@ def test_a_deadline_starts_only_the_jobs_that_fit_longest_first(tmp_path, worker
     assert run_jobs(jobs[:1], tmp_path / "again", until=None) == []  # no deadline: every job runs
 
 
+def _slow_files(name: str, seconds: float) -> dict[str, bytes]:
+    """A job for run_jobs that takes ``seconds`` (module level: worker processes unpickle it)."""
+    time.sleep(seconds)
+    return {f"{name}.txt": name.encode()}
+
+
+def test_jobs_on_other_processes_say_when_they_start_and_what_is_still_running(tmp_path):
+    """With jobs in worker processes, run_jobs says as each starts and, while none finishes for
+    ``heartbeat_s``, which are still running; a job in this process gets neither (nothing could
+    speak while it runs) but its own start line."""
+    from shared.tools.runner import Job, run_jobs
+
+    jobs = [Job(n, f"job {n}", _slow_files, (n, s), weight=60.0 * w) for n, s, w in (("a", 4.0, 3), ("b", 0.0, 1))]
+    said: list[str] = []
+    run_jobs(jobs, tmp_path, workers=2, say=said.append, heartbeat_s=0.5)
+    assert (tmp_path / "a.txt").read_bytes() == b"a" and (tmp_path / "b.txt").read_bytes() == b"b"
+    assert "started: job a" in said and "started: job b" in said
+    still = [line for line in said if line.startswith("still running: ")]
+    assert still, said
+    # b finished at once, so the last of them names a alone, with its 3 min estimate
+    assert still[-1].startswith("still running: job a (0 min, estimate 3 min)") and "job b" not in still[-1]
+    said.clear()
+    run_jobs(jobs, tmp_path / "here", workers=1, say=said.append, heartbeat_s=0.5)
+    assert [line for line in said if line.endswith(" ...")] == ["job a ...", "job b ..."]
+    assert not any(line.startswith(("still", "started")) for line in said)
+
+
+def test_jobs_on_a_dask_cluster_say_what_is_still_running(tmp_path, monkeypatch):
+    """On a Dask cluster with a deadline the jobs go out as threads free up, so each is named as
+    it starts and while running; without one they all go to the scheduler at once, and the
+    line while none finishes counts them."""
+    from shared.tools.runner import Job, local_dask_cluster, run_jobs
+
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).resolve().parent))  # the workers import _slow_files
+    with local_dask_cluster(2, tmp_path, Path(__file__).resolve().parent.parent) as address:
+        jobs = [Job(n, f"job {n}", _slow_files, (n, s), weight=60.0) for n, s in (("a", 3.0), ("b", 3.0))]
+        said: list[str] = []
+        until = time.time() + 3600
+        run_jobs(jobs, tmp_path / "until", scheduler=address, say=said.append, until=until, heartbeat_s=0.5)
+        assert "started: job a" in said and "started: job b" in said
+        assert any(line.startswith("still running: job a (0 min, estimate 1 min); job b") for line in said), said
+        said.clear()
+        run_jobs(jobs, tmp_path / "all", scheduler=address, say=said.append, heartbeat_s=0.5)
+        assert not any(line.startswith("started") for line in said)
+        assert any(line.startswith(f"2 jobs not finished on Dask scheduler {address}") for line in said), said
+    for d in ("until", "all"):
+        assert (tmp_path / d / "a.txt").read_bytes() == b"a" and (tmp_path / d / "b.txt").read_bytes() == b"b"
+
+
 def test_an_experiment_stopped_by_hours_writes_no_figure(tmp_path, monkeypatch, capsys):
     """`mures experiment --hours H` with too little time for any job: exit status 3, no figure and
     no team written, and it says so; a bad --hours is a clear error."""

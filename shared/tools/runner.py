@@ -32,6 +32,9 @@ JOB_THREADS = 1  # torch threads inside every job, in every mode
 # training_summary.json), the slowest an N = 1 MAMBPO team beside two other jobs: a deadline
 # admits a job only if 1.7 times its weight still fits
 UNTIL_MARGIN = 1.7
+# with jobs running elsewhere (local processes, a cluster), a line saying what is still running
+# after every HEARTBEAT_S seconds in which none finished: a team can take an hour
+HEARTBEAT_S = 600.0
 
 
 @dataclass(frozen=True)
@@ -60,10 +63,16 @@ def _results(
     starting: Callable[[Job], None] = lambda _j: None,
     admit: Callable[[Job], bool] | None = None,
     skipped: list[Job] | None = None,
+    waiting: Callable[[], None] = lambda: None,
+    wait_s: float | None = None,
 ) -> Iterator[tuple[Job, dict[str, bytes]]]:
-    """(job, files) as the jobs finish; in this process, ``starting`` is told of each job first.
-    With ``admit``, a job starts only when a worker is free and ``admit(job)`` says yes at that
-    moment (a deadline); the jobs it refuses go to ``skipped``, unrun."""
+    """(job, files) as the jobs finish. ``starting`` is told of each job as it gets a worker (in
+    this process, before it runs; on a Dask cluster only with ``admit``, where jobs go out as
+    threads free up: without it they all go to the scheduler at once). With ``admit``, a job starts
+    only when a worker is free and ``admit(job)`` says yes at that moment (a deadline); the jobs it
+    refuses go to ``skipped``, unrun. With ``wait_s``, ``waiting`` is called after every ``wait_s``
+    seconds in which no job finished (on other processes or a cluster; a job running in this
+    process blocks it)."""
 
     def admitted(queue: list[Job]) -> Job | None:  # the next job to start, refused ones set aside
         while queue:
@@ -76,7 +85,7 @@ def _results(
 
     if scheduler:
         try:
-            from distributed import Client, as_completed
+            from distributed import Client, wait
         except ModuleNotFoundError:
             raise ValueError(
                 "--dask-scheduler needs dask and distributed: pip install 'mures-fleet[cluster]'"
@@ -91,16 +100,25 @@ def _results(
             # cluster has threads, the next when one finishes (so that each is admitted then)
             slots = len(queue) if admit is None else max(1, sum(client.nthreads().values()))
             futures: dict[Any, Job] = {}  # distributed.Future -> its job
-            while len(futures) < slots and (j := admitted(queue)) is not None:
+
+            def submit(j: Job) -> None:
                 futures[client.submit(_call, j, key=f"mures-{j.key}", pure=False)] = j
-            done = as_completed(futures)
-            for fut in done:
-                job = futures.pop(fut)
-                if (j := admitted(queue)) is not None:
-                    nxt = client.submit(_call, j, key=f"mures-{j.key}", pure=False)
-                    futures[nxt] = j
-                    done.add(nxt)
-                yield job, fut.result()
+                if admit is not None:
+                    starting(j)
+
+            while len(futures) < slots and (j := admitted(queue)) is not None:
+                submit(j)
+            while futures:
+                try:
+                    finished, _ = wait(list(futures), timeout=wait_s, return_when="FIRST_COMPLETED")
+                except TimeoutError:
+                    waiting()
+                    continue
+                for fut in finished:
+                    job = futures.pop(fut)
+                    if (j := admitted(queue)) is not None:
+                        submit(j)
+                    yield job, fut.result()
         finally:
             client.close()
     elif workers > 1:
@@ -108,14 +126,21 @@ def _results(
         with cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
             queue = list(jobs)
             pending: dict[cf.Future[dict[str, bytes]], Job] = {}
-            while len(pending) < workers and (j := admitted(queue)) is not None:
+
+            def start(j: Job) -> None:
                 pending[pool.submit(_call, j)] = j
+                starting(j)
+
+            while len(pending) < workers and (j := admitted(queue)) is not None:
+                start(j)
             while pending:
-                finished, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                finished, _ = cf.wait(pending, timeout=wait_s, return_when=cf.FIRST_COMPLETED)
+                if not finished:
+                    waiting()
                 for fut in finished:
                     job = pending.pop(fut)
                     if (j := admitted(queue)) is not None:
-                        pending[pool.submit(_call, j)] = j
+                        start(j)
                     yield job, fut.result()
     else:
         import torch
@@ -137,9 +162,12 @@ def run_jobs(
     scheduler: str | None = None,
     say: Callable[[str], None] = print,
     until: float | None = None,
+    heartbeat_s: float = HEARTBEAT_S,
 ) -> list[Job]:
     """Run the jobs (``workers`` local processes, or the Dask cluster at ``scheduler``), writing
-    each one's files under ``root`` as it finishes, with a progress line and an ETA. With
+    each one's files under ``root`` as it finishes, with a progress line and an ETA; on other
+    processes a line as each job starts and, after every ``heartbeat_s`` seconds in which none
+    finished, one saying what is still running, for how long, against its estimate. With
     ``until`` (a time.time() instant) the jobs go longest first and none starts whose estimate,
     ``UNTIL_MARGIN`` x its weight in seconds, would end past it: a job cut off mid-way would be
     lost (a job's files are written only when it ends). Returns the jobs left unrun, [] without
@@ -164,9 +192,35 @@ def run_jobs(
     skipped: list[Job] = []
     total = sum(j.weight for j in unique)
     done_w, t0 = 0.0, time.perf_counter()
-    sequential = workers == 1 and not scheduler and len(unique) > 1
-    starting = (lambda j: say(f"{j.label} ...")) if sequential else (lambda _j: None)
-    for k, (job, files) in enumerate(_results(unique, workers, scheduler, starting, admit, skipped), 1):
+    here = workers == 1 and not scheduler
+    running: dict[str, tuple[Job, float]] = {}  # key -> (job, when it started), on other processes
+
+    def starting(j: Job) -> None:
+        if here:
+            if len(unique) > 1:
+                say(f"{j.label} ...")
+            return
+        running[j.key] = (j, time.perf_counter())
+        if len(unique) > 1:  # a single job was named above
+            say(f"started: {j.label}")
+
+    def waiting() -> None:
+        now = time.perf_counter()
+        if running:
+            say(
+                "still running: "
+                + "; ".join(
+                    f"{j.label} ({_minutes(now - t)}, estimate {_minutes(j.weight)})" for j, t in running.values()
+                )
+            )
+        else:  # a cluster given every job at once: which of them run is the scheduler's business
+            say(f"{len(unique) - k_done - len(skipped)} jobs not finished on {where}, {_minutes(now - t0)} elapsed")
+
+    k_done = 0
+    results = _results(unique, workers, scheduler, starting, admit, skipped, waiting, None if here else heartbeat_s)
+    for k, (job, files) in enumerate(results, 1):
+        k_done = k
+        running.pop(job.key, None)
         # a snapshot's policy.json marks it complete in the cache: written last
         for rel in sorted(files, key=lambda r: (Path(r).name == "policy.json", r)):
             (root / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -184,6 +238,10 @@ def run_jobs(
     return skipped
 
 
+def _minutes(seconds: float) -> str:
+    return f"{seconds / 60:.0f} min"
+
+
 def directory_files(path: Path, rel_to: Path) -> dict[str, bytes]:
     """Every file under ``path`` as {path relative to ``rel_to``: bytes}."""
     return {str(p.relative_to(rel_to)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
@@ -193,16 +251,18 @@ def directory_files(path: Path, rel_to: Path) -> dict[str, bytes]:
 def local_dask_cluster(workers: int, workdir: Path, project: Path) -> Iterator[str]:
     """A Dask scheduler and ``workers`` one-thread workers on loopback, started with the
     `dask scheduler` / `dask worker` commands as on a real cluster (``project``: the checkout the
-    workers import from); yields the scheduler's address and stops them all on exit. The workers
-    run without a nanny: nothing here restarts them, and a nanny's worker process takes 8 s to
-    stop on SIGTERM (the nanny's own timeout) where a worker without one stops at once."""
+    workers import from, ahead of any PYTHONPATH of the caller's); yields the scheduler's address
+    and stops them all on exit. The workers run without a nanny: nothing here restarts them, and a
+    nanny's worker process takes 8 s to stop on SIGTERM (the nanny's own timeout) where a worker
+    without one stops at once."""
     from distributed import Client
 
     from shared.tools.fleetsim import free_port, reap, wait_until
 
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
-    env = {**os.environ, "PYTHONPATH": str(project), "OMP_NUM_THREADS": "1"}
+    path = os.pathsep.join(p for p in (str(project), os.environ.get("PYTHONPATH", "")) if p)  # the caller's after it
+    env = {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": "1"}
     dask = str(Path(sys.executable).parent / "dask")
     quiet: dict[str, Any] = {"env": env, "cwd": workdir, "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
     procs = [
