@@ -438,9 +438,40 @@ def test_a_figure_recorded_in_runs_at_different_budgets(tmp_path):
         (512, [["office", 2]]),
     ]
     assert len(d["rows"]) == 6 and all(r["train_episodes"] >= 512 for r in d["rows"])
-    fig6(tmp_path, dataclasses.replace(b, robots=(2,)))  # without --add: the run's rows only
+    # without --add, a run that covers N = 2 only would drop N = 1's rows: refused before it writes
+    before = (tmp_path / "fig6" / "fig6.json").read_bytes()
+    with pytest.raises(ValueError, match=r"holds rows of OFFICE N = 1, which this run does not cover: --add"):
+        fig6(tmp_path, dataclasses.replace(b, robots=(2,)))
+    assert (tmp_path / "fig6" / "fig6.json").read_bytes() == before
+    fig6(tmp_path, dataclasses.replace(b, robots=(2,), overwrite=True))  # --overwrite: the run's rows only
     d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
     assert {r["robots"] for r in d["rows"]} == {2} and "parts" not in d
+
+
+def test_a_quick_run_does_not_replace_protocol_rows(tmp_path, capsys):
+    """A `--quick` run into a results directory whose figure holds the paper's protocol rows (the
+    repository's own results/, say) is refused before it trains anything, --add or not, naming the
+    rows; `--overwrite` lets it through, and rows of other maps are not protocol rows it loses."""
+    from shared.tools.experiments import _write
+
+    fig = tmp_path / "fig6"
+    protocol = {"experiment": "fig6", "quick": False}
+    rows = [{"map": "office", "robots": 4, "method": "cepg", "mean_capture_time": 8.7}]
+    _write(fig, "fig6", protocol, rows)  # recorded earlier (no Budget: no check)
+    before = (fig / "fig6.json").read_bytes()
+    argv = ["experiment", "fig6", "--quick", "--maps", "office", "--robots", "4", "--results", str(tmp_path)]
+    why = "holds the paper's protocol rows of OFFICE N = 4; a --quick run would replace them"
+    for extra in ([], ["--add"]):
+        assert main([*argv, *extra]) == 2
+        assert why in capsys.readouterr().err, extra
+    assert main([*argv, "--plan"]) == 0  # --plan says so above its jobs
+    out = capsys.readouterr().out.splitlines()
+    assert "fig6: as given, this run would be refused" in out[0] and why in out[0] and "teams to train" in out[1]
+    assert (fig / "fig6.json").read_bytes() == before and not (tmp_path / "snapshots").exists()
+    assert main([*argv, "--maps", "museum", "--add", "--plan"]) == 0  # MUSEUM beside OFFICE's protocol rows
+    assert "refused" not in capsys.readouterr().out
+    assert main(["experiment", "fig4", "--overwrite", "--results", str(tmp_path)]) == 2
+    assert "fig4 has none" in capsys.readouterr().err
 
 
 def test_the_remaining_figures_are_recorded_one_map_at_a_time(tmp_path, monkeypatch, capsys):

@@ -594,7 +594,14 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     if args.plan:
         try:
             b = budget(
-                args.name, args.quick, args.train_episodes, args.maps, args.robots, args.train_fraction, args.add
+                args.name,
+                args.quick,
+                args.train_episodes,
+                args.maps,
+                args.robots,
+                args.train_fraction,
+                args.add,
+                args.overwrite,
             )
             lines = plan_lines(args.name, Path(args.results), b, args.only)
         except ValueError as exc:
@@ -615,6 +622,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
             add=args.add,
             until=None if args.hours is None else time.time() + 3600 * args.hours,
             only=args.only,
+            overwrite=args.overwrite,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
@@ -765,6 +773,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="fig5 to fig13: keep the recorded rows of the maps and team sizes this run does not cover (e.g. N = 4 "
         "at the full budget, then --robots 1,2,3,5 --train-fraction 0.25 --add; or --maps office, then --maps "
         "museum --add)",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="fig5 to fig13: let this run drop the recorded rows it does not cover (without --add) or replace "
+        "protocol rows with --quick ones; without it such a run is refused before it starts",
     )
     p.add_argument("--results", default="results", help="results directory (default results/)")
     p.add_argument(

@@ -58,6 +58,8 @@ def machine() -> dict[str, Any]:
 _PLAN: list[Job] | None = None
 # ... and the cells it will evaluate once their teams are trained: (label, estimated seconds)
 _LATER: dict[str, tuple[str, float]] = {}  # by the cell's settings and its team's path
+# ... and why the run would be refused, if it would lose recorded rows (``_refuse_loss``)
+_REFUSED: list[str] = []
 # Evaluated cells are cached as JSON under <results>/cells/ (set by ``run`` and ``plan``): a killed
 # run resumes from the cells it finished, and cells can be evaluated by the parallel runner too.
 _CELLS: Path | None = None
@@ -71,15 +73,27 @@ TIMED_TEAM_STEPS = 400
 
 
 def _write(
-    out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]], add: bool = False
+    out: Path, name: str, data: dict[str, Any], rows: list[dict[str, Any]], b: Budget | None = None
 ) -> list[dict[str, Any]]:
-    """Write a figure's data (JSON, and CSV of its rows); returns the rows written. With ``add``
-    (`--add`) the rows recorded for maps and team sizes this run did not cover are kept beside the
-    new ones, and ``parts`` lists each run's setup and the (map, N) it covers (``_merge``)."""
+    """Write a figure's data (JSON, and CSV of its rows); returns the rows written. ``b``: the run's
+    Budget, for the figures recorded by map and team size (fig5 to fig13). With ``b.add`` (`--add`)
+    the rows recorded for maps and team sizes this run did not cover are kept beside the new ones,
+    and ``parts`` lists each run's setup and the (map, N) it covers (``_merge``). A run that would
+    lose recorded rows is refused (``_refuse_loss``), while it is planned, before any work."""
+    recorded = out / f"{name}.json"
+    old = json.loads(recorded.read_text()) if b is not None and recorded.exists() else None
+    add, overwrite = (False, True) if b is None else (b.add, b.overwrite)
+    if old is not None and not overwrite:
+        try:
+            _refuse_loss(recorded, old, data, rows, add)
+        except ValueError as refused:
+            if _PLAN is None:
+                raise
+            _REFUSED.append(str(refused))  # ``run`` raises it before any job, ``plan_lines`` says it
     if _PLAN is not None:
         return rows
-    if add and (out / f"{name}.json").exists():
-        data, rows = _merge(json.loads((out / f"{name}.json").read_text()), data, rows)
+    if old is not None and add:
+        data, rows = _merge(old, data, rows)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / f"{name}.json", json.dumps({**data, "rows": rows}, indent=1) + "\n")
     if rows:
@@ -88,6 +102,41 @@ def _write(
             w.writeheader()
             w.writerows(rows)
     return rows
+
+
+def _refuse_loss(
+    recorded: Path, old: dict[str, Any], data: dict[str, Any], rows: list[dict[str, Any]], add: bool
+) -> None:
+    """Raise a ValueError, naming what would be lost, where writing this run's rows would drop
+    recorded ones without `--overwrite`: without `--add`, rows of maps and team sizes the run does
+    not cover (a run narrowed with --maps or --robots would otherwise leave only its own), and a
+    `--quick` run's rows in place of the paper's protocol rows of the same map and team size."""
+    new = {tuple(c) for c in _covers(rows)}
+    held = old.get("rows") or []
+    if not add:
+        dropped = [c for c in _covers(held) if tuple(c) not in new]
+        if dropped:
+            raise ValueError(
+                f"{recorded} holds rows of {_pairs(dropped)}, which this run does not cover: --add keeps them "
+                "beside this run's, --overwrite drops them; nothing was run or written"
+            )
+    if data.get("quick"):
+        runs = old.get("parts") or [{**old, "covers": _covers(held)}]
+        protocol = {tuple(c) for p in runs if p.get("quick") is False for c in p["covers"]}
+        lost = [c for c in _covers(rows) if tuple(c) in protocol]
+        if lost:
+            raise ValueError(
+                f"{recorded} holds the paper's protocol rows of {_pairs(lost)}; a --quick run would replace them "
+                "with its own: --results DIR writes elsewhere, --overwrite replaces them; nothing was run or written"
+            )
+
+
+def _pairs(covers: list[list[Any]]) -> str:
+    """(map, N) pairs as 'OFFICE N = 1, 2; MUSEUM N = 4'."""
+    by_map: dict[str, list[int]] = {}
+    for env, N in covers:
+        by_map.setdefault(env, []).append(N)
+    return "; ".join(f"{env.upper()} N = {', '.join(map(str, Ns))}" for env, Ns in by_map.items())
 
 
 def _place(env: str, N: int) -> tuple[int, int]:
@@ -193,7 +242,8 @@ class Budget:
     maps: tuple[str, ...] = PAPER_MAPS  # the maps every figure runs on (`--maps`)
     robots: tuple[int, ...] | None = None  # team sizes of fig6, fig7, fig9, fig10 (`--robots`); None: theirs
     marl_train_for: tuple[tuple[str, int], ...] = ()  # (method, episodes): budgets that replace marl_train
-    add: bool = False  # `--add`: fig6/7/9/10/12 keep the recorded rows of the maps and team sizes not run
+    add: bool = False  # `--add`: fig5 to fig13 keep the recorded rows of the maps and team sizes not run
+    overwrite: bool = False  # `--overwrite`: a run may drop or replace recorded rows (``_refuse_loss``)
 
     def with_train(self, episodes: int | None) -> Budget:
         if episodes is None:
@@ -884,7 +934,7 @@ def fig7(root: Path, b: Budget) -> Path:
         discount=0.97,
         wall_seconds=round(time.perf_counter() - t_start, 1),
     )
-    rows = _write(out, "fig7", setup, rows, add=b.add)
+    rows = _write(out, "fig7", setup, rows, b)
     _plot_fig7(out, rows)
     _plot_fig8(root / "fig8", rows, setup)
     return out
@@ -1016,7 +1066,7 @@ def fig5(root: Path, b: Budget) -> Path:
             f"fig5: {env}: " + ", ".join(f"beta {r['beta']} {r['mean_capture_time']:.2f}" for r in rows[-len(BETAS) :])
         )
     out = root / "fig5"
-    rows = _write(out, "fig5", _setup("fig5", b, robots=N, training_seeds=list(b.seeds)), rows, add=b.add)
+    rows = _write(out, "fig5", _setup("fig5", b, robots=N, training_seeds=list(b.seeds)), rows, b)
     _bars(out / "fig5.png", rows, "beta", "capture time (steps), N = 4")
     return out
 
@@ -1095,7 +1145,7 @@ def fig6(root: Path, b: Budget) -> Path:
                 rows.append(_cell(env, N, m, _learned(root, env, N, m, b), b.episodes, sensor=sensor_for(m)))
             _say(f"fig6: {env} N={N}: " + ", ".join(f"{r['method']} {r['mean_capture_time']:.1f}" for r in rows[-3:]))
     out = root / "fig6"
-    rows = _write(out, "fig6", _setup("fig6", b), rows, add=b.add)
+    rows = _write(out, "fig6", _setup("fig6", b), rows, b)
     _bars(out / "fig6.png", rows, "robots", "capture time (steps)")
     return out
 
@@ -1119,7 +1169,7 @@ def _noise_sweep(root: Path, b: Budget, name: str, eta: str, value: str, ylabel:
                 )
             _say(f"{name}: {env} N={N}: " + ", ".join(f"{r[value]:.2f}" for r in rows[-len(ETAS) :]))
     out = root / name
-    rows = _write(out, name, _setup(name, b), rows, add=b.add)
+    rows = _write(out, name, _setup(name, b), rows, b)
     _lines(out / f"{name}.png", rows, eta, value, ylabel)
     return out
 
@@ -1155,7 +1205,7 @@ def fig11(root: Path, b: Budget) -> Path:
             wall_seconds=round(time.perf_counter() - t_start, 1),
         ),
         rows,
-        add=b.add,
+        b,
     )
     _bars(out / "fig11.png", rows, "eta_fn", "capture time (steps), N = 4")
     return out
@@ -1173,7 +1223,7 @@ def fig12(root: Path, b: Budget) -> Path:
                 make = _reference(env, N, m, sensor) if m in ("random", "greedy") else _learned(root, env, N, m, b)
                 rows.append({**_cell(env, N, m, make, b.episodes, withdraw_at=withdraw), "withdrawn": label})
     out = root / "fig12"
-    rows = _write(out, "fig12", _setup("fig12", b), rows, add=b.add)
+    rows = _write(out, "fig12", _setup("fig12", b), rows, b)
     _bars(out / "fig12.png", rows, "withdrawn", "capture time (steps), N = 4")
     return out
 
@@ -1206,7 +1256,7 @@ def fig13(root: Path, b: Budget) -> Path:
                 cells.update(((trained, k, m), r) for m, r in zip(("cepg", *MARL), paired, strict=True))
         rows += [cells[trained, k, m] for m in ("cepg", *MARL) for k in range(1, 6) for trained in ("5", "k")]
     out = root / "fig13"
-    rows = _write(out, "fig13", _setup("fig13", b), rows, add=b.add)
+    rows = _write(out, "fig13", _setup("fig13", b), rows, b)
     _bars(out / "fig13.png", rows, "robots", "capture time (steps)")
     return out
 
@@ -1388,6 +1438,7 @@ def budget(
     robots: tuple[int, ...] | None = None,
     train_fraction: float | None = None,
     add: bool = False,
+    overwrite: bool = False,
 ) -> Budget:
     """The Budget of a run of experiment ``name`` (``run``'s arguments), checked: a ValueError names
     what is wrong."""
@@ -1404,6 +1455,10 @@ def budget(
                 f"--add keeps rows of other maps and team sizes; {name} is not recorded by them: run it without --add"
             )
         b = replace(b, add=True)
+    if overwrite:
+        if name in ("fig4", "marl"):
+            raise ValueError(f"--overwrite lets a run drop recorded rows of maps and team sizes; {name} has none")
+        b = replace(b, overwrite=True)
     if maps is not None:
         if not maps or any(m not in PAPER_MAPS for m in maps):
             raise ValueError(f"--maps takes {' and/or '.join(PAPER_MAPS)} (comma-separated), not {','.join(maps)!r}")
@@ -1428,12 +1483,15 @@ def run(
     add: bool = False,
     until: float | None = None,
     only: str | None = None,
+    overwrite: bool = False,
 ) -> Path | None:
     """Run one experiment (``all``: every one in turn); returns its results directory.
     ``train_episodes`` overrides the learned teams' training budget, ``train_fraction`` scales
     every method's (``Budget.scaled``); ``add`` keeps a figure's recorded rows of the maps and
     team sizes this run does not cover (fig5 to fig13; ``_merge``; refused for fig4 and marl,
-    which are not recorded by map and team size). The teams the experiment
+    which are not recorded by map and team size); a run that would drop recorded rows it does not
+    cover, or put --quick rows in place of protocol ones, is refused before it starts unless
+    ``overwrite`` (`--overwrite`; ``_refuse_loss``). The teams the experiment
     needs and the cache lacks are trained first and its cells evaluated (``plan``, round after
     round: a cell needs its team), as jobs of shared/tools/runner.py: in this process, in
     ``workers`` local processes, or on a Dask ``scheduler``'s cluster, each with one torch thread,
@@ -1443,10 +1501,12 @@ def run(
     the same call later goes on from the cache. With ``only`` (a regular expression; `--only`)
     only the jobs whose labels (as ``plan_lines`` lists them) match it run; if others are left,
     likewise no figure and None."""
-    b = budget(name, quick, train_episodes, maps, robots, train_fraction, add)
+    b = budget(name, quick, train_episodes, maps, robots, train_fraction, add, overwrite)
     match = _label_filter(only)
     for _round in range(3):  # the teams (and the planners' cells), then the learned teams' cells
         planned = plan(name, root, b)
+        if _REFUSED:
+            raise ValueError(_REFUSED[0])
         jobs = [j for j in planned if match(j.label)]
         if not jobs:
             break  # what is planned now is what --only leaves
@@ -1498,6 +1558,7 @@ def outlook(name: str, root: Path, b: Budget) -> tuple[list[Job], list[tuple[str
     names = [e for e in EXPERIMENTS if e not in ("fig4", "fig8")] if name == "all" else [name]
     _PLAN, _CELLS = [], root / "cells"
     _LATER.clear()
+    _REFUSED.clear()
     try:
         for e in names:
             if e in RUNNERS or e == "fig8":
@@ -1528,6 +1589,18 @@ def plan_lines(name: str, root: Path, b: Budget, only: str | None = None) -> lis
         return ["fig4: its toy's runs take seconds and are made by the run itself; nothing to plan"]
     match = _label_filter(only)
     jobs, later = outlook(name, root, b)
+    refused = [f"{name}: as given, this run would be refused: {why}" for why in dict.fromkeys(_REFUSED)]
+    return refused + _plan_lines(name, root, jobs, later, only, match)
+
+
+def _plan_lines(
+    name: str,
+    root: Path,
+    jobs: list[Job],
+    later: list[tuple[str, float]],
+    only: str | None,
+    match: Callable[[str], bool],
+) -> list[str]:
     jobs, later = [j for j in jobs if match(j.label)], [(label, w) for label, w in later if match(label)]
     if only is not None and not jobs and not later:
         return [f"{name}: no job to run in {root} matches --only {only!r} (without it, --plan lists them all)"]
