@@ -111,7 +111,8 @@ def _refuse_loss(
     recorded ones without `--overwrite`: without `--add`, rows of maps and team sizes the run does
     not cover (a run narrowed with --maps or --robots would otherwise leave only its own), and a
     `--quick` run's rows in place of the paper's protocol rows of the same map and team size."""
-    new = {tuple(c) for c in _covers(rows)}
+    covers = _covers(rows)
+    new = {tuple(c) for c in covers}
     held = old.get("rows") or []
     if not add:
         dropped = [c for c in _covers(held) if tuple(c) not in new]
@@ -123,7 +124,7 @@ def _refuse_loss(
     if data.get("quick"):
         runs = old.get("parts") or [{**old, "covers": _covers(held)}]
         protocol = {tuple(c) for p in runs if p.get("quick") is False for c in p["covers"]}
-        lost = [c for c in _covers(rows) if tuple(c) in protocol]
+        lost = [c for c in covers if tuple(c) in protocol]
         if lost:
             raise ValueError(
                 f"{recorded} holds the paper's protocol rows of {_pairs(lost)}; a --quick run would replace them "
@@ -2171,10 +2172,7 @@ def _runs_lines(setup: dict[str, Any]) -> list[str]:
         return []
     said = []
     for p in runs:
-        where = "; ".join(
-            f"{env.upper()} N = {', '.join(str(c[1]) for c in p['covers'] if c[0] == env)}"
-            for env in dict.fromkeys(c[0] for c in p["covers"])
-        )
+        where = _pairs(p["covers"])
         planners = (
             f", planners {p['planner_episodes']} (fhpe-sa {p['fhpe_sa_episodes']}, d-milp "
             f"{p.get('d_milp_episodes', p['planner_episodes'])})"
