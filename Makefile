@@ -30,9 +30,12 @@ demo-train: $(STAMP)
 	  $(VENV)/bin/mures evaluate --env museum --robots 4 --searcher $$s --episodes 1500 --seed 1 || exit 1; \
 	done
 
-# --durations: the slowest tests, so that a CI log shows where its minutes go
+# -n: one pytest worker per core (pytest-xdist), each taking whole test files, so that a file's
+# module fixtures (a running fleet, a trained team) are built once; TEST_WORKERS=0 runs in one
+# process. --durations: the slowest tests, so that a CI log shows where its minutes go
+TEST_WORKERS ?= auto
 test: $(STAMP)
-	$(PY) -m pytest -q --durations=15
+	$(PY) -m pytest -q --durations=15 -n $(TEST_WORKERS) --dist loadfile
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
