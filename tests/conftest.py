@@ -11,6 +11,15 @@ import pytest
 from shared.core.graph import Graph, graph_from_dict
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """One torch thread in every test process, as `mures train` and the server's training runs
+    default to: `make test` runs one process per core (pytest-xdist), and a second thread in each
+    would wait at the end of every small operation for the core the other process holds."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
 @pytest.fixture
 def small_graph() -> Graph:
     """5 nodes, a triangle with a tail and a pendant: irregular degrees, so Gamma != Gamma^T."""

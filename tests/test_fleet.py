@@ -91,7 +91,9 @@ def test_chain_agrees_with_evaluator_and_decisions_are_decentralised(fleet):
 
 
 def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
-    before = _fly_many(fleet, range(1000, 1060))
+    # 120 paired missions: a capture time's spread is about its mean (35 steps before), so 60 pairs
+    # left a CI of +-13 around an improvement of 12 (a gate of 36.3 -> 19.1 on 1000 episodes)
+    before = _fly_many(fleet, range(1000, 1120))
     run = fleet.api.post("/api/v1/training-runs", {"episodes": 30000, "seed": 1})
     assert run["status"] == "queued"
     seen_running = wait_until(
@@ -116,8 +118,8 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
     assert "training 30,208 episodes (30,000 asked, rounded up to whole batches of 256)" in seen
     assert done["metrics"]["train"]["episodes"] == 30_208
     assert done["version"] == 2 and fleet.api.get("/api/v1/policies/current")["version"] == 2
-    assert done["metrics"]["em"]["missions"] >= 260
-    after = _fly_many(fleet, range(1000, 1060))  # the same seeds: the same target paths
+    assert done["metrics"]["em"]["missions"] >= 320
+    after = _fly_many(fleet, range(1000, 1120))  # the same seeds: the same target paths
     diff = before - after
     m, h = mean_ci95(diff)
     assert m - h > 0, f"no significant improvement: before {before.mean():.2f}, after {after.mean():.2f}"

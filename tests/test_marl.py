@@ -46,7 +46,6 @@ def _mean_capture(g, target, sensor, make):
 
 @pytest.mark.parametrize("algorithm", MARL_ALGORITHMS)
 def test_each_baseline_learns_to_sweep_a_corridor(algorithm):
-    torch.set_num_threads(2)
     g, target, sensor = _corridor()
     cfg = TrainConfig(robots=2, algorithm=algorithm, belief="true", seed=0)
     res = train_marl(algorithm, g, target, sensor, cfg, hyperparameters(algorithm, TINY_BUDGET[algorithm]))
@@ -61,7 +60,8 @@ def test_each_baseline_learns_to_sweep_a_corridor(algorithm):
 @pytest.mark.parametrize("algorithm", ["mappo", "maddpg"])
 def test_same_seed_same_weights(algorithm):
     g, target, sensor = _corridor()
-    hp = ["episodes=600", "warmup=100"] if algorithm != "mappo" else ["episodes=1500", "envs=32", "steps=8"]
+    # a few dozen gradient steps each: enough for any difference in seeding to show in the weights
+    hp = ["episodes=600", "warmup=100"] if algorithm != "mappo" else ["episodes=300", "envs=32", "steps=8"]
 
     def weights(seed):
         cfg = TrainConfig(robots=2, algorithm=algorithm, belief="true", seed=seed)

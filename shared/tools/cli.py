@@ -705,7 +705,16 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="a MARL baseline's hyperparameter (repeatable; docs/SPEC.md section 11 lists them)",
     )
-    p.add_argument("--threads", type=positive_int, help="torch CPU threads (default: torch's choice)")
+    # 30,208 episodes of CE-PG on OFFICE, N = 3 (B = 256): 23.5 s on one thread, 23.0 s on two, this
+    # 2-core machine quiet; beside one other busy process 45 s on one, 139 s on two (each small
+    # operation waits at its end for the thread that lost the core)
+    p.add_argument(
+        "--threads",
+        type=positive_int,
+        default=1,
+        help="torch CPU threads (default 1: a team's tensors are small, more threads gain little and lose much "
+        "on a shared machine; torchrun or `mures experiment --workers` use the other cores)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_train)
 
