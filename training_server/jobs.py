@@ -76,9 +76,9 @@ class TrainingParams(BaseModel):
     gate: bool = Field(True, description="publish only if the new policy is not worse than the current one")
     promote: bool = Field(True, description="make the new version current")
     threads: Annotated[int, Field(ge=0, le=1024), INTEGRAL] = Field(
-        1,
+        train_config.TORCH_THREADS,
         description="torch threads in the training process (0: torch's default, one per core); "
-        "default 1, as `mures train`'s",
+        "the default is `mures train`'s",
     )
 
 

@@ -15,6 +15,12 @@ from typing import Any
 
 from shared.core.choices import ALGORITHMS, BELIEFS, CE_STATES, VARIANTS
 
+# torch threads of a training process (`mures train --threads`, the server's training runs): a
+# team's tensors are small. 30,208 episodes of CE-PG on OFFICE, N = 3 (B = 256): 23.5 s on one
+# thread, 23.0 s on two, this 2-core machine quiet; beside one other busy process 45 s on one and
+# 139 s on two (each small operation waits at its end for the thread that lost the core)
+TORCH_THREADS = 1
+
 
 def _opt(help: str, **kw: Any) -> Any:
     """Field metadata: the flag's help, and optionally ``choices``, ``parse`` (text -> value),

@@ -356,8 +356,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             hyper = hyperparameters(cfg.algorithm, args.hp, episodes=args.episodes, envs=args.batch, lr=lr)
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    torch.set_num_threads(args.threads)
     if marl and int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise CliError(f"{cfg.algorithm} runs in one process; torchrun data parallelism is CE-PG's")
     rank = _init_distributed(device)
@@ -705,15 +704,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="a MARL baseline's hyperparameter (repeatable; docs/SPEC.md section 11 lists them)",
     )
-    # 30,208 episodes of CE-PG on OFFICE, N = 3 (B = 256): 23.5 s on one thread, 23.0 s on two, this
-    # 2-core machine quiet; beside one other busy process 45 s on one, 139 s on two (each small
-    # operation waits at its end for the thread that lost the core)
     p.add_argument(
         "--threads",
         type=positive_int,
-        default=1,
-        help="torch CPU threads (default 1: a team's tensors are small, more threads gain little and lose much "
-        "on a shared machine; torchrun or `mures experiment --workers` use the other cores)",
+        default=train_config.TORCH_THREADS,
+        help=f"torch CPU threads (default {train_config.TORCH_THREADS}: a team's tensors are small, more threads "
+        "gain little and lose much on a shared machine; torchrun or `mures experiment --workers` use the other cores)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_train)
