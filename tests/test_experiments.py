@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -831,6 +832,34 @@ def test_jobs_on_other_processes_say_when_they_start_and_what_is_still_running(t
     assert not any(line.startswith(("still", "started")) for line in said)
 
 
+def _reporting(name: str, progress: Any = None) -> dict[str, bytes]:
+    """A job that ``reports``: it records the label of the progress it was handed."""
+    return {f"{name}.txt": progress.label.encode()}
+
+
+def test_a_training_job_says_how_far_it_has_got(tmp_path):
+    """A reporting job gets a JobProgress named by its label; that says, at most once per
+    ``every_s``, the episodes done, the rate and the time left at that rate, and nothing for a job
+    shorter than that or at its last update (the job's own finished line follows)."""
+    import io
+
+    from shared.tools.runner import Job, JobProgress, run_jobs
+
+    run_jobs([Job("t", "training X", _reporting, ("t",), reports=True)], tmp_path, say=lambda _s: None)
+    assert (tmp_path / "t.txt").read_bytes() == b"training X"
+    out = io.StringIO()
+    quiet = JobProgress("training X", every_s=3600, stream=out)
+    quiet({"episodes": 100, "total": 400, "episodes_per_second": 10.0})
+    assert out.getvalue() == ""
+    told = JobProgress("training MAMBPO museum N=2, 200,000 episodes", every_s=0, stream=out)
+    told({"episodes": 50_000, "total": 200_000, "episodes_per_second": 25.0})
+    told({"episodes": 200_000, "total": 200_000, "episodes_per_second": 25.0})
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("training MAMBPO museum N=2, 200,000 episodes: 50,000/200,000 episodes (25 %) in 0 min,")
+    assert lines[0].endswith(", 25 episodes/s, about 100 min left")  # 150,000 left at 25/s
+
+
 def test_jobs_on_a_dask_cluster_say_what_is_still_running(tmp_path, monkeypatch):
     """On a Dask cluster with a deadline the jobs go out as threads free up, so each is named as
     it starts and while running; without one they all go to the scheduler at once, and the
@@ -892,7 +921,7 @@ def test_only_runs_the_jobs_whose_labels_match(tmp_path, monkeypatch, capsys):
 
     trained: list[str] = []
     train = experiments._train_cepg
-    monkeypatch.setattr(experiments, "_train_cepg", lambda *a: trained.append(a[0]) or train(*a))
+    monkeypatch.setattr(experiments, "_train_cepg", lambda *a, **k: trained.append(a[0]) or train(*a, **k))
     assert main([*quick, "--only", "^training cepg office"]) == 3
     out = capsys.readouterr()
     assert "outside --only" in out.out and "3 jobs of fig6 left that --only" in out.err

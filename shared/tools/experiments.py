@@ -352,7 +352,8 @@ def _snapshot(
         noise = _noise(eta_fn, eta_fp)
         which = "PG" if beta == 1 else variant.upper() + (f" beta {beta}" if beta != LEARNED[variant][1] else "")
         label = f"training {which} {env} N={robots}{noise}, {episodes:,} episodes{_seed_label(seed)}"
-        _obtain(root, Job(rel, label, _train_cepg, args, weight=_train_cost("cepg", env, robots, episodes, eta_fn)))
+        weight = _train_cost("cepg", env, robots, episodes, eta_fn)
+        _obtain(root, Job(rel, label, _train_cepg, args, weight=weight, reports=True))
     return root / rel
 
 
@@ -379,6 +380,7 @@ def _train_cepg(
     variant: str,
     eta_fn: float,
     eta_fp: float,
+    progress: Any = None,
 ) -> dict[str, bytes]:
     """A job (shared/tools/runner.py): train a CE-PG team, return its snapshot's files."""
     import tempfile
@@ -391,7 +393,7 @@ def _train_cepg(
     g = builtin_graph(env)
     cfg, config = _cepg_config(env, robots, beta, episodes, seed, variant, eta_fn, eta_fp)
     sensor = sensor_for(variant, eta_fn, eta_fp)
-    res = train(g, uniform_walk(g), sensor, cfg)
+    res = train(g, uniform_walk(g), sensor, cfg, progress=progress)
     with tempfile.TemporaryDirectory() as tmp:
         save_snapshot(Path(tmp) / rel, res.policy, g, res.model, sensor, variant, [beta] * robots, config, res.summary)
         return directory_files(Path(tmp) / rel, Path(tmp))
@@ -433,7 +435,7 @@ def _marl_snapshot(
             f"{_seed_label(seed)}"
         )
         weight = _train_cost(algorithm, env, robots, config["episodes"], eta_fn)
-        _obtain(root, Job(rel, label, _train_marl, args, weight=weight))
+        _obtain(root, Job(rel, label, _train_marl, args, weight=weight, reports=True))
     return root / rel
 
 
@@ -479,6 +481,7 @@ def _train_marl(
     eta_fn: float,
     eta_fp: float,
     overrides: tuple[str, ...],
+    progress: Any = None,
 ) -> dict[str, bytes]:
     """A job (shared/tools/runner.py): train a MARL baseline, return its snapshot's files."""
     import tempfile
@@ -491,7 +494,7 @@ def _train_marl(
     cfg, hyper, rel, config = _marl_config(env, robots, algorithm, episodes, seed, eta_fn, eta_fp, overrides)
     g = builtin_graph(env)
     sensor = sensor_for("cepg", eta_fn, eta_fp)
-    res = train_marl(algorithm, g, uniform_walk(g), sensor, cfg, hyper)
+    res = train_marl(algorithm, g, uniform_walk(g), sensor, cfg, hyper, progress=progress)
     with tempfile.TemporaryDirectory() as tmp:
         save_snapshot(
             Path(tmp) / rel, res.policy, g, res.model, sensor, "cepg", [], config, res.summary, algorithm=algorithm

@@ -40,19 +40,50 @@ HEARTBEAT_S = 600.0
 @dataclass(frozen=True)
 class Job:
     """``fn(*args)`` -> {path relative to the results directory: bytes}. ``key`` names the job (two
-    jobs with one key are one job); ``weight`` is its expected cost, for the ETA."""
+    jobs with one key are one job); ``weight`` is its expected cost, for the ETA. A job that
+    ``reports`` (a training run) is called as ``fn(*args, progress=JobProgress(label))`` and tells
+    it how far it has got."""
 
     key: str
     label: str
     fn: Callable[..., dict[str, bytes]]
     args: tuple[Any, ...] = field(default=())
     weight: float = 1.0
+    reports: bool = False
+
+
+class JobProgress:
+    """A training job's progress, told from inside the job wherever it runs (this process, a local
+    worker process, a Dask worker's log): after every ``every_s`` seconds, one stderr line with the
+    episodes done, the rate and the time left at that rate. A job shorter than ``every_s`` says
+    nothing, so quick runs stay quiet; an hour-long team says where it is six times. Called with
+    the trainers' progress dicts (``episodes``, ``total``, ``episodes_per_second``)."""
+
+    def __init__(self, label: str, every_s: float = HEARTBEAT_S, stream: Any = None) -> None:
+        self.label, self.every_s, self.stream = label, every_s, stream
+        self.t0 = self.last = time.perf_counter()
+
+    def __call__(self, p: dict[str, Any]) -> None:
+        now = time.perf_counter()
+        if now - self.last < self.every_s or p["episodes"] >= p["total"]:
+            return
+        self.last = now
+        rate = p["episodes_per_second"]
+        left = (p["total"] - p["episodes"]) / max(rate, 1e-9)
+        print(
+            f"{self.label}: {p['episodes']:,}/{p['total']:,} episodes ({100 * p['episodes'] / p['total']:.0f} %)"
+            f" in {_minutes(now - self.t0)}, {rate:.0f} episodes/s, about {_minutes(left)} left",
+            file=self.stream or sys.stderr,
+            flush=True,
+        )
 
 
 def _call(job: Job) -> dict[str, bytes]:
     import torch
 
     torch.set_num_threads(JOB_THREADS)
+    if job.reports:
+        return job.fn(*job.args, progress=JobProgress(job.label))
     return job.fn(*job.args)
 
 
