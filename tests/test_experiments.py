@@ -860,6 +860,27 @@ def test_a_training_job_says_how_far_it_has_got(tmp_path):
     assert lines[0].endswith(", 25 episodes/s, about 100 min left")  # 150,000 left at 25/s
 
 
+def test_evaluate_tells_its_progress_after_every_chunk():
+    """A planner's cell (chunks of one episode) says how far it has got, as a team's training does;
+    the outcomes are those of a run without it."""
+    from shared.core.graph import builtin_graph
+    from shared.core.models import Sensor, uniform_walk
+    from shared.engine.evaluate import evaluate
+    from shared.registry import make_searcher
+
+    g = builtin_graph("office")
+
+    def run(progress: Any = None) -> Any:
+        make = lambda s: make_searcher("random", g, uniform_walk(g), Sensor(), s)  # noqa: E731
+        return evaluate(g, uniform_walk(g), Sensor(), 2, make, episodes=5, seed=3, chunk=2, progress=progress)
+
+    told: list[dict[str, Any]] = []
+    res = run(told.append)
+    assert [(p["episodes"], p["total"]) for p in told] == [(2, 5), (4, 5), (5, 5)]
+    assert all(p["episodes_per_second"] > 0 for p in told)
+    assert np.array_equal(res.capture_time, run().capture_time)
+
+
 def test_jobs_on_a_dask_cluster_say_what_is_still_running(tmp_path, monkeypatch):
     """On a Dask cluster with a deadline the jobs go out as threads free up, so each is named as
     it starts and while running; without one they all go to the scheduler at once, and the

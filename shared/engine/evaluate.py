@@ -98,10 +98,13 @@ def evaluate(
     device: torch.device | str = "cpu",
     withdraw_at: list[int | None] | None = None,
     record: bool = False,
+    progress: Callable[[dict[str, Any]], None] | None = None,
 ) -> EvalResult:
     """Run ``episodes`` episodes of ``make_searcher(chunk_seed)`` and collect their outcomes.
 
-    ``record`` keeps every step's positions and observations (for writing episode records).
+    ``record`` keeps every step's positions and observations (for writing episode records);
+    ``progress`` gets {"episodes", "total", "episodes_per_second"} after every chunk (a planner's
+    chunk is one episode).
     """
     if episodes < 1:
         raise ValueError(f"expected at least 1 episode, got {episodes}")
@@ -144,6 +147,9 @@ def evaluate(
         outs["cens"].append(cens.numpy())
         outs["fa"].append(fa.numpy())
         outs["by"].append(by.numpy())
+        if progress:
+            done = start + B
+            progress({"episodes": done, "total": episodes, "episodes_per_second": done / (time.perf_counter() - t0)})
         if record:
             trajs.append(
                 Trajectories(

@@ -677,7 +677,7 @@ def _cell(
             files = directory_files(make.path, make.path)
             make = _Team(make.path, make.env, make.sensor, make.robots)
         weight = _cell_cost(method, args, make)
-        _PLAN.append(Job(f"cell-{key}", label, _cell_job, (key, args, make, files), weight=weight))
+        _PLAN.append(Job(f"cell-{key}", label, _cell_job, (key, args, make, files), weight=weight, reports=True))
         return placeholder
     else:
         row = _evaluate_cell(make=make, **args)
@@ -755,7 +755,9 @@ def _planner_step_cost(method: str, env: str, robots: int, time_limit: float = F
     return FHPE_SECONDS_PER_STEP.get(robots, 1.0) * per_map
 
 
-def _cell_job(key: str, args: dict[str, Any], make: Any, files: dict[str, bytes] | None) -> dict[str, bytes]:
+def _cell_job(
+    key: str, args: dict[str, Any], make: Any, files: dict[str, bytes] | None, progress: Any = None
+) -> dict[str, bytes]:
     """A cell evaluated by a worker: a team's snapshot comes as its files (no shared file system)."""
     import tempfile
 
@@ -764,7 +766,7 @@ def _cell_job(key: str, args: dict[str, Any], make: Any, files: dict[str, bytes]
             for rel, data in files.items():
                 (Path(tmp) / rel).write_bytes(data)
             make = _Team(Path(tmp), make.env, make.sensor, make.robots)
-        row = _evaluate_cell(make=make, **args)
+        row = _evaluate_cell(make=make, **args, progress=progress)
     return {f"cells/{key}.json": json.dumps(row).encode()}
 
 
@@ -778,8 +780,10 @@ def _evaluate_cell(
     sensor: dict[str, Any],
     withdraw_at: list[int | None] | None,
     latency: bool,
+    progress: Any = None,
 ) -> dict[str, Any]:
-    """A cell's row (``_cell``), with its capture times."""
+    """A cell's row (``_cell``), with its capture times; ``progress`` is told of each chunk of
+    episodes (``evaluate``'s)."""
     from shared.core.graph import builtin_graph
     from shared.core.models import Sensor, uniform_walk
     from shared.engine.evaluate import evaluate, mean_ci95
@@ -798,6 +802,7 @@ def _evaluate_cell(
         seed=seed,
         chunk=4096 if batched else 1,
         withdraw_at=withdraw_at,
+        progress=progress,
     )
     wall = time.perf_counter() - t0
     s = res.summary()

@@ -41,8 +41,8 @@ HEARTBEAT_S = 600.0
 class Job:
     """``fn(*args)`` -> {path relative to the results directory: bytes}. ``key`` names the job (two
     jobs with one key are one job); ``weight`` is its expected cost, for the ETA. A job that
-    ``reports`` (a training run) is called as ``fn(*args, progress=JobProgress(label))`` and tells
-    it how far it has got."""
+    ``reports`` (a team's training, a cell's evaluation) is called as
+    ``fn(*args, progress=JobProgress(label))`` and tells it how far it has got."""
 
     key: str
     label: str
@@ -53,11 +53,12 @@ class Job:
 
 
 class JobProgress:
-    """A training job's progress, told from inside the job wherever it runs (this process, a local
-    worker process, a Dask worker's log): after every ``every_s`` seconds, one stderr line with the
-    episodes done, the rate and the time left at that rate. A job shorter than ``every_s`` says
-    nothing, so quick runs stay quiet; an hour-long team says where it is six times. Called with
-    the trainers' progress dicts (``episodes``, ``total``, ``episodes_per_second``)."""
+    """A long job's progress (a team's training, a planner's cell), told from inside the job
+    wherever it runs (this process, a local worker process, a Dask worker's log): after every
+    ``every_s`` seconds, one stderr line with the episodes done, the rate and the time left at that
+    rate. A job shorter than ``every_s`` says nothing, so quick runs stay quiet; an hour-long team
+    says where it is six times. Called with the trainers' and ``evaluate``'s progress dicts
+    (``episodes``, ``total``, ``episodes_per_second``)."""
 
     def __init__(self, label: str, every_s: float = HEARTBEAT_S, stream: Any = None) -> None:
         self.label, self.every_s, self.stream = label, every_s, stream
