@@ -858,6 +858,9 @@ def test_a_training_job_says_how_far_it_has_got(tmp_path):
     assert len(lines) == 1, lines
     assert lines[0].startswith("training MAMBPO museum N=2, 200,000 episodes: 50,000/200,000 episodes (25 %) in 0 min,")
     assert lines[0].endswith(", 25 episodes/s, about 100 min left")  # 150,000 left at 25/s
+    planner = JobProgress("evaluating milp museum N=4 (100 episodes)", every_s=0, stream=out)
+    planner({"episodes": 37, "total": 100, "episodes_per_second": 37 / 660})
+    assert out.getvalue().splitlines()[-1].endswith(" (37 %) in 0 min, 3.4 episodes/min, about 19 min left")
 
 
 def test_evaluate_tells_its_progress_after_every_chunk():

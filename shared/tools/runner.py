@@ -73,7 +73,7 @@ class JobProgress:
         left = (p["total"] - p["episodes"]) / max(rate, 1e-9)
         print(
             f"{self.label}: {p['episodes']:,}/{p['total']:,} episodes ({100 * p['episodes'] / p['total']:.0f} %)"
-            f" in {_minutes(now - self.t0)}, {rate:.0f} episodes/s, about {_minutes(left)} left",
+            f" in {_minutes(now - self.t0)}, {_rate(rate)}, about {_minutes(left)} left",
             file=self.stream or sys.stderr,
             flush=True,
         )
@@ -272,6 +272,11 @@ def run_jobs(
 
 def _minutes(seconds: float) -> str:
     return f"{seconds / 60:.0f} min"
+
+
+def _rate(per_second: float) -> str:
+    """Episodes per second, or per minute for a planner's slow ones (a MILP cell: 3 a minute)."""
+    return f"{per_second:.0f} episodes/s" if per_second >= 1 else f"{60 * per_second:.1f} episodes/min"
 
 
 def directory_files(path: Path, rel_to: Path) -> dict[str, bytes]:
