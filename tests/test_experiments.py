@@ -863,6 +863,40 @@ def test_a_training_job_says_how_far_it_has_got(tmp_path):
     assert out.getvalue().splitlines()[-1].endswith(" (37 %) in 0 min, 3.4 episodes/min, about 19 min left")
 
 
+def test_a_marl_team_job_continues_from_its_checkpoint_and_clears_it(tmp_path):
+    """A MARL team's job is handed a checkpoint directory under the results' .checkpoints (which
+    keeps itself out of git); started where a killed run left a checkpoint, it continues from it,
+    and the checkpoint is gone once the team's files are made."""
+    from shared.core.graph import builtin_graph
+    from shared.core.models import uniform_walk
+    from shared.learning.marl import train_marl
+    from shared.tools.experiments import CHECKPOINTS, _marl_config, _train_marl, sensor_for
+    from shared.tools.runner import Job, run_jobs
+
+    args = ("office", 2, "mappo", 96, 0, 0.0, 0.0, ("steps=4", "envs=8"))
+    cfg, hyper, rel, _config = _marl_config(*args)
+    ckpt = tmp_path / CHECKPOINTS / rel
+    g = builtin_graph("office")
+    calls = iter(range(100))
+    stopped = train_marl(  # what a run killed after its checkpoint at the 4th batch leaves
+        "mappo",
+        g,
+        uniform_walk(g),
+        sensor_for("cepg", 0.0, 0.0),
+        cfg,
+        hyper,
+        should_stop=lambda: next(calls) >= 3,
+        checkpoint=ckpt,
+    )
+    assert stopped.interrupted and (ckpt / "state.pt").is_file()
+    run_jobs([Job(rel, "training", _train_marl, args, checkpoint=str(ckpt))], tmp_path, say=lambda _s: None)
+    summary = json.loads((tmp_path / rel / "policy.json").read_text())["summary"]
+    assert summary["resumed"][0]["episodes"] == stopped.summary["episodes"] > 0
+    assert summary["episodes"] >= 96 and not summary["interrupted"]
+    assert not ckpt.exists()
+    assert (tmp_path / CHECKPOINTS / ".gitignore").read_text().splitlines()[-1] == "*"
+
+
 def test_evaluate_tells_its_progress_after_every_chunk():
     """A planner's cell (chunks of one episode) says how far it has got, as a team's training does;
     the outcomes are those of a run without it."""

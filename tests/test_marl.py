@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from shared.core.graph import grid_graph
-from shared.core.models import Sensor, lazy_walk
+from shared.core.graph import builtin_graph, grid_graph
+from shared.core.models import Sensor, lazy_walk, uniform_walk
 from shared.core.snapshot import PolicyAgent, read_snapshot
 from shared.engine.evaluate import evaluate
 from shared.engine.searchers import RandomSearcher
@@ -232,3 +232,136 @@ def test_a_fleet_flies_a_mappo_team_as_it_flies_cepg(tmp_path):
     )
     differ, z = means_differ(flown, res.capture_time)
     assert not differ, (mean_ci95(flown), mean_ci95(res.capture_time), z)
+
+
+@pytest.mark.parametrize("algorithm", MARL_ALGORITHMS)
+def test_a_stopped_run_resumes_from_its_checkpoint_to_the_same_weights(algorithm, tmp_path):
+    """A run with a checkpoint directory, stopped part-way and started again, ends with the same
+    weights, learning curve and counts, bit for bit, as one never stopped (what a killed run's
+    resumption rests on: the checkpoint holds all the next step depends on)."""
+    g, target, sensor = _corridor()
+    hp = (
+        ["episodes=600", "envs=16", "steps=8"]
+        if algorithm == "mappo"
+        else ["episodes=400", "envs=8", "warmup=60", "buffer=2000", "minibatch=32"]
+        + (["rollout_starts=16", "model_buffer=500"] if algorithm == "mambpo" else [])
+    )
+    cfg = TrainConfig(robots=2, algorithm=algorithm, belief="em", seed=5, em_first=150, em_every=150, em_missions=20)
+
+    def run(stop_after=None, checkpoint=None):
+        calls = [0]
+
+        def should_stop():
+            calls[0] += 1
+            return stop_after is not None and calls[0] >= stop_after
+
+        return train_marl(
+            algorithm,
+            g,
+            target,
+            sensor,
+            cfg,
+            hyperparameters(algorithm, hp),
+            should_stop=should_stop,
+            checkpoint=checkpoint,
+            checkpoint_every=3600,
+        )
+
+    straight = run()
+    ckpt = tmp_path / "ckpt"
+    stopped = run(stop_after=12, checkpoint=ckpt)
+    assert stopped.interrupted and (ckpt / "state.pt").is_file()
+    assert 0 < stopped.summary["episodes"] < straight.summary["episodes"]
+    resumed = run(checkpoint=ckpt)
+    assert not resumed.interrupted
+    assert resumed.summary["resumed"] == [
+        {"episodes": stopped.summary["episodes"], "wall_seconds": resumed.summary["resumed"][0]["wall_seconds"]}
+    ]
+    for key in ("episodes", "env_steps", "updates"):
+        assert resumed.summary[key] == straight.summary[key], key
+    points = [{k: p[k] for k in ("episodes", "mean_capture_time")} for p in straight.summary["learning_curve"]]
+    assert [{k: p[k] for k in ("episodes", "mean_capture_time")} for p in resumed.summary["learning_curve"]] == points
+    em_at = [e["episodes"] for e in straight.summary["em_updates"]]
+    assert [e["episodes"] for e in resumed.summary["em_updates"]] == em_at and em_at
+    for x, y in zip(straight.policy.state_dict().values(), resumed.policy.state_dict().values(), strict=True):
+        assert torch.equal(x, y)
+    assert np.array_equal(straight.model.prob, resumed.model.prob)
+
+
+@pytest.mark.slow
+def test_cli_a_killed_run_continues_from_its_checkpoint(tmp_path, capsys):
+    """`mures train --checkpoint DIR`: a run killed (SIGKILL, nothing saved on the way out) after
+    some checkpoints, then given the same command, ends with the snapshot an uninterrupted run
+    writes; the checkpoint directory is removed once the snapshot is written."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    ckpt = tmp_path / "ckpt"
+    common = ["train", "--env", "office", "--robots", "2", "--algorithm", "maddpg", "--quiet", "--seed", "2"]
+    common += ["--episodes", "300", "--batch", "8", "--hp", "warmup=50", "--hp", "buffer=4000"]
+    common += ["--hp", "minibatch=32", "--hp", "updates=1"]
+    common += ["--em-first", "150", "--em-missions", "16"]
+    resumable = [*common, "--checkpoint", str(ckpt), "--checkpoint-every", "0.2"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "shared.tools.cli", *resumable, "--out", str(tmp_path / "killed")],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            if (ckpt / "state.pt").is_file() and torch.load(ckpt / "state.pt", weights_only=False)["state"]["run"][
+                "episodes"
+            ] >= 150:
+                break
+            time.sleep(0.2)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert not (tmp_path / "killed").exists(), "killed before its snapshot"
+    assert (ckpt / "state.pt").is_file() or (tmp_path / "ckpt.old" / "state.pt").is_file()
+
+    assert main([*resumable, "--out", str(tmp_path / "resumed")]) == 0
+    assert "resumed at" in capsys.readouterr().out
+    assert not ckpt.exists() and not (tmp_path / "ckpt.old").exists() and not (tmp_path / "ckpt.new").exists()
+    assert main([*common, "--out", str(tmp_path / "straight")]) == 0
+    resumed, straight = (json.loads((tmp_path / d / "policy.json").read_text()) for d in ("resumed", "straight"))
+    assert resumed["summary"]["resumed"] and not straight["summary"]["resumed"]
+    assert resumed["summary"]["episodes"] == straight["summary"]["episodes"]
+    assert (tmp_path / "resumed" / "weights.safetensors").read_bytes() == (
+        tmp_path / "straight" / "weights.safetensors"
+    ).read_bytes()
+
+
+def test_cli_checkpoint_errors_change_nothing(tmp_path, capsys):
+    base = ["train", "--env", "office", "--robots", "2", "--quiet", "--episodes", "40", "--batch", "8"]
+    base += ["--em-first", "1000"]
+    assert main([*base, "--checkpoint", str(tmp_path / "c"), "--out", str(tmp_path / "x")]) == 2
+    assert "CE-PG" in capsys.readouterr().err and not (tmp_path / "c").exists()
+    marl = [*base, "--algorithm", "mappo", "--hp", "steps=4"]
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "todo.txt").write_text("mine")
+    assert main([*marl, "--checkpoint", str(notes), "--out", str(tmp_path / "x")]) == 2
+    assert "not a checkpoint directory" in capsys.readouterr().err
+    assert [p.name for p in notes.iterdir()] == ["todo.txt"] and not (tmp_path / "x").exists()
+    with pytest.raises(SystemExit):
+        main([*marl, "--checkpoint", str(tmp_path / "c"), "--checkpoint-every", "-1", "--out", "y"])
+    assert "seconds >= 0" in capsys.readouterr().err
+    # a checkpoint of one run (stopped at once) is not resumed by another
+    assert main([*marl, "--seed", "7", "--checkpoint", str(tmp_path / "c"), "--out", str(tmp_path / "s7")]) == 0
+    capsys.readouterr()
+    assert not (tmp_path / "c").exists(), "removed once the snapshot is written"
+    g = builtin_graph("office")
+    cfg = TrainConfig(robots=2, algorithm="mappo", seed=7, em_first=1000, episodes=40, batch=8)
+    hyper = hyperparameters("mappo", ["steps=4", "episodes=40", "envs=8"])
+    stopped = train_marl(
+        "mappo", g, uniform_walk(g), Sensor(), cfg, hyper, should_stop=lambda: True, checkpoint=tmp_path / "c"
+    )
+    assert stopped.interrupted
+    assert main([*marl, "--checkpoint", str(tmp_path / "c"), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "another run" in err and "config.seed: 7 there, 0 here" in err
+    assert (tmp_path / "c" / "state.pt").is_file() and not (tmp_path / "x").exists()

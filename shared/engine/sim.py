@@ -141,6 +141,26 @@ class SearchSim:
         self._new = torch.zeros(B, dtype=torch.bool, device=dev)
         self.moving = torch.zeros(B, dtype=torch.bool, device=dev)  # set by each step
 
+    # the episodes' state: what ``state_dict`` saves (the graph's and the models' tables are rebuilt
+    # from the same graph, target model and sensor)
+    _STATE = ("pos", "target", "t", "z", "alive", "pending", "pending_by", "false_alarms", "active", "_new", "moving")
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The running episodes and the generator's state, to continue later exactly where they are
+        (a resumable training run's checkpoint): {name: tensor}."""
+        return {**{k: getattr(self, k).clone() for k in self._STATE}, "gen": self.gen.get_state()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Continue from ``state_dict()``'s output, taken from a simulator of the same graph, models
+        and batch; a ValueError names an entry that is missing or of another shape or type."""
+        for k in self._STATE:
+            mine, theirs = getattr(self, k), state.get(k)
+            if not isinstance(theirs, torch.Tensor) or theirs.shape != mine.shape or theirs.dtype != mine.dtype:
+                raise ValueError(f"simulator state {k!r}: expected a {mine.dtype} tensor of shape {tuple(mine.shape)}")
+        for k in self._STATE:
+            setattr(self, k, state[k].to(self.device).clone())
+        self.gen.set_state(state["gen"])
+
     # ------------------------------------------------------------------ internals
     def _rand(self, *shape: int) -> torch.Tensor:
         return torch.rand(*shape, generator=self.gen, device=self.device, dtype=torch.float64)

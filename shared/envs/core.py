@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -146,6 +147,32 @@ class EnvCore:
 
     def seed(self, seed: int) -> None:
         self.sim.gen.manual_seed(int(seed))
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything a step depends on: the simulator's episodes and generator, the beliefs, the
+        belief model's Gamma_hat and b0 (EM changes them during training) and the episode counts
+        not yet taken. ``load_state_dict`` on a core of the same scenario and B continues exactly."""
+        return {
+            "sim": self.sim.state_dict(),
+            "b": self.b.clone(),
+            "last_reset": self.last_reset.clone(),
+            "ended": self._ended.clone(),
+            "gamma": self.belief.gamma.clone(),
+            "b0": self.belief.b0.clone(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continue from ``state_dict()``'s output (a ValueError names a mismatching entry)."""
+        for key, mine in (("b", self.b), ("ended", self._ended), ("gamma", self.belief.gamma), ("b0", self.belief.b0)):
+            theirs = state.get(key)
+            if not isinstance(theirs, torch.Tensor) or theirs.shape != mine.shape:
+                raise ValueError(f"environment state {key!r}: expected a tensor of shape {tuple(mine.shape)}")
+        self.sim.load_state_dict(state["sim"])
+        self.b = state["b"].to(self.device).clone()
+        self.last_reset = state["last_reset"].to(self.device).clone()
+        self._ended = state["ended"].to(self.device).clone()
+        self.belief.gamma = state["gamma"].to(self.device, self.belief.dtype).clone()
+        self.belief.b0 = state["b0"].to(self.device, self.belief.dtype).clone()
 
     def set_belief_model(self, model: TargetModel) -> None:
         """Use another Gamma_hat, b0 for the robots' beliefs from the next update on (EM during training)."""

@@ -20,6 +20,10 @@ from shared.core.choices import ALGORITHMS, BELIEFS, CE_STATES, VARIANTS
 # thread, 23.0 s on two, this 2-core machine quiet; beside one other busy process 45 s on one and
 # 139 s on two (each small operation waits at its end for the thread that lost the core)
 TORCH_THREADS = 1
+# a resumable MARL run's checkpoint interval, seconds of training (`mures train --checkpoint-every`,
+# the experiments' teams): a MUSEUM N = 4 team's checkpoint with a full replay buffer is 1.5 GB,
+# 8-17 s to write beside two jobs, under 3 % of the interval (benchmarks/bench_checkpoint.py)
+CHECKPOINT_EVERY_S = 600.0
 
 
 def _opt(help: str, **kw: Any) -> Any:
@@ -46,6 +50,17 @@ def positive_int(text: str) -> int:
 def whole_number(text: str) -> int:
     """An integer >= 0 (argparse type)."""
     return _int_at_least(text, 0, "a whole number >= 0")
+
+
+def seconds(text: str) -> float:
+    """A number of seconds >= 0 (argparse type)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not v >= 0 or math.isinf(v):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
+    return v
 
 
 def floats(text: str) -> list[float]:

@@ -34,7 +34,7 @@ from shared.engine.estimate import EMWorkerError, collect_missions, em, eq8, mea
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
 from shared.learning import config as train_config
-from shared.learning.config import positive_int, whole_number
+from shared.learning.config import CHECKPOINT_EVERY_S, positive_int, seconds, whole_number
 from shared.learning.snapshot import load_snapshot, save_snapshot
 from shared.registry import searcher_factory
 
@@ -348,6 +348,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise ValueError("--hp sets a MARL baseline's hyperparameters; CE-PG takes its own flags")
         if marl and init_policy is not None:
             raise ValueError(f"--init warm-starts CE-PG only; {cfg.algorithm} trains from scratch")
+        if args.checkpoint and not marl:
+            raise ValueError("--checkpoint makes a MARL baseline's run resumable; CE-PG runs are not checkpointed")
         hyper = None
         if marl:
             from shared.learning.marl import hyperparameters
@@ -387,17 +389,24 @@ def cmd_train(args: argparse.Namespace) -> int:
         if hyper is not None:
             from shared.learning.marl import train_marl
 
-            res = train_marl(
-                cfg.algorithm,
-                graph,
-                target,
-                sensor,
-                cfg,
-                hyper,
-                init_model=init_model,
-                progress=bar,
-                should_stop=lambda: stop["requested"],
-            )
+            try:
+                res = train_marl(
+                    cfg.algorithm,
+                    graph,
+                    target,
+                    sensor,
+                    cfg,
+                    hyper,
+                    init_model=init_model,
+                    progress=bar,
+                    should_stop=lambda: stop["requested"],
+                    checkpoint=args.checkpoint,
+                    checkpoint_every=args.checkpoint_every,
+                )
+            except ValueError as exc:  # a checkpoint directory of another run, or not one at all
+                if not args.checkpoint:
+                    raise
+                raise CliError(str(exc)) from None
         else:
             res = train(
                 graph,
@@ -430,11 +439,18 @@ def cmd_train(args: argparse.Namespace) -> int:
             algorithm=cfg.algorithm,
         )
         s = res.summary
+        resumed = f" (resumed at {s['resumed'][-1]['episodes']:,})" if s.get("resumed") else ""
         print(
-            f"{'interrupted: ' if res.interrupted else ''}{s['episodes']:,} episodes ({s['env_steps']:,} team steps) "
-            f"in {s['wall_seconds']:.1f} s, {s['episodes_per_second']:.0f} episodes/s; "
+            f"{'interrupted: ' if res.interrupted else ''}{s['episodes']:,} episodes{resumed} ({s['env_steps']:,} team "
+            f"steps) in {s['wall_seconds']:.1f} s, {s['episodes_per_second']:.0f} episodes/s; "
             f"last capture time {s['final_mean_capture_time']:.2f}; wrote {out}"
         )
+        if args.checkpoint and res.interrupted:
+            print(f"checkpoint in {args.checkpoint}: the same command continues the run from it")
+        elif args.checkpoint:
+            from shared.learning.marl import remove_checkpoint
+
+            remove_checkpoint(args.checkpoint)
     code = 130 if res.interrupted else 0
     leave_process_group(code)  # under torchrun: ends this process with ``code``
     return code
@@ -710,6 +726,19 @@ def build_parser() -> argparse.ArgumentParser:
         default=train_config.TORCH_THREADS,
         help=f"torch CPU threads (default {train_config.TORCH_THREADS}: a team's tensors are small, more threads "
         "gain little and lose much on a shared machine; torchrun or `mures experiment --workers` use the other cores)",
+    )
+    p.add_argument(
+        "--checkpoint",
+        metavar="DIR",
+        help="a MARL baseline's run saves its whole state in DIR as it goes and when stopped, and the same command "
+        "continues from it after a kill or Ctrl-C, ending as an uninterrupted run would; DIR is removed when done",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=seconds,
+        default=CHECKPOINT_EVERY_S,
+        metavar="SECONDS",
+        help=f"seconds of training between checkpoints (default {CHECKPOINT_EVERY_S:.0f})",
     )
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_train)

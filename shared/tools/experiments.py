@@ -290,6 +290,7 @@ MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.
 # a fraction of each; "marl_training_episodes_by_method" has the numbers
 MARL_DEFAULT, MARL_OWN = "each method's default", "each method's own"
 SEED = 1  # evaluation seed of every cell (training seeds: 0)
+CHECKPOINTS = ".checkpoints"  # under the results directory: unfinished MARL teams' checkpoints (_train_marl)
 ETAS = (0.0, 0.1, 0.3, 0.5)  # the paper's sensor-noise grid (Fig. 9-11)
 LEARNED = {"pg": ("cepg", 1.0), "cepg": ("cepg", 0.5), "cepg+": ("cepg+", 0.5), "c-cepg": ("c-cepg", 0.5)}
 
@@ -435,7 +436,8 @@ def _marl_snapshot(
             f"{_seed_label(seed)}"
         )
         weight = _train_cost(algorithm, env, robots, config["episodes"], eta_fn)
-        _obtain(root, Job(rel, label, _train_marl, args, weight=weight, reports=True))
+        checkpoint = str(root / CHECKPOINTS / rel)
+        _obtain(root, Job(rel, label, _train_marl, args, weight=weight, reports=True, checkpoint=checkpoint))
     return root / rel
 
 
@@ -482,24 +484,48 @@ def _train_marl(
     eta_fp: float,
     overrides: tuple[str, ...],
     progress: Any = None,
+    checkpoint: str | None = None,
 ) -> dict[str, bytes]:
-    """A job (shared/tools/runner.py): train a MARL baseline, return its snapshot's files."""
+    """A job (shared/tools/runner.py): train a MARL baseline, return its snapshot's files. With
+    ``checkpoint`` (a directory) the training saves its state there every ``CHECKPOINT_EVERY_S``
+    seconds and continues from it when the job is started again after being killed; the
+    directory is removed once the snapshot's files are made. Where it cannot be made (a Dask
+    worker on another machine, without the caller's file system) the team trains without."""
     import tempfile
 
     from shared.core.graph import builtin_graph
     from shared.core.models import uniform_walk
-    from shared.learning.marl import train_marl
+    from shared.learning.marl import remove_checkpoint, train_marl
     from shared.learning.snapshot import save_snapshot
 
     cfg, hyper, rel, config = _marl_config(env, robots, algorithm, episodes, seed, eta_fn, eta_fp, overrides)
     g = builtin_graph(env)
     sensor = sensor_for("cepg", eta_fn, eta_fp)
-    res = train_marl(algorithm, g, uniform_walk(g), sensor, cfg, hyper, progress=progress)
+    if checkpoint is not None:
+        try:
+            _checkpoint_root(Path(checkpoint))
+        except OSError as exc:
+            print(f"{rel}: no checkpoints ({exc}); training without", file=sys.stderr, flush=True)
+            checkpoint = None
+    res = train_marl(algorithm, g, uniform_walk(g), sensor, cfg, hyper, progress=progress, checkpoint=checkpoint)
     with tempfile.TemporaryDirectory() as tmp:
         save_snapshot(
             Path(tmp) / rel, res.policy, g, res.model, sensor, "cepg", [], config, res.summary, algorithm=algorithm
         )
-        return directory_files(Path(tmp) / rel, Path(tmp))
+        files = directory_files(Path(tmp) / rel, Path(tmp))
+    if checkpoint is not None:
+        remove_checkpoint(checkpoint)
+    return files
+
+
+def _checkpoint_root(path: Path) -> None:
+    """Make the parent of a team's checkpoint directory, under a CHECKPOINTS folder that keeps
+    itself out of git (its own .gitignore: a checkpoint is a work file, gigabytes for a team
+    with a full replay buffer, never a result)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    top = next((p for p in path.parents if p.name == CHECKPOINTS), None)
+    if top is not None and not (top / ".gitignore").is_file():
+        atomic_write(top / ".gitignore", b"# unfinished teams' training checkpoints (shared/tools/experiments.py)\n*\n")
 
 
 def _learned(

@@ -7,7 +7,8 @@ machine can run it) that returns the files it made as {relative path: bytes}; th
 them under its own results directory, so workers need no shared file system. A job fixes its
 own torch thread count (``JOB_THREADS``): floating-point sums depend on it, and the same seeds
 must give the same numbers whichever way the jobs run. Finished jobs are what the experiments'
-cache holds, so a killed run resumes from them.
+cache holds, so a killed run resumes from them; a MARL team's training, the longest job, also
+resumes from its own last checkpoint (``Job.checkpoint``), so hours of it are not lost with it.
 """
 
 from __future__ import annotations
@@ -42,7 +43,9 @@ class Job:
     """``fn(*args)`` -> {path relative to the results directory: bytes}. ``key`` names the job (two
     jobs with one key are one job); ``weight`` is its expected cost, for the ETA. A job that
     ``reports`` (a team's training, a cell's evaluation) is called as
-    ``fn(*args, progress=JobProgress(label))`` and tells it how far it has got."""
+    ``fn(*args, progress=JobProgress(label))`` and tells it how far it has got. A job with a
+    ``checkpoint`` directory is also given ``checkpoint=`` it: a team's training saves its state
+    there as it goes and, started again after being killed, continues from it."""
 
     key: str
     label: str
@@ -50,6 +53,7 @@ class Job:
     args: tuple[Any, ...] = field(default=())
     weight: float = 1.0
     reports: bool = False
+    checkpoint: str | None = None
 
 
 class JobProgress:
@@ -83,9 +87,12 @@ def _call(job: Job) -> dict[str, bytes]:
     import torch
 
     torch.set_num_threads(JOB_THREADS)
+    kwargs: dict[str, Any] = {}
     if job.reports:
-        return job.fn(*job.args, progress=JobProgress(job.label))
-    return job.fn(*job.args)
+        kwargs["progress"] = JobProgress(job.label)
+    if job.checkpoint is not None:
+        kwargs["checkpoint"] = job.checkpoint
+    return job.fn(*job.args, **kwargs)
 
 
 def _results(
@@ -202,8 +209,8 @@ def run_jobs(
     finished, one saying what is still running, for how long, against its estimate. With
     ``until`` (a time.time() instant) the jobs go longest first and none starts whose estimate,
     ``UNTIL_MARGIN`` x its weight in seconds, would end past it: a job cut off mid-way would be
-    lost (a job's files are written only when it ends). Returns the jobs left unrun, [] without
-    ``until``."""
+    lost (a job's files are written only when it ends; a job with a checkpoint keeps its progress
+    up to its last one). Returns the jobs left unrun, [] without ``until``."""
     unique = list({j.key: j for j in jobs}.values())
     if not unique:
         return []

@@ -11,19 +11,22 @@ simulator through the TorchRL environment (shared/envs) and saved as ordinary sn
 ``hyperparameters(name, overrides)`` gives a method's documented defaults with `--hp KEY=VALUE`
 overrides applied; ``train_marl(name, ...)`` sets up the run (``MarlRun``: environment, the team's
 actor, bookkeeping), hands it to the method's ``train(run, hyper)`` and returns its
-``TrainResult``, as CE-PG's ``train`` does.
+``TrainResult``, as CE-PG's ``train`` does. Given a checkpoint directory, a run is resumable
+(``train_marl``; shared/learning/marl/checkpoint.py).
 """
 
 from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
 from shared.learning.config import TrainConfig
-from shared.learning.marl.common import MarlHyper, MarlRun, Progress, apply_overrides
+from shared.learning.marl.checkpoint import Checkpointer
+from shared.learning.marl.common import CHECKPOINT_EVERY_S, MarlHyper, MarlRun, Progress, apply_overrides
 from shared.learning.train import TrainResult
 
 MARL_ALGORITHMS = ("maddpg", "masac", "facmac", "mambpo", "mappo")
@@ -55,10 +58,25 @@ def train_marl(
     init_model: TargetModel | None = None,
     progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
+    checkpoint: str | Path | None = None,
+    checkpoint_every: float = CHECKPOINT_EVERY_S,
 ) -> TrainResult:
     """Train ``name`` with ``hyper`` (see ``hyperparameters``); ``cfg`` gives N, the seed, the
-    device, the hidden width of the actors and the belief model (EM as CE-PG's, or true)."""
+    device, the hidden width of the actors and the belief model (EM as CE-PG's, or true).
+
+    With ``checkpoint`` (a directory) the run is resumable: it continues from the checkpoint there
+    if one exists (of this same run, or a ValueError says what differs), saves one every
+    ``checkpoint_every`` seconds and when stopped, and ends the same, bit for bit, as a run
+    never interrupted (shared/learning/marl/checkpoint.py). The caller removes the directory once
+    the result is safely stored (``remove_checkpoint``)."""
     module = _module(name)
-    run = MarlRun(name, graph, target, sensor, cfg, hyper, init_model, progress, should_stop)
+    run = MarlRun(
+        name, graph, target, sensor, cfg, hyper, init_model, progress, should_stop, checkpoint, checkpoint_every
+    )
     result: TrainResult = module.train(run, hyper)
     return result
+
+
+def remove_checkpoint(path: str | Path) -> None:
+    """Delete a resumable run's checkpoint directory (and a save's leftovers beside it)."""
+    Checkpointer(path, {}).remove()

@@ -14,12 +14,16 @@ Shapes: B episodes side by side, N robots, n nodes, d = max |N[p]|, S = state si
 
 from __future__ import annotations
 
+import hashlib
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
@@ -30,7 +34,8 @@ from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel, identity_model
 from shared.envs.core import make_scenario
 from shared.envs.mures_v0 import MuresTorchEnv
-from shared.learning.config import TrainConfig
+from shared.learning.config import CHECKPOINT_EVERY_S, TrainConfig
+from shared.learning.marl.checkpoint import Checkpointer, StateHolder
 from shared.learning.policy import NEG_INF, TeamPolicy
 from shared.learning.train import TrainResult, belief_model, em_update
 
@@ -209,6 +214,8 @@ class MarlRun:
         init_model: TargetModel | None = None,
         progress: Progress | None = None,
         should_stop: Callable[[], bool] | None = None,
+        checkpoint: str | Path | None = None,
+        checkpoint_every: float = CHECKPOINT_EVERY_S,
     ) -> None:
         self.name, self.graph, self.target, self.sensor = name, graph, target, sensor
         self.cfg, self.hyper = cfg, hyper
@@ -229,6 +236,76 @@ class MarlRun:
         self.t0 = time.perf_counter()
         self.interrupted = False
         self.policy, self.logits, self.actor = make_actor(graph, cfg.robots, cfg.hidden, self.device)
+        self.resumed: list[dict[str, Any]] = []  # where each resumption took the run up
+        self.checkpointer: Checkpointer | None = None
+        if checkpoint is not None:
+            self.checkpointer = Checkpointer(checkpoint, self._identity(init_model), checkpoint_every)
+            self.track("run", StateHolder(self._bookkeeping, self._set_bookkeeping))
+            self.track("torch_rng", torch.default_generator)  # actions, minibatches, Gumbel noise
+            self.track("env", self.env.core)
+            self.track("policy", self.policy)
+
+    # ------------------------------------------------------------------ checkpoints
+    def _identity(self, init_model: TargetModel | None) -> dict[str, Any]:
+        """What a checkpoint must match to be resumed by this run."""
+
+        def model_id(m: TargetModel | None) -> str | None:
+            if m is None:
+                return None
+            blob = b"".join(np.ascontiguousarray(a).tobytes() for a in (m.src, m.dst, m.prob, m.b0))
+            return f"{m.kind}:{hashlib.sha256(blob).hexdigest()[:16]}"
+
+        return {
+            "algorithm": self.name,
+            "hyperparameters": self.hyper.to_dict(),
+            "config": self.cfg.to_dict(),
+            "graph_id": self.graph.graph_id,
+            "sensor": [self.sensor.eta_fn, self.sensor.eta_fp, self.sensor.detection],
+            "target": model_id(self.target),
+            "init_model": model_id(init_model),
+        }
+
+    def _bookkeeping(self) -> dict[str, Any]:
+        return {
+            "episodes": self.episodes,
+            "env_steps": self.env_steps,
+            "updates": self.updates,
+            "next_em": self.next_em,
+            "em_log": self.em_log,
+            "model_kind": self.model_kind,
+            "curve": self.curve,
+            "next_curve": self.next_curve,
+            "window": list(self._window),
+            "wall_seconds": time.perf_counter() - self.t0,
+            "resumed": self.resumed,
+        }
+
+    def _set_bookkeeping(self, b: dict[str, Any]) -> None:
+        self.episodes, self.env_steps, self.updates = b["episodes"], b["env_steps"], b["updates"]
+        self.next_em, self.em_log, self.model_kind = b["next_em"], list(b["em_log"]), b["model_kind"]
+        self.curve, self.next_curve, self._window = list(b["curve"]), b["next_curve"], list(b["window"])
+        self.resumed = list(b["resumed"])
+        self.t0 = time.perf_counter() - b["wall_seconds"]  # wall_seconds: training time, summed over the pieces
+
+    def track(self, name: str, obj: Any) -> None:
+        """Save ``obj`` (a module, optimiser, generator, replay buffer, collector, ...) in this run's
+        checkpoints (shared/learning/marl/checkpoint.py); nothing without a checkpoint directory."""
+        if self.checkpointer is not None:
+            self.checkpointer.track(name, obj)
+
+    def resume(self) -> bool:
+        """Continue from the checkpoint directory's last checkpoint, if there is one: called by a
+        method's ``train`` once everything is built and tracked, before its loop. True if resumed."""
+        if self.checkpointer is None or not self.checkpointer.load():
+            return False
+        self.resumed.append({"episodes": self.episodes, "wall_seconds": round(time.perf_counter() - self.t0, 3)})
+        print(
+            f"{self.name}: continuing from the checkpoint in {self.checkpointer.path}, "
+            f"{self.episodes:,} of {self.hyper.episodes:,} episodes done",
+            file=sys.stderr,
+            flush=True,
+        )
+        return True
 
     @property
     def belief(self) -> Any:
@@ -262,31 +339,40 @@ class MarlRun:
             self.next_em = self.episodes + self.cfg.em_every
         stop = bool(self.should_stop and self.should_stop())
         over = self.episodes >= self.hyper.episodes
-        if (self.episodes >= self.next_curve or over or stop) and self._window[0] > 0:
-            n_eps, ct_sum, cens_sum = self._window
-            point = {
-                "episodes": self.episodes,
-                "mean_capture_time": ct_sum / n_eps,
-                "censored_fraction": cens_sum / n_eps,
-                "wall_seconds": round(time.perf_counter() - self.t0, 3),
-            }
-            self.curve.append(point)
-            self._window = [0, 0.0, 0]
-            self.next_curve = self.episodes + self.curve_every
-            if self.progress:
-                elapsed = time.perf_counter() - self.t0
-                self.progress(
-                    {
-                        **point,
-                        "total": self.hyper.episodes,
-                        "updates": self.updates,
-                        "env_steps": self.env_steps,
-                        "episodes_per_second": self.episodes / max(elapsed, 1e-9),
-                    }
-                )
+        if (self.episodes >= self.next_curve or over) and self._window[0] > 0:
+            self._log_point()
+        # a checkpoint between batches, as the run would go on (a stop's partial point comes after)
+        if self.checkpointer is not None and not over and (stop or self.checkpointer.due()):
+            self.checkpointer.save()
         if stop and not over:
+            if self._window[0] > 0:
+                self._log_point()
             self.interrupted = True
         return over or stop
+
+    def _log_point(self) -> None:
+        """A learning curve point over the episodes since the last one; progress told."""
+        n_eps, ct_sum, cens_sum = self._window
+        point = {
+            "episodes": self.episodes,
+            "mean_capture_time": ct_sum / n_eps,
+            "censored_fraction": cens_sum / n_eps,
+            "wall_seconds": round(time.perf_counter() - self.t0, 3),
+        }
+        self.curve.append(point)
+        self._window = [0, 0.0, 0]
+        self.next_curve = self.episodes + self.curve_every
+        if self.progress:
+            elapsed = time.perf_counter() - self.t0
+            self.progress(
+                {
+                    **point,
+                    "total": self.hyper.episodes,
+                    "updates": self.updates,
+                    "env_steps": self.env_steps,
+                    "episodes_per_second": self.episodes / max(elapsed, 1e-9),
+                }
+            )
 
     def result(self, extra: dict[str, Any] | None = None) -> TrainResult:
         wall = time.perf_counter() - self.t0
@@ -301,6 +387,7 @@ class MarlRun:
             "env_steps_per_second": round(self.env_steps / max(wall, 1e-9), 1),
             "processes": 1,
             "interrupted": self.interrupted,
+            "resumed": self.resumed,
             "final_mean_capture_time": self.curve[-1]["mean_capture_time"] if self.curve else None,
             "belief_model": model.kind,
             "hyperparameters": self.hyper.to_dict(),

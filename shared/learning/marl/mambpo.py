@@ -21,6 +21,7 @@ sampled per rollout rather than per step.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -173,6 +174,10 @@ class MambpoLearner:
 
     def __init__(self, sac: SacLearner, model: WorldModel, hyper: MambpoHyper) -> None:
         self.sac, self.model, self.hyper = sac, model, hyper
+
+    def stateful(self) -> dict[str, Any]:
+        m = self.model
+        return {**self.sac.stateful(), "model": m.net, "model_opt": m.opt, "model_buffer": m.buffer, "model_gen": m.gen}
 
     def update(self, batch: TensorDictBase) -> None:
         M = batch.shape[0]

@@ -88,6 +88,10 @@ def train(run: MarlRun, hyper: MappoHyper) -> TrainResult:
     collector = Collector(
         env, actor, frames_per_batch=hyper.envs * hyper.steps, total_frames=-1, auto_register_policy_transforms=False
     )
+    run.track("collector", collector)
+    run.track("loss", loss)  # the actor's and the critic's parameters
+    run.track("opt", opt)
+    run.resume()
     try:
         for data in collector:
             data = agents_done(data)

@@ -15,6 +15,7 @@ low degree); each critic conditions on the state, not on the other robots' actio
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -62,6 +63,15 @@ class SacLearner:
         self.opt_critic = torch.optim.Adam(self.critic_params, lr=hyper.critic_lr)
         self.opt_alpha = torch.optim.Adam([loss.log_alpha], lr=hyper.lr)
         self.target = SoftUpdate(loss, tau=hyper.tau)
+
+    def stateful(self) -> dict[str, Any]:
+        # the loss module holds the actor's and critics' parameters, their targets and log alpha
+        return {
+            "loss": self.loss,
+            "opt_actor": self.opt_actor,
+            "opt_critic": self.opt_critic,
+            "opt_alpha": self.opt_alpha,
+        }
 
     def update(self, batch: TensorDictBase) -> None:
         terms = self.loss(batch)

@@ -13,7 +13,7 @@ import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import torch
 from tensordict import TensorDictBase
@@ -40,6 +40,10 @@ class OffPolicyHyper(MarlHyper):
 class Learner(Protocol):
     def update(self, batch: TensorDictBase) -> None: ...
 
+    def stateful(self) -> dict[str, Any]:
+        """What a checkpoint saves of the learner: {name: module, optimiser, generator, buffer}."""
+        ...
+
 
 class TargetActorCritic:
     """The team's actor and a critic, each with a Polyak-averaged target copy and an Adam
@@ -51,6 +55,16 @@ class TargetActorCritic:
         self.critic_target = copy.deepcopy(critic).requires_grad_(False)
         self.opt_actor = torch.optim.Adam(actor.parameters(), lr=hyper.lr)
         self.opt_critic = torch.optim.Adam(critic.parameters(), lr=hyper.critic_lr)
+
+    def stateful(self) -> dict[str, Any]:
+        return {
+            "actor": self.actor,
+            "critic": self.critic,
+            "actor_target": self.actor_target,
+            "critic_target": self.critic_target,
+            "opt_actor": self.opt_actor,
+            "opt_critic": self.opt_critic,
+        }
 
     def critic_step(self, q: torch.Tensor, target: torch.Tensor) -> None:
         """TD regression of ``q`` on ``target`` (computed without gradient)."""
@@ -99,6 +113,11 @@ def run_offpolicy(
         total_frames=-1,
         auto_register_policy_transforms=False,
     )
+    run.track("buffer", buffer)
+    run.track("collector", collector)
+    for name, obj in learner.stateful().items():
+        run.track(f"learner.{name}", obj)
+    run.resume()
     try:
         for data in collector:
             data = agents_done(data).reshape(-1)
