@@ -3,7 +3,12 @@ train and the cells still to evaluate for the parts not yet recorded, each job c
 that several figures fly is trained once), with `mures experiment --plan`'s estimates of their time
 on one core (shared/tools/experiments.py, TRAIN_MS_PER_EPISODE).
 
-Run: python benchmarks/protocol_remaining.py [--results results] [--list]
+Run: python benchmarks/protocol_remaining.py [--results results] [--list] [--calibrate]
+
+`--calibrate` checks the estimates against the cache instead: for each map and method, how many
+cached teams there are and the geometric mean, least and greatest of their measured wall time over
+their estimate (training_summary.json's wall_seconds against `_train_cost` of the team's map,
+robots, algorithm, episodes and eta_fn).
 
 The parts (README, "The paper's protocol: what is recorded"): fig11 on MUSEUM (OFFICE's is
 recorded), fig13 on both maps and fig7 at N = 1, 2, 3, 5 on MUSEUM. Every part at the full
@@ -11,6 +16,9 @@ budget; `--fraction F` prices fig7's N = 1, 2, 3, 5 at F times it (`--train-frac
 """
 
 import argparse
+import json
+import math
+from collections import defaultdict
 from pathlib import Path
 
 from shared.tools import experiments as ex
@@ -23,12 +31,35 @@ PARTS = [
 ]
 
 
+def calibrate(results: Path) -> None:
+    """Print, per map and method, the cached teams' measured / estimated training time."""
+    ratios: dict[tuple[str, str], list[float]] = defaultdict(list)
+    for summary in sorted((results / "snapshots").glob("*/training_summary.json")):
+        meta = json.loads((summary.parent / "policy.json").read_text())
+        wall = json.loads(summary.read_text()).get("wall_seconds")
+        if not wall or meta["map"].lower() not in ex.MAP_COST:
+            continue  # a team without a measured time, or on a map of one's own
+        env, method = meta["map"].lower(), meta.get("algorithm", "cepg")
+        episodes = json.loads(summary.read_text())["episodes"]
+        estimate = ex._train_cost(method, env, meta["robots"], episodes, meta["sensor"]["eta_fn"])
+        ratios[env, method].append(wall / estimate)
+    print(f"{results}: cached teams' wall time / --plan's estimate")
+    print(f"  {'map':8s} {'method':8s} {'teams':>5s} {'geo mean':>8s} {'least':>6s} {'most':>6s}")
+    for (env, method), r in sorted(ratios.items()):
+        gm = math.exp(sum(map(math.log, r)) / len(r))
+        print(f"  {env:8s} {method:8s} {len(r):5d} {gm:8.2f} {min(r):6.2f} {max(r):6.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", type=Path, default=Path("results"))
     ap.add_argument("--fraction", type=float, default=None, help="fig7's N = 1, 2, 3, 5 at this budget fraction")
     ap.add_argument("--list", action="store_true", help="every job with its estimate")
+    ap.add_argument("--calibrate", action="store_true", help="the cached teams' wall time against the estimates")
     args = ap.parse_args()
+    if args.calibrate:
+        calibrate(args.results)
+        return
     jobs: dict[str, ex.Job] = {}
     later: dict[str, float] = {}
     for name, maps, robots, scalable in PARTS:
