@@ -7,7 +7,7 @@ Run: python benchmarks/protocol_remaining.py [--results results] [--list] [--cal
 
 `--calibrate` checks the estimates against the cache instead: for each map and method, how many
 cached teams there are and the geometric mean, least and greatest of their measured wall time over
-their estimate (training_summary.json's wall_seconds against `_train_cost` of the team's map,
+their estimate (the snapshot's training summary's wall_seconds against `_train_cost` of the team's map,
 robots, algorithm, episodes and eta_fn).
 
 The parts (README, "The paper's protocol: what is recorded"): fig11 on MUSEUM (OFFICE's is
@@ -16,11 +16,11 @@ budget; `--fraction F` prices fig7's N = 1, 2, 3, 5 at F times it (`--train-frac
 """
 
 import argparse
-import json
-import math
 from collections import defaultdict
 from pathlib import Path
+from statistics import geometric_mean
 
+from shared.core.snapshot import META, read_meta
 from shared.tools import experiments as ex
 
 # (figure, maps, team sizes or None for the figure's own, a budget fraction applies)
@@ -34,20 +34,18 @@ PARTS = [
 def calibrate(results: Path) -> None:
     """Print, per map and method, the cached teams' measured / estimated training time."""
     ratios: dict[tuple[str, str], list[float]] = defaultdict(list)
-    for summary in sorted((results / "snapshots").glob("*/training_summary.json")):
-        meta = json.loads((summary.parent / "policy.json").read_text())
-        wall = json.loads(summary.read_text()).get("wall_seconds")
-        if not wall or meta["map"].lower() not in ex.MAP_COST:
+    for meta_file in sorted((results / "snapshots").glob(f"*/{META}")):
+        meta = read_meta(meta_file.parent)
+        env, summary = meta["map"].lower(), meta.get("summary", {})
+        if not summary.get("wall_seconds") or env not in ex.MAP_COST:
             continue  # a team without a measured time, or on a map of one's own
-        env, method = meta["map"].lower(), meta.get("algorithm", "cepg")
-        episodes = json.loads(summary.read_text())["episodes"]
-        estimate = ex._train_cost(method, env, meta["robots"], episodes, meta["sensor"]["eta_fn"])
-        ratios[env, method].append(wall / estimate)
+        method = meta.get("algorithm", "cepg")
+        estimate = ex._train_cost(method, env, meta["robots"], summary["episodes"], meta["sensor"]["eta_fn"])
+        ratios[env, method].append(summary["wall_seconds"] / estimate)
     print(f"{results}: cached teams' wall time / --plan's estimate")
     print(f"  {'map':8s} {'method':8s} {'teams':>5s} {'geo mean':>8s} {'least':>6s} {'most':>6s}")
     for (env, method), r in sorted(ratios.items()):
-        gm = math.exp(sum(map(math.log, r)) / len(r))
-        print(f"  {env:8s} {method:8s} {len(r):5d} {gm:8.2f} {min(r):6.2f} {max(r):6.2f}")
+        print(f"  {env:8s} {method:8s} {len(r):5d} {geometric_mean(r):8.2f} {min(r):6.2f} {max(r):6.2f}")
 
 
 def main() -> None:
