@@ -863,38 +863,61 @@ def test_a_training_job_says_how_far_it_has_got(tmp_path):
     assert out.getvalue().splitlines()[-1].endswith(" (37 %) in 0 min, 3.4 episodes/min, about 19 min left")
 
 
-def test_a_marl_team_job_continues_from_its_checkpoint_and_clears_it(tmp_path):
-    """A MARL team's job is handed a checkpoint directory under the results' .checkpoints (which
-    keeps itself out of git); started where a killed run left a checkpoint, it continues from it,
-    and the checkpoint is gone once the team's files are made."""
+def test_a_marl_team_job_continues_from_its_checkpoint_and_clears_it(tmp_path, monkeypatch):
+    """A MARL team's job is handed a checkpoint directory outside the results directory (under
+    $MURES_CHECKPOINTS, so that a checkout laid anew still finds it); started where a killed run
+    left a checkpoint, it continues from it, and the checkpoint is gone once the team's files are
+    made."""
     from shared.core.graph import builtin_graph
     from shared.core.models import uniform_walk
     from shared.learning.marl import train_marl
-    from shared.tools.experiments import CHECKPOINTS, _marl_config, _train_marl, sensor_for
-    from shared.tools.runner import Job, run_jobs
+    from shared.tools import experiments as E
+    from shared.tools.runner import run_jobs
 
+    results, store = tmp_path / "results", tmp_path / "store"
+    monkeypatch.setenv(E.CHECKPOINTS_ENV, str(store))
     args = ("office", 2, "mappo", 96, 0, 0.0, 0.0, ("steps=4", "envs=8"))
-    cfg, hyper, rel, _config = _marl_config(*args)
-    ckpt = tmp_path / CHECKPOINTS / rel
+    cfg, hyper, rel, _config = E._marl_config(*args)
+    jobs = []  # the team's job, as `mures experiment` makes it
+    monkeypatch.setattr(E, "_obtain", lambda root, job: jobs.append(job))
+    E._marl_snapshot(results, *args)
+    (job,) = jobs
+    ckpt = E.checkpoint_dir(results) / rel
+    assert job.checkpoint == str(ckpt) and ckpt.is_relative_to(store)
     g = builtin_graph("office")
     calls = iter(range(100))
     stopped = train_marl(  # what a run killed after its checkpoint at the 4th batch leaves
         "mappo",
         g,
         uniform_walk(g),
-        sensor_for("cepg", 0.0, 0.0),
+        E.sensor_for("cepg", 0.0, 0.0),
         cfg,
         hyper,
         should_stop=lambda: next(calls) >= 3,
         checkpoint=ckpt,
     )
     assert stopped.interrupted and (ckpt / "state.pt").is_file()
-    run_jobs([Job(rel, "training", _train_marl, args, checkpoint=str(ckpt))], tmp_path, say=lambda _s: None)
-    summary = json.loads((tmp_path / rel / "policy.json").read_text())["summary"]
+    run_jobs([job], results, say=lambda _s: None)
+    summary = json.loads((results / rel / "policy.json").read_text())["summary"]
     assert summary["resumed"][0]["episodes"] == stopped.summary["episodes"] > 0
     assert summary["episodes"] >= 96 and not summary["interrupted"]
     assert not ckpt.exists()
-    assert (tmp_path / CHECKPOINTS / ".gitignore").read_text().splitlines()[-1] == "*"
+
+
+def test_each_results_directory_has_its_own_checkpoint_folder_outside_it(tmp_path, monkeypatch):
+    """checkpoint_dir: one folder per results directory (the same path always gets the same
+    one, another path another), under $MURES_CHECKPOINTS, else $XDG_CACHE_HOME/mures/checkpoints."""
+    from shared.tools.experiments import CHECKPOINTS_ENV, checkpoint_dir
+
+    monkeypatch.delenv(CHECKPOINTS_ENV, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    a, b = tmp_path / "one" / "results", tmp_path / "two" / "results"
+    assert checkpoint_dir(a) == checkpoint_dir(tmp_path / "one" / ".." / "one" / "results")
+    assert checkpoint_dir(a) != checkpoint_dir(b)
+    assert checkpoint_dir(a).parent == tmp_path / "cache" / "mures" / "checkpoints"
+    assert checkpoint_dir(a).name.startswith("results-")
+    monkeypatch.setenv(CHECKPOINTS_ENV, str(tmp_path / "elsewhere"))
+    assert checkpoint_dir(a).parent == tmp_path / "elsewhere"
 
 
 def test_evaluate_tells_its_progress_after_every_chunk():

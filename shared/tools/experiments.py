@@ -290,7 +290,7 @@ MARL = ("maddpg", "masac", "facmac", "mambpo", "mappo")  # shared.learning.marl.
 # a fraction of each; "marl_training_episodes_by_method" has the numbers
 MARL_DEFAULT, MARL_OWN = "each method's default", "each method's own"
 SEED = 1  # evaluation seed of every cell (training seeds: 0)
-CHECKPOINTS = ".checkpoints"  # under the results directory: unfinished MARL teams' checkpoints (_train_marl)
+CHECKPOINTS_ENV = "MURES_CHECKPOINTS"  # where unfinished MARL teams keep their checkpoints (checkpoint_dir)
 ETAS = (0.0, 0.1, 0.3, 0.5)  # the paper's sensor-noise grid (Fig. 9-11)
 LEARNED = {"pg": ("cepg", 1.0), "cepg": ("cepg", 0.5), "cepg+": ("cepg+", 0.5), "c-cepg": ("c-cepg", 0.5)}
 
@@ -436,7 +436,7 @@ def _marl_snapshot(
             f"{_seed_label(seed)}"
         )
         weight = _train_cost(algorithm, env, robots, config["episodes"], eta_fn)
-        checkpoint = str(root / CHECKPOINTS / rel)
+        checkpoint = str(checkpoint_dir(root) / rel)
         _obtain(root, Job(rel, label, _train_marl, args, weight=weight, reports=True, checkpoint=checkpoint))
     return root / rel
 
@@ -503,7 +503,7 @@ def _train_marl(
     sensor = sensor_for("cepg", eta_fn, eta_fp)
     if checkpoint is not None:
         try:
-            _checkpoint_root(Path(checkpoint))
+            Path(checkpoint).parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             print(f"{rel}: no checkpoints ({exc}); training without", file=sys.stderr, flush=True)
             checkpoint = None
@@ -518,14 +518,20 @@ def _train_marl(
     return files
 
 
-def _checkpoint_root(path: Path) -> None:
-    """Make the parent of a team's checkpoint directory, under a CHECKPOINTS folder that keeps
-    itself out of git (its own .gitignore: a checkpoint is a work file, gigabytes for a team
-    with a full replay buffer, never a result)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    top = next((p for p in path.parents if p.name == CHECKPOINTS), None)
-    if top is not None and not (top / ".gitignore").is_file():
-        atomic_write(top / ".gitignore", b"# unfinished teams' training checkpoints (shared/tools/experiments.py)\n*\n")
+def checkpoint_dir(results: Path) -> Path:
+    """Where the unfinished MARL teams of the results directory ``results`` keep their checkpoints:
+    under ``$MURES_CHECKPOINTS``, else ``$XDG_CACHE_HOME/mures/checkpoints``, else
+    ``~/.cache/mures/checkpoints``, in a folder named after the results directory's absolute path
+    (its name and a hash of the path), so that two results directories never share a team's
+    checkpoint. Outside the checkout: a checkout laid anew on the same machine (a new sitting, a
+    fresh clone at the same place) still finds a killed team's checkpoint and continues it, and
+    git never sees it (a checkpoint is a work file, gigabytes for a team with a full replay
+    buffer, never a result)."""
+    base = os.environ.get(CHECKPOINTS_ENV) or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "mures", "checkpoints"
+    )
+    where = Path(results).resolve()
+    return Path(base) / f"{where.name}-{hashlib.sha256(str(where).encode()).hexdigest()[:12]}"
 
 
 def _learned(
