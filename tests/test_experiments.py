@@ -865,9 +865,9 @@ def test_a_training_job_says_how_far_it_has_got(tmp_path):
 
 def test_a_marl_team_job_continues_from_its_checkpoint_and_clears_it(tmp_path, monkeypatch):
     """A MARL team's job is handed a checkpoint directory outside the results directory (under
-    $MURES_CHECKPOINTS, so that a checkout laid anew still finds it); started where a killed run
-    left a checkpoint, it continues from it, and the checkpoint is gone once the team's files are
-    made."""
+    $MURES_CHECKPOINTS, so that a checkout laid anew still finds it); planned where a killed run
+    left a checkpoint, its label says so and its estimate is what is left; started there, it
+    continues from it, and the checkpoint is gone once the team's files are made."""
     from shared.core.graph import builtin_graph
     from shared.core.models import uniform_walk
     from shared.learning.marl import train_marl
@@ -883,7 +883,7 @@ def test_a_marl_team_job_continues_from_its_checkpoint_and_clears_it(tmp_path, m
     E._marl_snapshot(results, *args)
     (job,) = jobs
     ckpt = E.checkpoint_dir(results) / rel
-    assert job.checkpoint == str(ckpt) and ckpt.is_relative_to(store)
+    assert job.checkpoint == str(ckpt) and ckpt.is_relative_to(store) and "checkpoint" not in job.label
     g = builtin_graph("office")
     calls = iter(range(100))
     stopped = train_marl(  # what a run killed after its checkpoint at the 4th batch leaves
@@ -897,6 +897,10 @@ def test_a_marl_team_job_continues_from_its_checkpoint_and_clears_it(tmp_path, m
         checkpoint=ckpt,
     )
     assert stopped.interrupted and (ckpt / "state.pt").is_file()
+    E._marl_snapshot(results, *args)  # planned again: only the rest of its training is left
+    done = stopped.summary["episodes"]
+    assert jobs[-1].label == f"{job.label}, continuing from its checkpoint at {done:,}"
+    assert jobs[-1].weight == pytest.approx(job.weight * (1 - done / 96))
     run_jobs([job], results, say=lambda _s: None)
     summary = json.loads((results / rel / "policy.json").read_text())["summary"]
     assert summary["resumed"][0]["episodes"] == stopped.summary["episodes"] > 0

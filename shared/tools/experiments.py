@@ -426,6 +426,8 @@ def _marl_snapshot(
 ) -> Path:
     """A cached team of a MARL baseline (``episodes`` None: the method's default budget), with
     EM-estimated beliefs as CE-PG's, retrained when its stored configuration differs."""
+    from shared.learning.marl.checkpoint import saved_episodes
+
     args = (env, robots, algorithm, episodes, seed, eta_fn, eta_fp, overrides)
     _cfg, _hyper, rel, config = _marl_config(*args)
     if not _cached(root / rel, config):
@@ -436,8 +438,12 @@ def _marl_snapshot(
             f"{_seed_label(seed)}"
         )
         weight = _train_cost(algorithm, env, robots, config["episodes"], eta_fn)
-        checkpoint = str(checkpoint_dir(root) / rel)
-        _obtain(root, Job(rel, label, _train_marl, args, weight=weight, reports=True, checkpoint=checkpoint))
+        checkpoint = checkpoint_dir(root) / rel
+        done = saved_episodes(checkpoint)
+        if done:  # a killed run's checkpoint: the job continues from it, and only the rest is left
+            label += f", continuing from its checkpoint at {done:,}"
+            weight *= max(0.0, 1 - done / config["episodes"])
+        _obtain(root, Job(rel, label, _train_marl, args, weight=weight, reports=True, checkpoint=str(checkpoint)))
     return root / rel
 
 

@@ -70,6 +70,29 @@ def _differences(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list
     return out
 
 
+def _last_whole(path: Path) -> Path | None:
+    """The directory holding a run's last whole checkpoint: DIR, or DIR.old where a save was cut off
+    between putting the new one in place and removing the old; None where there is none."""
+    for p in (path, path.with_name(path.name + ".old")):
+        if (p / STATE_FILE).is_file():
+            return p
+    return None
+
+
+def saved_episodes(path: str | Path) -> int | None:
+    """How many training episodes the run whose checkpoint directory is ``path`` had done at its
+    last checkpoint, read without restoring anything; None where there is no readable checkpoint
+    (`mures experiment --plan` prices a team's remaining training by it)."""
+    where = _last_whole(Path(path))
+    if where is None:
+        return None
+    try:
+        saved = torch.load(where / STATE_FILE, weights_only=False, map_location="cpu")
+        return int(saved["state"]["run"]["episodes"])
+    except Exception:  # a truncated or foreign file: loading it would say what is wrong
+        return None
+
+
 class StateHolder:
     """Plain values (counters, lists) under a name, saved and restored through two functions."""
 
@@ -104,19 +127,11 @@ class Checkpointer:
     def due(self) -> bool:
         return time.perf_counter() - self.last >= self.every_s
 
-    def _readable(self) -> Path | None:
-        """The directory holding the last whole checkpoint: DIR, or DIR.old where a save was cut off
-        between putting the new one in place and removing the old."""
-        for p in (self.path, self.path.with_name(self.path.name + ".old")):
-            if (p / STATE_FILE).is_file():
-                return p
-        return None
-
     def exists(self) -> bool:
-        return self._readable() is not None
+        return _last_whole(self.path) is not None
 
     def load(self) -> bool:
-        where = self._readable()
+        where = _last_whole(self.path)
         if where is None:
             return False
         try:
