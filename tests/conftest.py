@@ -20,6 +20,21 @@ def pytest_configure(config: pytest.Config) -> None:
     torch.set_num_threads(1)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _checkpoints_in_a_temporary_folder(tmp_path_factory: pytest.TempPathFactory):
+    """MARL teams that tests train through `mures experiment` keep their checkpoints under the
+    session's temporary folder (subprocesses included), not in the user's ~/.cache."""
+    from shared.tools.experiments import CHECKPOINTS_ENV
+
+    before = os.environ.get(CHECKPOINTS_ENV)
+    os.environ[CHECKPOINTS_ENV] = str(tmp_path_factory.mktemp("checkpoints"))
+    yield
+    if before is None:
+        del os.environ[CHECKPOINTS_ENV]
+    else:
+        os.environ[CHECKPOINTS_ENV] = before
+
+
 @pytest.fixture
 def small_graph() -> Graph:
     """5 nodes, a triangle with a tail and a pendant: irregular degrees, so Gamma != Gamma^T."""
