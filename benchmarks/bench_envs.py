@@ -21,8 +21,9 @@ observations need the engine's belief update every step, before it builds any ob
 --forms: the belief prediction Gamma_hat^T b alone for the B N beliefs of each --batch, in the
 forms torch offers: dense (B N, n) @ (n, n) as the engine computes it, the sparse Gamma_hat (COO
 and CSR) on beliefs kept node-major, (n, B N), and the transposition between the two layouts that
-the node-major forms need for observations laid out per robot. Fastest of --rounds repeats of 50
-products each, in ms, under the same malloc setting as the loops (--default-malloc leaves it).
+the node-major forms need for observations laid out per robot. In ms: each form's fastest chunk
+of about 0.1 s within --seconds, as the loops are timed, under the same malloc setting as the
+loops (--default-malloc leaves it).
 """
 
 import argparse
@@ -102,32 +103,22 @@ def run(batch: int, seconds: float, rounds: int, tune_malloc: bool = True) -> di
         cached_env.step_and_maybe_reset(cached_td.clone(recurse=False))
 
     loops = {"sim": sim_step, "sim+belief": belief_step, "torchrl": env_step, "cached": cached_step}
-    ratios = ("torchrl/sim", "torchrl/(sim+belief)", "(sim+belief)/sim")
+    ratios = {
+        "torchrl/sim": ("torchrl", "sim"),
+        "torchrl/(sim+belief)": ("torchrl", "sim+belief"),
+        "(sim+belief)/sim": ("sim+belief", "sim"),
+    }
     per_round: dict[str, list[float]] = {k: [] for k in (*loops, *ratios)}
     with torch.no_grad():
         for _ in range(rounds):
             r = {name: _rate(step, batch, seconds) for name, step in loops.items()}
-            r["torchrl/sim"] = r["torchrl"] / r["sim"]
-            r["torchrl/(sim+belief)"] = r["torchrl"] / r["sim+belief"]
-            r["(sim+belief)/sim"] = r["sim+belief"] / r["sim"]
+            r.update({name: r[num] / r[den] for name, (num, den) in ratios.items()})
             for k, v in r.items():
                 per_round[k].append(v)
     return {k: statistics.median(v) for k, v in per_round.items()}
 
 
-def _best_ms(f, rounds: int, k: int = 50) -> float:
-    for _ in range(5):
-        f()
-    best = float("inf")
-    for _ in range(rounds):
-        t = time.perf_counter()
-        for _ in range(k):
-            f()
-        best = min(best, (time.perf_counter() - t) / k)
-    return best * 1e3
-
-
-def prediction_forms(batch: int, rounds: int) -> dict[str, float]:
+def prediction_forms(batch: int, seconds: float) -> dict[str, float]:
     """ms per belief prediction for the B N = 4 batch beliefs of OFFICE (module docstring)."""
     g = builtin_graph("office")
     gamma = BatchedBelief(g, uniform_walk(g), Sensor()).gamma  # (n, n), rows sum to 1
@@ -140,12 +131,13 @@ def prediction_forms(batch: int, rounds: int) -> dict[str, float]:
         coo, csr = gamma_t.to_sparse(), gamma_t.to_sparse_csr()
     if not torch.allclose(torch.sparse.mm(coo, b_t).t(), b @ gamma, atol=1e-6):
         raise AssertionError("the sparse prediction differs from the dense one")
-    return {
-        "dense b @ Gamma": _best_ms(lambda: b @ gamma, rounds),
-        "node-major COO Gamma^T b": _best_ms(lambda: torch.sparse.mm(coo, b_t), rounds),
-        "node-major CSR Gamma^T b": _best_ms(lambda: csr @ b_t, rounds),
-        "transpose (n, B N) -> (B N, n)": _best_ms(lambda: b_t.t().contiguous(), rounds),
+    forms = {
+        "dense b @ Gamma": lambda: b @ gamma,
+        "node-major COO Gamma^T b": lambda: torch.sparse.mm(coo, b_t),
+        "node-major CSR Gamma^T b": lambda: csr @ b_t,
+        "transpose (n, B N) -> (B N, n)": lambda: b_t.t().contiguous(),
     }
+    return {name: 1e3 / _rate(f, 1, seconds) for name, f in forms.items()}  # ms per call
 
 
 def main() -> None:
@@ -163,10 +155,11 @@ def main() -> None:
     if args.forms:
         if not args.default_malloc:  # as the environment sets it: each product's result reuses heap blocks
             keep_freed_memory()
+        n = builtin_graph("office").n
         for b in args.batch:
-            times = prediction_forms(b, args.rounds)
+            times = prediction_forms(b, args.seconds)
             print(
-                f"OFFICE B N={4 * b:<6} n={builtin_graph('office').n} threads={args.threads}  "
+                f"OFFICE B N={4 * b:<6} n={n} threads={args.threads}  "
                 + "  ".join(f"{name} {ms:.3f} ms" for name, ms in times.items())
             )
         return
