@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from robot_agent.backend import BackendError, MissionOver, RobotBackend, load_backend
+from robot_agent.backend import BackendError, MissionOver, RobotBackend, load_backend, resolve_backend
 from shared.core.files import atomic_write, read_token
 from shared.core.graph import Graph, graph_from_dict
 from shared.core.http import ApiClient, ApiError
@@ -50,6 +50,8 @@ from shared.core.wire import (
     DEFAULT_FLEET,
     agent_key,
     check_id,
+    detection_key,
+    detection_message,
     episode_key,
     mission_key,
     parse_message,
@@ -60,6 +62,7 @@ from shared.core.wire import (
 log = logging.getLogger("mures.agent")
 
 END_WAIT_S = 10.0  # how long to wait for the end message after the world said the mission is over
+VERDICT_WAIT_S = 3.0  # after a detection (capture "auto", or on the last step): the server's verdict, at most
 TELEMETRY_HZ = 5  # live state messages a second at most, during a mission
 IDLE_BEAT_S = 5.0  # and one every this many seconds between missions
 TELEMETRY_MAX_NODES = 2048  # the belief rides along on maps up to this size (a few KB a message)
@@ -294,6 +297,35 @@ class Agent:
         except Exception as exc:  # never let telemetry stop a mission
             log.debug("telemetry: %s", exc)
 
+    def report_down(self, reason: str) -> None:
+        """The last live state before the agent stops on an error it cannot retry: the server keeps it,
+        so the fleet view says why this robot is down. Sent reliably, whatever --telemetry says."""
+        msg = {"state": "down", "reason": reason[:500], "backend": self.args.backend, "ts": round(time.time(), 3)}
+        try:
+            self.session.put(
+                telemetry_key(self.fleet, self.robot_id),
+                json.dumps(msg).encode(),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        except Exception as exc:
+            log.debug("down report: %s", exc)
+
+    def report_detection(self, mission_id: str, t: int, node: int) -> None:
+        """Tell the server that this robot read z = 1 at step t on ``node``
+        (mures/<fleet>/detections/<robot>/<mission>); it ends the mission as captured, or asks the
+        operator first (``training-server --capture``). Sent reliably (BLOCK); a failure to send is
+        logged and the mission goes on: the record still carries the reading."""
+        msg = detection_message(mission_id, self.robot_id, t, node)
+        log.info("mission %s: detection at t=%d on node %d reported", mission_id, t, node)
+        try:
+            self.session.put(
+                detection_key(self.fleet, self.robot_id, mission_id),
+                json.dumps(msg).encode(),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        except Exception as exc:
+            log.error("mission %s: the detection at t=%d could not be sent: %s", mission_id, t, exc)
+
     def _on_control(self, sample: Any) -> None:  # callback: queue only
         msg = parse_message(sample.payload.to_bytes())
         if msg is not None:
@@ -415,6 +447,7 @@ class Agent:
         assert snap is not None, "run() waits for a policy before taking missions"
         agent = PolicyAgent(snap, graph, index, seed=mission_seed(msg.get("seed", 0), index))
         max_steps = int(msg.get("max_steps") or 3 * graph.n)
+        auto_capture = msg.get("capture", "auto") != "confirm"
         header = {
             "mission_id": mid,
             "policy_version": self.policies.version,
@@ -441,7 +474,12 @@ class Agent:
                     agent.observe(p, z)  # Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}
                 steps.append({"t": t, "node": node, "z": z})
                 self.journal.step(t, node, z)
-                end = self._control_for(mid)
+                if z:  # the server decides whether this detection ends the mission (docs/SPEC.md section 6)
+                    self.report_detection(mid, t, node)
+                # under "auto" the server's verdict comes at once: wait for it before moving on (a robot
+                # that has found the target stays with it); under "confirm" the search goes on meanwhile
+                wait = z and (auto_capture or t >= max_steps)
+                end = self._control_for(mid, wait=VERDICT_WAIT_S if wait else 0.0)
                 if end is not None or t >= max_steps or self.stop.is_set():
                     break
                 goal = int(graph.labels[agent.act(p)])  # a_t ~ pi_i(. | onehot(p_t), b_t), Algorithm 1
@@ -556,12 +594,16 @@ class Agent:
             self.recover_journal()
             flusher = threading.Thread(target=self.flush_loop, name="outbox", daemon=True)
             flusher.start()
-            backend = load_backend(
-                self.args.backend, graph=self.graph, robot_id=self.robot_id, session=self.session, fleet=self.fleet
-            )
-            log.info("robot %s up in fleet %r with policy version %s", self.robot_id, self.fleet, self.policies.version)
             if self.args.telemetry:
                 self.telemetry_pub = self.session.declare_publisher(telemetry_key(self.fleet, self.robot_id))
+            try:
+                backend = load_backend(
+                    self.args.backend, graph=self.graph, robot_id=self.robot_id, session=self.session, fleet=self.fleet
+                )
+            except ValueError as exc:  # the fleet sees why this robot is down (GET /api/v1/fleet, the console)
+                self.report_down(str(exc))
+                raise AgentStop(str(exc)) from None
+            log.info("robot %s up in fleet %r with policy version %s", self.robot_id, self.fleet, self.policies.version)
             idle_beat = 0.0
             while not self.stop.is_set():
                 if time.monotonic() - idle_beat >= IDLE_BEAT_S:  # between missions: alive, idle, where
@@ -629,6 +671,7 @@ def main(argv: list[str] | None = None) -> int:
         format=f"%(asctime)s %(levelname)s agent[{args.robot_id}]: %(message)s",
     )
     try:
+        resolve_backend(args.backend)  # a backend that cannot be loaded stops the agent before it connects
         agent = Agent(args)
     except ValueError as exc:
         print(f"robot-agent: error: {exc}", file=sys.stderr)

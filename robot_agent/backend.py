@@ -103,10 +103,11 @@ class SimBackend:
         self.mission = ""
 
 
-def load_backend(spec: str, **kwargs: Any) -> RobotBackend:
-    """``sim`` or ``MODULE:CLASS`` -> a backend instance (clear errors for a bad spec)."""
+def resolve_backend(spec: str) -> type:
+    """``sim`` or ``MODULE:CLASS`` -> the backend's class, or ValueError saying why not (checked at
+    the agent's start, before it connects anywhere)."""
     if spec == "sim":
-        return SimBackend(**kwargs)
+        return SimBackend
     mod_name, sep, cls_name = spec.partition(":")
     if not sep or not mod_name or not cls_name:
         raise ValueError(f"--backend must be 'sim' or MODULE:CLASS, got {spec!r}")
@@ -114,10 +115,24 @@ def load_backend(spec: str, **kwargs: Any) -> RobotBackend:
         cls = getattr(importlib.import_module(mod_name), cls_name)
     except (ImportError, AttributeError) as exc:
         raise ValueError(f"--backend {spec}: cannot load ({exc})") from None
+    except Exception as exc:  # the module itself failed while importing
+        raise ValueError(f"--backend {spec}: importing {mod_name} failed ({type(exc).__name__}: {exc})") from None
+    if not isinstance(cls, type):
+        raise ValueError(f"--backend {spec}: {cls_name} is not a class")
+    missing = [m for m in ("begin", "detect", "move", "end") if not callable(getattr(cls, m, None))]
+    if missing:
+        raise ValueError(f"--backend {spec}: the class has no {', '.join(f'{m}()' for m in missing)} method")
+    return cls
+
+
+def load_backend(spec: str, **kwargs: Any) -> RobotBackend:
+    """``sim`` or ``MODULE:CLASS`` -> a backend instance; ValueError with the reason when the class
+    cannot be loaded or constructed. Its constructor gets the keyword arguments it takes."""
+    cls = resolve_backend(spec)
     params = inspect.signature(cls).parameters
     takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-    backend = cls(**{k: v for k, v in kwargs.items() if takes_any or k in params})
-    for m in ("begin", "detect", "move", "end"):
-        if not callable(getattr(backend, m, None)):
-            raise ValueError(f"--backend {spec}: the class has no {m}() method")
+    try:
+        backend = cls(**{k: v for k, v in kwargs.items() if takes_any or k in params})
+    except Exception as exc:  # a constructor that needs more, or a robot that is not there
+        raise ValueError(f"--backend {spec}: cannot construct it ({type(exc).__name__}: {exc})") from None
     return backend

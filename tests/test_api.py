@@ -135,7 +135,7 @@ def _store_episode(srv: Server, robot: str = "r1", mission: str = "m1") -> None:
     )
     import json
 
-    srv.store.add_episodes([("default", robot, mission, 1, 2, True, 1, json.dumps(rec))])
+    srv.store.add_episodes([("default", robot, mission, 1, 2, True, 1, json.dumps(rec), None)])
 
 
 def test_tokens_and_roles(api):
@@ -239,9 +239,13 @@ def test_policies_promote_and_artifact_etag(api):
 def test_training_runs(api):
     srv, c = api
     r = c.post("/api/v1/training-runs", headers=auth(OP))
-    assert r.status_code == 409 and "no episodes" in r.json()["error"]
+    assert r.status_code == 409 and "0 missions recorded, 50 needed (50 more)" in r.json()["error"]
     _store_episode(srv)
-    r = c.post("/api/v1/training-runs", json={"episodes": 512, "beta": 1}, headers=auth(OP))
+    # one mission is too little to fit a model on (a run on it promoted a worse policy): refused, saying why
+    r = c.post("/api/v1/training-runs", json={"episodes": 512}, headers=auth(OP))
+    assert r.status_code == 409 and "1 missions recorded, 50 needed (49 more)" in r.json()["error"]
+    assert c.get("/api/v1/training-runs", headers=auth(AG)).json()["items"] == []
+    r = c.post("/api/v1/training-runs", json={"episodes": 512, "beta": 1, "min_missions": 1}, headers=auth(OP))
     assert r.status_code == 202 and r.headers["location"].endswith(r.json()["id"])
     run = r.json()
     # the defaults of the trainer's own settings are TrainConfig's
@@ -431,8 +435,8 @@ def test_one_refused_row_does_not_affect_the_others_in_its_batch(api):
     import json
 
     srv, _c = api
-    rows = [("default", f"r{k}", "m1", 1, 2, False, None, json.dumps({"k": k})) for k in range(3)]
-    rows[1] = ("default", "r1", "m1", 2**64, 2, False, None, "{}")
+    rows = [("default", f"r{k}", "m1", 1, 2, False, None, json.dumps({"k": k}), None) for k in range(3)]
+    rows[1] = ("default", "r1", "m1", 2**64, 2, False, None, "{}", None)
     assert srv.store.add_episodes(rows) == [True, None, True]
     assert srv.store.add_episodes(rows[:1]) == [False]
     assert {e["robot_id"] for e in srv.store.list_episodes("default", 10, 0, None, None)} == {"r0", "r2"}
@@ -484,6 +488,7 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
             "z": 1,
             "policy_version": 1,
             "backend": "sim",
+            "down_reason": None,
         },
         "r2": {"state": "idle", "node": 12, "policy_version": 1, "z": 1},
     }
@@ -502,6 +507,7 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
         "policy_version": 1,
         "z": 1,
         "backend": "sim",
+        "down_reason": None,
     }
     assert by["r2"]["state"] == "idle" and by["r2"]["node"] == 12 and by["r2"]["mission_id"] is None
     assert by["r2"]["z"] is None and by["r2"]["backend"] is None  # z only within the mission it flies

@@ -45,7 +45,7 @@ def _mission(srv, mid, robots, version=1, status_event=None, records=None, max_s
             captured_by=robot if ct is not None else None,
             policy_version=version,
         )
-        rows.append(("default", robot, mid, version, len(nodes), ct is not None, ct, json.dumps(rec)))
+        rows.append(("default", robot, mid, version, len(nodes), ct is not None, ct, json.dumps(rec), None))
     srv.store.add_episodes(rows)
     if status_event is not None:
         srv.store.mission_event(mid, status_event, "captured" if status_event["type"] == "captured" else "stopped")

@@ -273,3 +273,58 @@ def test_em_workers_end_when_their_caller_is_killed(grid_data):
     for c in left:
         os.kill(c, signal.SIGKILL)
     assert not left
+
+
+def _impossible_record(g, mission_id="impossible"):
+    """z = 1 at every step of a mission that was not captured, under a sensor with no false positives:
+    no path of the target explains it (the record that broke every later retrain)."""
+    from shared.core.records import make_record
+
+    rows = [g.start, *g.closed(g.start)[1:3]]
+    return make_record(
+        g,
+        fleet="default",
+        mission_id=mission_id,
+        robot_id="r1",
+        nodes=rows,
+        z=[1] * len(rows),
+        sensor=Sensor(),
+        captured=False,
+        capture_time=None,
+        captured_by=None,
+    )
+
+
+def test_a_record_no_target_path_explains_is_named_and_set_aside_and_em_stays_finite():
+    from shared.core.records import unexplained
+
+    g = builtin_graph("office")
+    recs = simulated_records(g, uniform_walk(g), Sensor(), N=2, missions=60, seed=3)
+    bad = _impossible_record(g)
+    why = unexplained(parse_record(bad, g), g)
+    assert why is not None and why.startswith("impossible: z = 1 at t=0") and "no false positives" in why
+    assert all(unexplained(parse_record(r, g), g) is None for r in recs)  # simulated records are all possible
+    data = collect_missions(enumerate([*recs, bad]), g, fleet="default")
+    assert data.impossible == ["impossible"] and data.skipped["impossible"] == 1
+    assert len(data.length) == 60 and data.used_records == len(recs)
+    est = em(g, data, max_iter=200, tol=1e-5)
+    assert np.isfinite(est.log_likelihood).all() and np.isfinite(est.model.b0).all()
+    # records that are each possible but contradict each other (one robot sees the target where the
+    # other, on the same node at the same step, does not, with a perfect sensor) are caught per mission
+    twin = copy.deepcopy(recs[0])
+    twin["robot_id"] = "r9"
+    twin["steps"][0]["z"] = 1 - twin["steps"][0]["z"]
+    assert collect_missions(enumerate([recs[0], twin]), g, fleet="default").impossible == [recs[0]["mission_id"]]
+
+
+def test_the_prior_keeps_a_model_of_few_missions_cautious():
+    """A Dirichlet prior (the training server's default, 1 and 1): from 3 missions, b0 rules no node
+    out and Gamma_hat stays nearer the uniform walk than the maximum-likelihood estimate does."""
+    g = builtin_graph("office")
+    recs = simulated_records(g, lazy_walk(g, 0.5), Sensor(), N=2, missions=3, seed=4)
+    data = collect_missions(enumerate(recs), g)
+    ml = em(g, data, max_iter=300, tol=1e-6)
+    cautious = em(g, data, max_iter=300, tol=1e-6, pseudo_count=1.0, b0_pseudo_count=1.0)
+    assert (ml.model.b0 < 1e-9).sum() > 0 and (cautious.model.b0 > 1e-4).all()
+    walk = uniform_walk(g)
+    assert mean_row_tv(cautious.model, walk) < mean_row_tv(ml.model, walk)

@@ -460,7 +460,9 @@ def test_the_fleet_by_hand_as_the_readme_shows(tmp_path):
         assert api.get("/api/v1/episodes/stats") | {"by_policy_version": None} == {
             "stored": 2,
             "rejected": {},
+            "set_aside": {},
             "missions": 1,
+            "usable_missions": 1,
             "by_policy_version": None,
         }
     finally:

@@ -15,7 +15,14 @@ from sqlalchemy import text
 from shared.core.graph import builtin_graph
 from training_server.server import Server
 from training_server.server import main as server_main
-from training_server.store import Store, current_revision, head_revision, make_engine, sqlite_url
+from training_server.store import (
+    Store,
+    current_revision,
+    head_revision,
+    make_engine,
+    read_episode_records,
+    sqlite_url,
+)
 
 DATA = Path(__file__).parent / "data"
 
@@ -93,22 +100,30 @@ def test_the_same_data_on_both_backends(tmp_path, database_url):
     srv_url = database_url or sqlite_url(tmp_path)
     s = Store(srv_url)
     try:
-        rows = [("f", f"r{k}", "m1", k, 3, k == 1, 2 if k == 1 else None, json.dumps({"k": k})) for k in range(3)]
-        assert s.add_episodes(rows) == [True, True, True]
+        rows = [("f", f"r{k}", "m1", k, 3, k == 1, 2 if k == 1 else None, json.dumps({"k": k}), None) for k in range(3)]
+        rows.append(("f", "r0", "m2", 0, 2, False, None, json.dumps({"k": 3}), "impossible: z = 1 at t=0 ..."))
+        assert s.add_episodes(rows) == [True, True, True, True]
         assert s.add_episodes(rows[:2]) == [False, False]
         s.reject(["json", "json", "move"])
         assert s.episode_stats("f") == {
-            "stored": 3,
+            "stored": 4,
             "rejected": {"json": 2, "move": 1},
-            "missions": 1,
-            "by_policy_version": {"0": 1, "1": 1, "2": 1},
+            "set_aside": {"impossible": 1},
+            "missions": 2,
+            "usable_missions": 1,
+            "by_policy_version": {"0": 2, "1": 1, "2": 1},
         }
+        assert [json.loads(r) for r in read_episode_records(srv_url, "f", 10)] == [{"k": 2}, {"k": 1}, {"k": 0}]
+        assert s.list_episodes("f", 10, 3, None, None)[0]["set_aside"].startswith("impossible")
         assert [e["id"] for e in s.list_episodes("f", 2, 0, None, None)] == [1, 2]
         assert s.get_record("f", "r2", "m1") == {"k": 2}
         s.add_mission("m1", "f", ["r0", "r1", "r2", "r3"], {"seed": 1}, 1, deadline=10.0)
         assert s.busy_robots("f") == {"r3": "m1"}
         assert [m["id"] for m in s.expired_missions("f", 11.0)] == ["m1"] and s.expired_missions("f", 9.0) == []
+        d = s.add_detection("f", "m1", "r1", 4, 7, "pending")
+        assert [x["id"] for x in s.detections("f", status="pending")] == [d]
         assert s.mission_event("m1", {"type": "stop"}, "stopped") and not s.mission_event("m1", {}, "captured")
+        assert s.detection(d)["status"] == "closed" and not s.decide_detection(d, "confirmed", "operator")
         assert s.get_mission("m1")["status"] == "stopped" and s.busy_robots("f") == {}
         s.add_policy(1, "ab", 10, None, None, {"x": 1})
         s.update_policy_artifact(1, "cd", 11, "w")

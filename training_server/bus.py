@@ -1,4 +1,4 @@
-"""The server's Zenoh side: episode ingest, agent presence, mission control.
+"""The server's Zenoh side: episode ingest, agent presence, mission control, robots' detections.
 
 Callbacks only hand work to queues (docs/zenoh.md); worker threads validate, store
 and reply. Ingest drains its queue in batches so one SQLite transaction (and one fsync) covers
@@ -17,12 +17,25 @@ from typing import Any
 
 import zenoh
 
-from shared.core.records import MAX_RECORD_BYTES, RecordError, canonical_record, parse_record
-from shared.core.wire import agent_key, episode_key, mission_key, parse_message, telemetry_key, truth_key
+from shared.core.records import MAX_RECORD_BYTES, RecordError, canonical_record, parse_record, unexplained
+from shared.core.wire import (
+    agent_key,
+    detection_key,
+    episode_key,
+    mission_key,
+    parse_detection,
+    parse_message,
+    telemetry_key,
+    truth_key,
+)
 
 log = logging.getLogger("mures.server.bus")
 
 INGEST_BATCH = 512
+# under --capture auto, the server ends a mission this long after the first detection arrives,
+# with the earliest one received by then (ties: the robot listed first in the mission), so that
+# two robots that see the target at the same step give the same outcome whichever arrived first
+CAPTURE_WINDOW_S = 0.2
 
 
 def _json_object(raw: bytes) -> dict[str, Any] | None:
@@ -59,6 +72,9 @@ class Bus:
         )
         self.telemetry_sub = self.session.declare_subscriber(telemetry_key(self.fleet, "*"), self._on_telemetry)
         self.truth_sub = self.session.declare_subscriber(truth_key(self.fleet, "*"), self._on_truth)
+        self.detections_sub = self.session.declare_subscriber(detection_key(self.fleet, "*", "*"), self._on_detection)
+        # mission -> (when to decide, [(t, robot's index in the mission, detection)]): under "auto"
+        self.capturing: dict[str, tuple[float, list[tuple[int, int, dict[str, Any]]]]] = {}
         self.threads = [
             threading.Thread(target=self._ingest_loop, name="ingest", daemon=True),
             threading.Thread(target=self._events_loop, name="mission-events", daemon=True),
@@ -85,6 +101,9 @@ class Bus:
     def _on_truth(self, sample: zenoh.Sample) -> None:
         self.events_q.put(("truth", str(sample.key_expr), sample.payload.to_bytes()))
 
+    def _on_detection(self, sample: zenoh.Sample) -> None:
+        self.events_q.put(("detection", str(sample.key_expr), sample.payload.to_bytes()))
+
     # ---------------------------------------------------------------- workers
     def agents_online(self) -> dict[str, float]:
         with self.online_lock:
@@ -108,11 +127,13 @@ class Bus:
         """Keep a robot's last live state, if it is one (docs/SPEC.md section 6); others are dropped."""
         robot = key.rsplit("/", 1)[-1]
         msg = _json_object(raw)
-        if msg is None or msg.get("state") not in ("mission", "idle"):
+        if msg is None or msg.get("state") not in ("mission", "idle", "down"):
             return
         keep = {
             k: msg.get(k) for k in ("state", "mission_id", "t", "node", "z", "goal", "policy_version", "backend", "ts")
         }
+        if msg["state"] == "down":  # the agent stopped on an error it cannot retry, and says which
+            keep["reason"] = str(msg.get("reason"))[:500]
         belief = msg.get("belief")
         if isinstance(belief, list) and len(belief) == self.server.graph.n:
             keep["belief"] = belief
@@ -157,8 +178,9 @@ class Bus:
                     self.server.expire_missions()
                 except Exception:
                     log.exception("ending timed-out missions")
+            self._decide_captures()
             try:
-                kind, key, raw = self.events_q.get(timeout=0.2)
+                kind, key, raw = self.events_q.get(timeout=0.05 if self.capturing else 0.2)
             except queue.Empty:
                 continue
             if kind == "telemetry":
@@ -167,8 +189,11 @@ class Bus:
             if kind == "truth":
                 self._truth(key, raw)
                 continue
+            if kind == "detection":
+                self._detection(key, raw)
+                continue
             msg = parse_message(raw)
-            if msg is None or msg["type"] == "start":
+            if msg is None or msg["type"] not in ("captured", "stop"):
                 continue
             status = "captured" if msg["type"] == "captured" else "stopped"
             try:
@@ -181,6 +206,37 @@ class Bus:
                 self.server.store.mission_event(msg["mission_id"], msg, status)
             except Exception:
                 log.exception("recording mission event %s", msg)
+
+    def _detection(self, key: str, raw: bytes) -> None:
+        """A robot's detection: recorded, and under "auto" the mission ends after CAPTURE_WINDOW_S."""
+        det, why = parse_detection(key, raw)
+        if det is None:
+            log.warning("ignored a detection message on %s: %s", key, why)
+            return
+        try:
+            mode = self.server.on_detection(det)
+            if mode == "auto":
+                mission = self.server.store.get_mission(det["mission_id"])
+                order = mission["robots"].index(det["robot_id"]) if mission else 0
+                _due, found = self.capturing.setdefault(det["mission_id"], (time.monotonic() + CAPTURE_WINDOW_S, []))
+                found.append((det["t"], order, det))
+        except Exception:
+            log.exception("handling detection %s", det)
+
+    def _decide_captures(self) -> None:
+        now = time.monotonic()
+        for mid, (due, found) in list(self.capturing.items()):
+            if now < due:
+                continue
+            del self.capturing[mid]
+            _t, _order, first = min(found, key=lambda f: (f[0], f[1]))
+            try:
+                self.server.capture(first, by="auto")
+                for _t2, _o2, other in found:
+                    if other is not first:
+                        self.server.store.decide_detection(other["id"], "closed", "auto")
+            except Exception:
+                log.exception("ending mission %s on a detection", mid)
 
     def _ingest_loop(self) -> None:
         while self.running:
@@ -245,6 +301,9 @@ class Bus:
                 accepted.append((q, seen[ep.robot_id, ep.mission_id], False))
                 continue
             seen[ep.robot_id, ep.mission_id] = len(rows)
+            aside = unexplained(ep, graph)  # kept, but never estimated from
+            if aside:
+                log.warning("record %s/%s set aside: %s", ep.robot_id, ep.mission_id, aside)
             rows.append(
                 (
                     fleet,
@@ -255,6 +314,7 @@ class Bus:
                     ep.captured,
                     ep.capture_time,
                     json.dumps(canonical_record(ep, graph), separators=(",", ":")),  # unknown fields dropped
+                    aside,
                 )
             )
             accepted.append((q, len(rows) - 1, True))
@@ -266,8 +326,11 @@ class Bus:
                 self._reply_err(q, "server-error", "the server could not store the record; resend later")
                 continue
             status = "stored" if stored[i] and first else "duplicate"
+            reply: dict[str, Any] = {"status": status}
+            if rows[i][-1]:
+                reply["set_aside"] = rows[i][-1]
             try:
-                q.reply(q.key_expr, json.dumps({"status": status}).encode())
+                q.reply(q.key_expr, json.dumps(reply).encode())
             except Exception:
                 log.debug("could not reply to %s", q.key_expr)
         for q, reason, error in rejected:
@@ -275,6 +338,11 @@ class Bus:
             self._reply_err(q, reason, error)
         for q in batch:  # finalise now: the querier's get() ends here, not when Python collects q
             q.drop()
+        for mission_id in {row[2] for row, got in zip(rows, stored, strict=True) if got}:
+            try:  # robots that ended a mission themselves (step limit): the server ends it too
+                self.server.records_complete(mission_id)
+            except Exception:
+                log.exception("ending mission %s on its records", mission_id)
 
     def close(self) -> None:
         self.running = False
@@ -284,6 +352,7 @@ class Bus:
             self.alive_sub,
             self.telemetry_sub,
             self.truth_sub,
+            self.detections_sub,
             self.missions_sub,
             self.queryable,
             self.publisher,

@@ -11,7 +11,7 @@ With `--zenoh-tls-cert/--zenoh-tls-key` the server's own session is the fleet's 
 - TLS on its tls/ endpoints;
 - user/password authentication: a session without a valid robot's credentials is refused;
 - access control, deny by default. A robot may declare its own liveliness token, publish its own
-  telemetry, query its own episode keys (and receive the replies), subscribe to mission control
+  telemetry and its own detections, query its own episode keys (and receive the replies), subscribe to mission control
   and receive it. Nothing else: no robot may publish on missions/*, so start, stop and captured
   come only from the server (its own local session, which the rules do not filter).
 """
@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.core.files import atomic_write, write_private
-from shared.core.wire import agent_key, episode_key, mission_key, telemetry_key
+from shared.core.wire import agent_key, detection_key, episode_key, mission_key, telemetry_key
 
 
 def _robots_dir(data_dir: Path) -> Path:
@@ -110,7 +110,12 @@ def access_control(fleet: str, robot_ids: list[str]) -> dict[str, Any]:
                 "permission": "allow",
                 "flows": ["ingress"],
                 "messages": ["liveliness_token", "put", "query"],
-                "key_exprs": [agent_key(fleet, r), telemetry_key(fleet, r), episode_key(fleet, r, "*")],
+                "key_exprs": [
+                    agent_key(fleet, r),
+                    telemetry_key(fleet, r),
+                    detection_key(fleet, r, "*"),
+                    episode_key(fleet, r, "*"),
+                ],
             }
         )
         rules.append(

@@ -26,6 +26,7 @@ import traceback
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from shared.learning import config as train_config
@@ -74,6 +75,33 @@ class TrainingParams(BaseModel):
         1000, description="evaluation episodes of the gate (the same seeds for both policies)"
     )
     gate: bool = Field(True, description="publish only if the new policy is not worse than the current one")
+    min_missions: Annotated[int, Field(ge=1, le=10_000_000), INTEGRAL] = Field(
+        50,
+        description="missions with usable records needed before a run may start (a model fitted on fewer is "
+        "too uncertain to train on; the refusal says how many more)",
+    )
+    holdout: float = Field(
+        0.25,
+        gt=0.0,
+        lt=1.0,
+        allow_inf_nan=False,
+        description="share of the missions held out of the fit: the gate compares the policies under a model "
+        "estimated from these alone, which the new policy was not trained on",
+    )
+    em_pseudo_count: float = Field(
+        1.0,
+        ge=0.0,
+        le=1e6,
+        allow_inf_nan=False,
+        description="Dirichlet prior of EM: expected transitions added to each entry of Gamma_hat's support",
+    )
+    em_b0_pseudo_count: float = Field(
+        1.0,
+        ge=0.0,
+        le=1e6,
+        allow_inf_nan=False,
+        description="Dirichlet prior of EM: expected starts added to every node of b0 (no node ruled out)",
+    )
     promote: bool = Field(True, description="make the new version current")
     threads: Annotated[int, Field(ge=0, le=1024), INTEGRAL] = Field(
         train_config.TORCH_THREADS,
@@ -140,13 +168,22 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     def say(phase: str, **kw: Any) -> None:
         events.put({"type": "progress", "phase": phase, "elapsed_s": round(time.perf_counter() - t0, 2), **kw})
 
-    # 1. EM on the fleet's own records (robots' positions and observations only)
+    # 1. EM on the fleet's own records (robots' positions and observations only): one model from
+    # the missions kept for fitting, one from those held out for the gate
     say("em", message="reading episode records")
     rows = read_episode_records(job["db"], job["fleet"], p.max_records)
     data = collect_missions(((i, json.loads(r)) for i, r in enumerate(rows)), graph, fleet=job["fleet"])
-    if len(data.length) == 0:
-        raise ValueError("no usable episode records: fly some missions before training")
-    say("em", message=f"EM on {len(data.length)} missions ({data.used_records} records)")
+    if len(data.length) < 2:
+        raise ValueError(f"{len(data.length)} usable missions: fly some missions before training")
+    if data.impossible:
+        say(
+            "em",
+            message=f"set aside {len(data.impossible)} missions no path of the target explains: "
+            + ", ".join(data.impossible[:20])
+            + (" ..." if len(data.impossible) > 20 else ""),
+        )
+    fit, held = split_missions(data, p.holdout, p.seed)
+    say("em", message=f"EM on {len(fit.length)} missions ({fit.used_records} records); {len(held.length)} held out")
     last_em = [time.perf_counter()]
 
     def em_progress(iteration: int, loglik: float) -> None:
@@ -161,14 +198,31 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
         if cancel.is_set():
             raise _Cancelled
 
-    est = em(graph, data, init=uniform_walk(graph), max_iter=p.em_max_iter, tol=1e-5, progress=em_progress)
+    def estimate(missions: Any) -> Any:
+        return em(
+            graph,
+            missions,
+            init=uniform_walk(graph),
+            max_iter=p.em_max_iter,
+            tol=1e-5,
+            progress=em_progress,
+            pseudo_count=p.em_pseudo_count,
+            b0_pseudo_count=p.em_b0_pseudo_count,
+        )
+
+    est = estimate(fit)
     model = est.model
+    gate_est = estimate(held)
     em_info = {
-        "missions": len(data.length),
-        "records": data.used_records,
+        "missions": len(fit.length),
+        "held_out": len(held.length),
+        "records": fit.used_records,
         "iterations": est.iterations,
         "converged": est.converged,
+        "gate_model_converged": gate_est.converged,
         "skipped": dict(data.skipped),
+        "impossible_missions": data.impossible[:100],
+        "prior": {"pseudo_count": p.em_pseudo_count, "b0_pseudo_count": p.em_b0_pseudo_count},
     }
     if cancel.is_set():
         raise _Cancelled
@@ -209,8 +263,15 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     if res.interrupted:
         raise _Cancelled
 
-    # 3. the evaluation gate: both policies on the same seeds under the estimated model
-    say("gate", message=f"evaluating new and current policy on {p.gate_episodes} episodes")
+    # 3. the evaluation gate: both policies on the same seeds under the held-out missions' model,
+    # which the new policy was not trained on (a model fitted on few missions flatters the policy
+    # trained on it; the prior keeps the held-out one cautious)
+    gate_model = gate_est.model
+    say(
+        "gate",
+        message=f"evaluating new and current policy on {p.gate_episodes} episodes under the model of "
+        f"{len(held.length)} held-out missions",
+    )
     from shared.learning.snapshot import Snapshot
 
     new = Snapshot(
@@ -224,7 +285,7 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
 
         r = evaluate(
             graph,
-            model,
+            gate_model,
             sensor,
             current.robots,
             team,
@@ -243,11 +304,25 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
         "metrics": {
             "em": em_info,
             "train": {k: res.summary[k] for k in ("episodes", "env_steps", "wall_seconds", "episodes_per_second")},
-            "gate": {**figures, "passed": passed, "enforced": p.gate},
+            "gate": {
+                **figures,
+                "passed": passed,
+                "enforced": p.gate,
+                "model": f"EM on {len(held.length)} held-out missions",
+            },
             "wall_seconds": round(time.perf_counter() - t0, 2),
         },
         "passed": passed or not p.gate,
     }
+
+
+def split_missions(data: Any, holdout: float, seed: int) -> tuple[Any, Any]:
+    """(fit, held out): the missions of ``data`` (an estimate.MissionData) dealt at random (seeded)
+    into two sets, ``holdout`` of them (at least one, at most all but one) held out."""
+    M = len(data.length)
+    order = np.random.default_rng(seed).permutation(M)
+    k = min(M - 1, max(1, round(holdout * M)))
+    return data.subset(order[k:]), data.subset(order[:k])
 
 
 CURVE_POINTS = 400  # a run's learning curve keeps at most this many points

@@ -28,6 +28,7 @@ episodes = Table(
     Column("capture_time", BigInteger),
     Column("received", Float, nullable=False),
     Column("record", Text, nullable=False),
+    Column("set_aside", Text),  # revision 0003: why the fleet's model cannot explain it (None: usable)
     UniqueConstraint("fleet", "robot_id", "mission_id"),
 )
 
@@ -52,6 +53,26 @@ missions = Table(
     Column("ended", Float),
     Column("deadline", Float),  # revision 0002: the mission times out then (None: never)
     Index("ix_missions_status", "status"),
+)
+
+# revision 0003: what robots reported seeing (z = 1) during missions, and what became of each:
+# pending (awaiting an operator), confirmed (it ended the mission as captured; decided_by "auto" or
+# "operator"), dismissed (a false alarm: the search went on), closed (the mission ended otherwise)
+detections = Table(
+    "detections",
+    metadata,
+    Column("id", ROW_ID, primary_key=True, autoincrement=True),
+    Column("fleet", Text, nullable=False),
+    Column("mission_id", Text, nullable=False),
+    Column("robot_id", Text, nullable=False),
+    Column("t", BigInteger, nullable=False),
+    Column("node", BigInteger, nullable=False),
+    Column("received", Float, nullable=False),
+    Column("status", Text, nullable=False),
+    Column("decided", Float),
+    Column("decided_by", Text),
+    Index("ix_detections_mission", "mission_id"),
+    Index("ix_detections_status", "status"),
 )
 
 policies = Table(

@@ -51,6 +51,7 @@ log = logging.getLogger("mures.server")
 
 ARTIFACT = "policy.tar"
 MISSION_TIMEOUT_S = 1800.0  # a mission still running after this long is ended (--mission-timeout)
+CAPTURE_MODES = ("auto", "confirm")
 
 
 class JsonFormatter(logging.Formatter):
@@ -97,8 +98,10 @@ class Server:
         database_url: str | None = None,
         mission_timeout: float = MISSION_TIMEOUT_S,
         sign_in_limit: int = MAX_FAILURES,
+        capture: str | None = None,
     ) -> None:
         self.data_dir = data_dir
+        self.capture_mode = capture  # "auto", "confirm", or None: by the current version's sensor
         self.mission_timeout = mission_timeout
         self.graph = graph
         self.fleet = fleet
@@ -181,6 +184,102 @@ class Server:
                 )
                 out.append(m["id"])
         return out
+
+    def default_capture(self) -> str:
+        """How a robot's detection ends a mission when the mission does not say: the server's
+        ``--capture``, else "auto" when the current version's sensor has no false positives
+        (eta_fp = 0: a z = 1 is the target) and "confirm" (an operator decides) when it has."""
+        if self.capture_mode is not None:
+            return self.capture_mode
+        try:
+            sensor = (self.store.policy(self.current_version()) or {}).get("meta", {}).get("sensor") or {}
+        except RuntimeError:
+            sensor = {}
+        return "confirm" if float(sensor.get("eta_fp") or 0.0) > 0 else "auto"
+
+    def on_detection(self, det: dict[str, Any]) -> str | None:
+        """A robot's detection (wire.parse_detection's message), from the bus's worker. Checked
+        against the mission (running, the robot in it, t within its step limit, a node of the map)
+        and recorded; under "auto" the caller ends the mission (returns "auto"), under "confirm"
+        it waits for an operator (returns "confirm"). None: ignored, with the reason logged."""
+        mid, robot = det["mission_id"], det["robot_id"]
+        m = self.store.get_mission(mid)
+        why = (
+            "no such mission"
+            if m is None
+            else f"{robot} is not in it"
+            if robot not in m["robots"]
+            else f"t={det['t']} is past its step limit {m['params']['max_steps']}"
+            if det["t"] > m["params"]["max_steps"]
+            else f"node {det['node']} is not on the map"
+            if det["node"] not in self.graph.index
+            else f"the mission is {m['status']}"
+            if m["status"] != "running"
+            else ""
+        )
+        if why or m is None:
+            log.info("detection by %s at t=%s in mission %s ignored: %s", robot, det["t"], mid, why)
+            return None
+        mode = m["params"].get("capture") or self.default_capture()
+        det_id = self.store.add_detection(self.fleet, mid, robot, det["t"], det["node"], "pending")
+        det["id"] = det_id
+        if mode == "confirm":
+            log.warning(
+                "mission %s: %s reports a detection at t=%d on node %d (detection %d): confirm or dismiss it",
+                mid,
+                robot,
+                det["t"],
+                det["node"],
+                det_id,
+            )
+        return mode
+
+    def capture(self, detection: dict[str, Any], by: str) -> bool:
+        """End the detection's mission as captured at its t by its robot, and tell the fleet.
+        False when the mission had already ended (the first end is kept)."""
+        mid = detection["mission_id"]
+        msg = {"type": "captured", "mission_id": mid, "t": int(detection["t"]), "captured_by": detection["robot_id"]}
+        if not self.store.mission_event(mid, msg, "captured"):
+            self.store.decide_detection(detection["id"], "closed", by)
+            return False
+        self.store.decide_detection(detection["id"], "confirmed", by, only_if=None)
+        if self.bus is not None:
+            self.bus.publish_mission(msg)
+        log.info("mission %s captured at t=%d by %s (%s)", mid, msg["t"], msg["captured_by"], by)
+        return True
+
+    def dismiss(self, detection: dict[str, Any], by: str) -> bool:
+        """Rule a pending detection a false alarm: recorded, and the search goes on."""
+        if not self.store.decide_detection(detection["id"], "dismissed", by):
+            return False
+        if self.bus is not None:
+            self.bus.publish_mission(
+                {
+                    "type": "dismissed",
+                    "mission_id": detection["mission_id"],
+                    "robot_id": detection["robot_id"],
+                    "t": detection["t"],
+                    "detection": detection["id"],
+                }
+            )
+        log.info(
+            "detection %d of mission %s dismissed as a false alarm (%s)", detection["id"], detection["mission_id"], by
+        )
+        return True
+
+    def records_complete(self, mission_id: str) -> None:
+        """Every robot's record of a running mission has arrived: the robots ended it themselves
+        (at its step limit, or a robot's own end), so the server ends it too."""
+        m = self.store.get_mission(mission_id)
+        if m is None or m["status"] != "running" or (self.bus is not None and mission_id in self.bus.capturing):
+            return  # (a detection's verdict is due: it ends the mission)
+        recs = self.store.mission_records(self.fleet, mission_id)
+        if not set(m["robots"]) <= {r for r, *_ in recs}:
+            return
+        steps = self.store.mission_steps(self.fleet, mission_id)
+        limit = m["params"]["max_steps"]
+        reason = "step limit" if steps >= limit + 1 else "ended by the robots"
+        self.store.mission_event(mission_id, {"type": "stop", "mission_id": mission_id, "reason": reason}, "stopped")
 
     # ------------------------------------------------------------------ policy versions
     def policy_dir(self, version: int) -> Path:
@@ -435,6 +534,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="allow listening beyond loopback without TLS (HTTP) or without --zenoh-tls-cert/--zenoh-config (Zenoh): "
         "anyone on the network could then command the robots",
     )
+    p.add_argument(
+        "--capture",
+        choices=CAPTURE_MODES,
+        help="what a robot's detection (z = 1) does: auto ends the mission as captured; confirm raises an alert "
+        "for an operator to confirm or dismiss (console, POST /api/v1/detections/ID/confirm|dismiss). Default: "
+        "auto when the current policy's sensor has no false positives (eta_fp = 0), else confirm; a mission may "
+        'say otherwise (POST /api/v1/missions {"capture": ...})',
+    )
     p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet name (default 'default')")
     p.add_argument("--operator-token-file", help="operator bearer token (default: created in the data dir)")
     p.add_argument("--agent-token-file", help="agent bearer token (default: created in the data dir)")
@@ -558,6 +665,7 @@ def _run(args: argparse.Namespace) -> int:
         database_url=args.database_url,
         mission_timeout=args.mission_timeout,
         sign_in_limit=args.sign_in_limit,
+        capture=args.capture,
     )
     srv.migrate_versions()
     srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)

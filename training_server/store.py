@@ -3,7 +3,9 @@ data directory by default, or PostgreSQL (``training-server --database-url
 postgresql+psycopg://USER@HOST:PORT/DB``).
 
 Tables (training_server/schema.py): episodes (one row per (fleet, robot, mission), the record
-reduced to the contract), rejections (counts by reason), missions, policies (immutable versions;
+reduced to the contract; ``set_aside`` says why the fleet's model cannot explain it, and such a
+record is kept but never estimated from), rejections (counts by reason), missions, detections
+(robots' z = 1 reports and the decisions on them), policies (immutable versions;
 the artifacts live on disk in the data directory), training_runs, and settings (the current
 version, the map). Alembic migrates the database at start (``migrate``); a database written by
 release 0.1.0 (no alembic_version) is stamped with its revision first, so nothing is lost.
@@ -37,7 +39,7 @@ from sqlalchemy.exc import (
 )
 from sqlalchemy.pool import StaticPool
 
-from training_server.schema import episodes, missions, policies, rejections, settings, training_runs
+from training_server.schema import detections, episodes, missions, policies, rejections, settings, training_runs
 
 log = logging.getLogger("mures.server.store")
 
@@ -169,12 +171,13 @@ def _unj(s: str | None) -> Any:
 
 
 def read_episode_records(url: str, fleet: str, limit: int) -> list[str]:
-    """The newest ``limit`` stored records of ``fleet`` (JSON text), through a separate engine: what
-    a training process reads."""
+    """The newest ``limit`` stored records of ``fleet`` (JSON text) that are not set aside, through
+    a separate engine: what a training process reads."""
     engine = make_engine(url, shared_connection=False)
     try:
         with engine.connect() as conn:
-            q = select(episodes.c.record).where(episodes.c.fleet == fleet).order_by(episodes.c.id.desc()).limit(limit)
+            e = episodes.c
+            q = select(e.record).where(e.fleet == fleet, e.set_aside.is_(None)).order_by(e.id.desc()).limit(limit)
             return [r for (r,) in conn.execute(q)]
     finally:
         engine.dispose()
@@ -221,18 +224,18 @@ class Store:
 
     # ------------------------------------------------------------------ episodes
     def add_episodes(
-        self, rows: Iterable[tuple[str, str, str, int | None, int, bool, int | None, str]]
+        self, rows: Iterable[tuple[str, str, str, int | None, int, bool, int | None, str, str | None]]
     ) -> list[bool | None]:
-        """Insert (fleet, robot, mission, policy_version, steps, captured, capture_time, record json)
-        rows in one transaction. Per row: True if stored, False if it was already there, None if
-        the database refused that row (the others are stored all the same: each row is its own
+        """Insert (fleet, robot, mission, policy_version, steps, captured, capture_time, record json,
+        set_aside reason or None) rows in one transaction. Per row: True if stored, False if it was
+        already there, None if the database refused that row (the others are stored all the same: each row is its own
         savepoint). A failure of the database itself raises, and nothing of the batch is kept."""
         out: list[bool | None] = []
         now = time.time()
         stmt = self._insert(episodes).on_conflict_do_nothing(index_elements=["fleet", "robot_id", "mission_id"])
         stmt = stmt.returning(episodes.c.id)  # a row back if stored (rowcount is not reliable on every driver)
         with self._tx() as conn:
-            for fleet, robot, mission, pv, steps, captured, ct, rec in rows:
+            for fleet, robot, mission, pv, steps, captured, ct, rec, aside in rows:
                 values = {
                     "fleet": fleet,
                     "robot_id": robot,
@@ -243,6 +246,7 @@ class Store:
                     "capture_time": ct,
                     "received": now,
                     "record": rec,
+                    "set_aside": aside,
                 }
                 try:
                     with conn.begin_nested():
@@ -273,9 +277,23 @@ class Store:
             byv = conn.execute(
                 select(e.policy_version, func.count()).where(e.fleet == fleet).group_by(e.policy_version)
             ).all()
+            aside = conn.execute(
+                select(e.set_aside, func.count())
+                .where(e.fleet == fleet, e.set_aside.is_not(None))
+                .group_by(e.set_aside)
+            ).all()
+            usable = conn.execute(
+                select(func.count(e.mission_id.distinct())).where(e.fleet == fleet, e.set_aside.is_(None))
+            ).scalar_one()
+        by_reason: dict[str, int] = {}
+        for text, count in aside:  # "<code>: <message>"
+            code = text.split(":", 1)[0]
+            by_reason[code] = by_reason.get(code, 0) + count
         return {
             "stored": stored,
             "rejected": rej,
+            "set_aside": dict(sorted(by_reason.items())),
+            "usable_missions": usable,
             "missions": n_missions,
             "by_policy_version": {str(v): c for v, c in byv},
         }
@@ -286,7 +304,17 @@ class Store:
         e = episodes.c
         if not _storable(fleet, mission_id, robot_id):
             return []
-        keys = ("id", "robot_id", "mission_id", "policy_version", "steps", "captured", "capture_time", "received")
+        keys = (
+            "id",
+            "robot_id",
+            "mission_id",
+            "policy_version",
+            "steps",
+            "captured",
+            "capture_time",
+            "received",
+            "set_aside",
+        )
         q = select(*(getattr(e, k) for k in keys)).where(e.fleet == fleet, e.id > after)
         if mission_id:
             q = q.where(e.mission_id == mission_id)
@@ -318,6 +346,17 @@ class Store:
             ).all()
         return [(r, bool(c), ct, pv) for r, c, ct, pv in rows]
 
+    def mission_steps(self, fleet: str, mission_id: str) -> int:
+        """The most steps (t = 0, 1, ...) any stored record of the mission holds (0: none)."""
+        e = episodes.c
+        if not _storable(fleet, mission_id):
+            return 0
+        with self._tx() as conn:
+            most = conn.execute(
+                select(func.max(e.steps)).where(e.fleet == fleet, e.mission_id == mission_id)
+            ).scalar_one()
+        return int(most or 0)
+
     # ------------------------------------------------------------------ missions
     def add_mission(
         self,
@@ -344,16 +383,79 @@ class Store:
 
     def mission_event(self, mission_id: str, event: dict[str, Any], status: str) -> bool:
         """End a running mission with ``event`` (its captured, stop or timeout message); False if it
-        was not running (the first event that ends a mission is the one kept)."""
-        m = missions.c
+        was not running (the first event that ends a mission is the one kept). Its detections still
+        awaiting a decision are closed."""
+        m, d = missions.c, detections.c
+        now = time.time()
         with self._tx() as conn:
             ended = conn.execute(
                 update(missions)
                 .where(m.id == mission_id, m.status == "running")
-                .values(event=_j(event), status=status, ended=time.time())
+                .values(event=_j(event), status=status, ended=now)
                 .returning(m.id)
             ).first()
+            if ended is not None:
+                conn.execute(
+                    update(detections)
+                    .where(d.mission_id == mission_id, d.status == "pending")
+                    .values(status="closed", decided=now)
+                )
         return ended is not None
+
+    # ------------------------------------------------------------------ detections
+    _DETECTION_KEYS = ("id", "mission_id", "robot_id", "t", "node", "received", "status", "decided", "decided_by")
+
+    def add_detection(self, fleet: str, mission_id: str, robot_id: str, t: int, node: int, status: str) -> int:
+        with self._tx() as conn:
+            row = conn.execute(
+                detections.insert()
+                .values(
+                    fleet=fleet,
+                    mission_id=mission_id,
+                    robot_id=robot_id,
+                    t=t,
+                    node=node,
+                    received=time.time(),
+                    status=status,
+                )
+                .returning(detections.c.id)
+            ).first()
+        assert row is not None
+        return int(row[0])
+
+    def detections(
+        self, fleet: str, mission_id: str | None = None, status: str | None = None, limit: int = 1000
+    ) -> list[dict[str, Any]]:
+        """Detections of ``fleet`` (of one mission, or with one status), oldest first."""
+        d = detections.c
+        if not _storable(mission_id, status):
+            return []
+        q = select(*(getattr(d, k) for k in self._DETECTION_KEYS)).where(d.fleet == fleet)
+        if mission_id is not None:
+            q = q.where(d.mission_id == mission_id)
+        if status is not None:
+            q = q.where(d.status == status)
+        with self._tx() as conn:
+            rows = conn.execute(q.order_by(d.id).limit(limit)).all()
+        return [dict(zip(self._DETECTION_KEYS, r, strict=True)) for r in rows]
+
+    def detection(self, detection_id: int) -> dict[str, Any] | None:
+        d = detections.c
+        with self._tx() as conn:
+            row = conn.execute(
+                select(*(getattr(d, k) for k in self._DETECTION_KEYS)).where(d.id == detection_id)
+            ).one_or_none()
+        return None if row is None else dict(zip(self._DETECTION_KEYS, row, strict=True))
+
+    def decide_detection(self, detection_id: int, status: str, by: str, only_if: str | None = "pending") -> bool:
+        """Record the decision on a detection; False if it was not ``only_if`` (already decided)."""
+        d = detections.c
+        q = update(detections).where(d.id == detection_id)
+        if only_if is not None:
+            q = q.where(d.status == only_if)
+        with self._tx() as conn:
+            done = conn.execute(q.values(status=status, decided=time.time(), decided_by=by).returning(d.id)).first()
+        return done is not None
 
     _MISSION_KEYS = ("id", "fleet", "created", "robots", "params", "status", "policy_version", "event", "ended")
 

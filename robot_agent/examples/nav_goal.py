@@ -39,7 +39,18 @@ class Detector(Protocol):
 class NavGoalBackend:
     """A RobotBackend over a goal-taking navigator and a detector."""
 
-    def __init__(self, graph: Graph, navigator: Navigator, detector: Detector, move_timeout_s: float = 120.0) -> None:
+    def __init__(
+        self,
+        graph: Graph,
+        navigator: Navigator | None = None,
+        detector: Detector | None = None,
+        move_timeout_s: float = 120.0,
+    ) -> None:
+        if navigator is None or detector is None:  # launched as it is, not subclassed
+            raise BackendError(
+                "NavGoalBackend is an adapter to subclass: build your robot's Navigator and Detector in your "
+                "subclass's __init__ and pass it as --backend MODULE:YOURCLASS (robot_agent/examples/nav_goal.py)"
+            )
         self.graph = graph
         self.nav = navigator
         self.detector = detector

@@ -186,6 +186,57 @@ def make_record(
     }
 
 
+def emission_likelihoods(ep: Episode, capture_aware: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(l_in, l_out), each (T+1,): P(z_t | e_t in D(p_t)) and P(z_t | e_t outside it), the entries of
+    Lambda (Eq. 2) for this robot's readings. ``capture_aware`` (docs/SPEC.md section 10): a z = 1
+    that did not end the mission was a false alarm (e_t outside D(p_t)), and the capturing robot's
+    last z = 1 was the target (e_t inside)."""
+    (in0, in1), (out0, out1) = ep.sensor.likelihoods()
+    l_in = np.where(ep.z == 1, in1, in0)
+    l_out = np.where(ep.z == 1, out1, out0)
+    if capture_aware:
+        steps = len(ep.z)
+        before_capture = np.arange(steps) < ep.capture_time if ep.capture_time is not None else np.ones(steps, bool)
+        l_in = np.where((ep.z == 1) & before_capture, 0.0, l_in)
+        if ep.captured and ep.captured_by == ep.robot_id and ep.capture_time == steps - 1:
+            l_out[steps - 1] = 0.0
+    return l_in, l_out
+
+
+def unexplained(ep: Episode, graph: Graph) -> str | None:
+    """Why no path of the target on the map (a walk over closed neighbourhoods from any node)
+    explains the record under its own sensor model, or None when some path does. Only a zero in
+    Lambda can rule a path out (eta_fn = 0 or eta_fp = 0, or a false alarm), so this is the support
+    of the forward filter (Eq. 1) under any model whose Gamma_hat and b0 have full support on
+    the map: O(T (n + m)) on the CSR neighbourhoods, no dense array."""
+    l_in, l_out = emission_likelihoods(ep)
+    ptr, idx = graph.detection_sets(ep.sensor.detection)
+    src = np.repeat(np.arange(graph.n), np.diff(graph.closed_ptr))  # (u, v) pairs of the closed neighbourhoods
+    dst = graph.closed_idx
+    possible = np.ones(graph.n, dtype=bool)
+    for t in range(len(ep.z)):
+        if t:
+            nxt = np.zeros(graph.n, dtype=bool)
+            nxt[dst[possible[src]]] = True  # where the target can be at t: a step from where it could be
+            possible = nxt
+        inside = np.zeros(graph.n, dtype=bool)
+        p = int(ep.nodes[t])
+        inside[idx[ptr[p] : ptr[p + 1]]] = True
+        possible &= np.where(inside, l_in[t] > 0, l_out[t] > 0)
+        if not possible.any():
+            node = int(graph.labels[p])
+            if ep.z[t] == 1 and l_in[t] == 0:
+                what = f"z = 1 at t={t} on node {node} did not end the mission, and the sensor has no false positives"
+            elif ep.z[t] == 1:
+                what = f"z = 1 at t={t} on node {node}: no place the target could be is within the detection set"
+            else:
+                what = (
+                    f"z = 0 at t={t} on node {node}: the sensor has no false negatives and the target can only be there"
+                )
+            return f"impossible: {what} (eta_fn={ep.sensor.eta_fn}, eta_fp={ep.sensor.eta_fp})"
+    return None
+
+
 def canonical_record(ep: Episode, graph: Graph) -> dict[str, Any]:
     """The record of a parsed episode with the contract's fields only (what the server stores:
     fields this schema version does not know are dropped, not kept verbatim)."""

@@ -12,6 +12,8 @@ Key expressions, segment by segment (``<fleet>`` defaults to ``default``; ids ma
         is one episode record; reply ok {"status": "stored"|"duplicate"} or err {"reason", "error"}
     mures/<fleet>/telemetry/<robot_id>                pub/sub, optional per-step state
     mures/<fleet>/sim/<mission_id>/<robot_id>         queryable of the simulated world (fleet-sim)
+    mures/<fleet>/detections/<robot_id>/<mission_id>  pub/sub: a robot's z = 1, the moment it reads it
+        {"mission_id", "robot_id", "t", "node"}; the server decides whether it ends the mission
 
 Mission-control messages (JSON objects with a ``type``):
 
@@ -19,6 +21,8 @@ Mission-control messages (JSON objects with a ``type``):
      "sensor": {...}, "policy_version": int|null}
     {"type": "captured", "mission_id", "t": int, "captured_by": id}     (the mission is over)
     {"type": "stop", "mission_id", "reason": str}                        (the mission is over)
+    {"type": "dismissed", "mission_id", "robot_id", "t", "detection": int}  (an operator ruled a
+        detection a false alarm; the search goes on)
 """
 
 from __future__ import annotations
@@ -51,6 +55,39 @@ def telemetry_key(fleet: str, robot: str = "*") -> str:
 
 def sim_key(fleet: str, mission: str = "*", robot: str = "*") -> str:
     return f"mures/{fleet}/sim/{mission}/{robot}"
+
+
+def detection_key(fleet: str, robot: str = "*", mission: str = "*") -> str:
+    """A robot's detections (z = 1) during a mission, published the moment it reads them."""
+    return f"mures/{fleet}/detections/{robot}/{mission}"
+
+
+def detection_message(mission_id: str, robot_id: str, t: int, node: int) -> dict[str, Any]:
+    return {"mission_id": mission_id, "robot_id": robot_id, "t": int(t), "node": int(node)}
+
+
+def parse_detection(key: str, payload: bytes) -> tuple[dict[str, Any] | None, str]:
+    """A detection message and "" if it is well formed and matches its key
+    (``mures/<fleet>/detections/<robot_id>/<mission_id>``), else None and what is wrong."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[2] != "detections":
+        return None, f"key {key!r} is not mures/<fleet>/detections/<robot_id>/<mission_id>"
+    try:
+        msg = json.loads(payload) if len(payload) <= 4096 else None
+    except (ValueError, UnicodeDecodeError):
+        msg = None
+    if not isinstance(msg, dict):
+        return None, "the payload is not a JSON object of at most 4 KiB"
+    for field in ("t", "node"):
+        v = msg.get(field)
+        if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+            return None, f"{field!r} must be a non-negative integer"
+    if (msg.get("robot_id"), msg.get("mission_id")) != (parts[3], parts[4]):
+        return (
+            None,
+            f"the message names robot {msg.get('robot_id')!r} mission {msg.get('mission_id')!r}, its key {key!r}",
+        )
+    return detection_message(parts[4], parts[3], msg["t"], msg["node"]), ""
 
 
 def truth_key(fleet: str, mission: str = "*") -> str:
@@ -105,7 +142,7 @@ def parse_message(payload: bytes) -> dict[str, Any] | None:
         msg = json.loads(payload)
     except (ValueError, UnicodeDecodeError):
         return None
-    if not isinstance(msg, dict) or msg.get("type") not in ("start", "captured", "stop"):
+    if not isinstance(msg, dict) or msg.get("type") not in ("start", "captured", "stop", "dismissed"):
         return None
     if not isinstance(msg.get("mission_id"), str):
         return None

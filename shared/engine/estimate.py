@@ -35,7 +35,7 @@ import torch
 
 from shared.core.graph import Graph
 from shared.core.models import TargetModel, from_matrix, uniform_walk
-from shared.core.records import Episode, RecordError, parse_record
+from shared.core.records import Episode, RecordError, emission_likelihoods, parse_record
 
 
 @dataclass
@@ -47,6 +47,15 @@ class MissionData:
     length: np.ndarray
     used_records: int
     skipped: Counter[str] = field(default_factory=Counter)
+    impossible: list[str] = field(default_factory=list)  # missions set aside: no target path explains them
+    records: np.ndarray | None = None  # (M,) records per mission
+
+    def subset(self, missions: np.ndarray) -> MissionData:
+        """The missions ``missions`` (indices) alone."""
+        idx = np.sort(np.asarray(missions))
+        records = None if self.records is None else self.records[idx]
+        used = int(records.sum()) if records is not None else self.used_records
+        return MissionData(lik=self.lik[idx], length=self.length[idx], used_records=used, records=records)
 
 
 def collect_missions(
@@ -88,22 +97,38 @@ def collect_missions(
             det = detect_cache.get(ep.sensor.detection)
             if det is None:
                 det = detect_cache[ep.sensor.detection] = graph.detection_matrix(ep.sensor.detection)
-            (in0, in1), (out0, out1) = ep.sensor.likelihoods()
             Tr = len(ep.nodes)
-            l_in = np.where(ep.z == 1, in1, in0)
-            l_out = np.where(ep.z == 1, out1, out0)
-            if capture_aware:
-                t = np.arange(Tr)
-                final = ep.captured and ep.capture_time is not None
-                before_capture = t < ep.capture_time if ep.capture_time is not None else np.ones(Tr, dtype=bool)
-                false_alarm = (ep.z == 1) & before_capture
-                l_in = np.where(false_alarm, 0.0, l_in)
-                if final and ep.captured_by == ep.robot_id and ep.capture_time == Tr - 1:
-                    l_out[Tr - 1] = 0.0
+            l_in, l_out = emission_likelihoods(ep, capture_aware)
             lik[m, :Tr] *= np.where(det[ep.nodes], l_in[:, None], l_out[:, None])
             length[m] = max(length[m], Tr)
             used += 1
-    return MissionData(lik=lik, length=length, used_records=used, skipped=skipped)
+    per_mission = np.array([len(robots) for robots in missions.values()], dtype=np.int64)
+    keep = explained(graph, lik, length)
+    impossible = [mid for (_fleet, mid), ok in zip(missions, keep, strict=True) if not ok]
+    if impossible:  # probability zero under every model: EM's posterior would be 0/0
+        skipped["impossible"] += sum(len(missions[k]) for k, ok in zip(missions, keep, strict=True) if not ok)
+        used -= skipped["impossible"]
+        lik, length, per_mission = lik[keep], length[keep], per_mission[keep]
+    return MissionData(
+        lik=lik, length=length, used_records=used, skipped=skipped, impossible=impossible, records=per_mission
+    )
+
+
+def explained(graph: Graph, lik: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """(M,) bool: whether some path of the target (any start, steps within closed neighbourhoods)
+    has non-zero likelihood for each mission's joint observations lik (M, T, n): the support of
+    the forward filter (Eq. 6) under any model with full support on the map, which is where EM
+    starts (the uniform walk). O(M T (n + m))."""
+    T = lik.shape[1]
+    possible = lik[:, 0] > 0
+    starts = graph.closed_ptr[:-1]
+    for t in range(1, T):
+        running = length > t
+        if not running.any():
+            break
+        step = np.logical_or.reduceat(possible[:, graph.closed_idx], starts, axis=1)  # a move within N[u]
+        possible = np.where(running[:, None], step & (lik[:, t] > 0), possible)
+    return np.asarray(possible.any(1), dtype=bool)
 
 
 @dataclass
@@ -321,12 +346,16 @@ def em(
     accelerate: bool = True,
     progress: Callable[[int, float], None] | None = None,
     workers: int = 1,
+    b0_pseudo_count: float = 0.0,
 ) -> Estimate:
     """Baum-Welch for Gamma_hat and b0 with the sensor known (module docstring).
 
     ``init`` gives the support and starting point (default: the uniform walk on N[u]); a
-    ``pseudo_count`` adds that many expected transitions to each supported entry (a Dirichlet
-    prior; 0 is maximum likelihood). ``accelerate`` uses SQUAREM (Varadhan and Roland, 2008):
+    ``pseudo_count`` adds that many expected transitions to each supported entry, and
+    ``b0_pseudo_count`` that many expected starts to every node (Dirichlet priors, so the result is
+    the posterior mode; 0 and 0 are maximum likelihood). With few missions a prior keeps the model
+    near the uniform walk and every node possible at the start, instead of ruling out what the
+    data happened not to show. ``accelerate`` uses SQUAREM (Varadhan and Roland, 2008):
     from two EM steps it extrapolates along the EM path, keeps the result only if it raises the
     likelihood, and otherwise falls back to the plain steps, so the likelihood never decreases.
     Converged when the relative log-likelihood gain of an iteration falls below ``tol``;
@@ -347,7 +376,8 @@ def em(
     e_step = None
     try:
         e_step = _EStep(data, workers)
-        return _em(graph, data, init, e_step, max_iter, tol, pseudo_count, accelerate, progress, t0)
+        prior = (pseudo_count, b0_pseudo_count)
+        return _em(graph, data, init, e_step, max_iter, tol, prior, accelerate, progress, t0)
     finally:
         if e_step is not None:
             e_step.close()
@@ -361,7 +391,7 @@ def _em(
     e_step: _EStep,
     max_iter: int,
     tol: float,
-    pseudo_count: float,
+    prior: tuple[float, float],
     accelerate: bool,
     progress: Callable[[int, float], None] | None,
     t0: float,
@@ -371,6 +401,8 @@ def _em(
     support = G > 0
     b0 = torch.as_tensor(init.b0)
     passes = 0
+    pseudo_count, b0_pseudo_count = prior
+    missions = len(data.length)
 
     def step(G: torch.Tensor, b0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, float]:
         """One EM update; also returns the log-likelihood of its input."""
@@ -385,6 +417,8 @@ def _em(
         # seen with one short mission, where a start node's count came out near 1e-306)
         seen = rows > ROW_MASS_MIN
         G_new = torch.where(seen, counts / torch.where(seen, rows, torch.ones_like(rows)), G)
+        if b0_pseudo_count:  # the expected starts plus the prior's, normalised
+            b0_new = (missions * b0_new + b0_pseudo_count) / (missions + b0_pseudo_count * len(b0_new))
         return G_new, b0_new, ll  # b0_new: the posterior of e_0, averaged over the missions
 
     def project(G: torch.Tensor, b0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

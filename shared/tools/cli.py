@@ -236,6 +236,15 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         f"read {data.used_records} records in {len(data.length)} missions; skipped {skipped} ({reasons})",
         file=sys.stderr,
     )
+    if data.impossible:
+        shown = ", ".join(data.impossible[:10]) + (
+            f" and {len(data.impossible) - 10} more" if len(data.impossible) > 10 else ""
+        )
+        print(
+            f"set aside {len(data.impossible)} missions that no path of the target explains "
+            f"under their sensor: {shown}",
+            file=sys.stderr,
+        )
     if len(data.length) == 0:
         raise CliError("no usable episode records: nothing estimated, nothing written")
     last = [0.0]
@@ -253,6 +262,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             max_iter=args.max_iter,
             tol=args.tol,
             pseudo_count=args.pseudo_count,
+            b0_pseudo_count=args.b0_pseudo_count,
             progress=progress,
             workers=args.threads,
         )
@@ -692,7 +702,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=ESTIMATORS, default="em", help="EM (default) or the paper's Eq. 8")
     p.add_argument("--max-iter", type=positive_int, default=1000, help="EM forward-backward passes at most")
     p.add_argument("--tol", type=float, default=1e-6, help="EM relative log-likelihood tolerance")
-    p.add_argument("--pseudo-count", type=float, default=0.0, help="Dirichlet pseudo-count per transition")
+    p.add_argument(
+        "--pseudo-count",
+        type=float,
+        default=0.0,
+        help="Dirichlet prior: expected transitions added to each entry of Gamma_hat's support (default 0: "
+        "maximum likelihood; the training server uses 1)",
+    )
+    p.add_argument(
+        "--b0-pseudo-count",
+        type=float,
+        default=0.0,
+        help="Dirichlet prior: expected starts added to every node of b0 (default 0; the training server uses 1)",
+    )
     p.add_argument("--rounds", type=positive_int, default=1, help="Eq. 8 rounds (filter <-> Eq. 8)")
     p.add_argument("--truth", metavar="MODEL", help="a known model (lazy:STAY, uniform, or .json): report the TV")
     p.add_argument(

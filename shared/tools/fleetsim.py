@@ -15,6 +15,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.error
 from dataclasses import dataclass, field
@@ -62,6 +63,42 @@ def reap(proc: subprocess.Popen[Any], timeout: float) -> int | None:
         return None
 
 
+class SimulatedOperator:
+    """The operator of a simulated fleet under ``--capture confirm``: it confirms each pending
+    detection whose robot really had the target in its detection set at that step (the world's
+    truth) and dismisses the others as false alarms, through the REST API as a person would in the
+    console. Polls every ``every`` seconds in a thread of its own until ``close``."""
+
+    def __init__(self, api: ApiClient, world: Any, every: float = 0.02) -> None:
+        self.api, self.world, self.every = api, world, every
+        self.decided: dict[str, int] = {"confirm": 0, "dismiss": 0}
+        self.stopping = threading.Event()
+        self.thread = threading.Thread(target=self._loop, name="simulated-operator", daemon=True)
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while not self.stopping.wait(self.every):
+            try:
+                pending = self.api.get("/api/v1/detections?status=pending")["items"]
+            except (OSError, ApiError):
+                continue
+            for d in pending:
+                seen = self.world.seen(d["mission_id"], d["robot_id"], d["t"])
+                if seen is None:
+                    continue  # not a step of this world's (yet): look again next time
+                verb = "confirm" if seen else "dismiss"
+                try:
+                    self.api.post(f"/api/v1/detections/{d['id']}/{verb}", {})
+                    self.decided[verb] += 1
+                except ApiError as exc:
+                    if exc.status != 409:  # 409: the mission ended first
+                        raise
+
+    def close(self) -> None:
+        self.stopping.set()
+        self.thread.join(5)
+
+
 @dataclass
 class Fleet:
     """Handles of a running simulated fleet (server, world, agents)."""
@@ -76,6 +113,7 @@ class Fleet:
     session: Any = None
     world: Any = None
     log_dir: Path | None = None
+    operator: SimulatedOperator | None = None
 
     def start_agent(self, robot: str, extra: list[str] | None = None) -> subprocess.Popen:
         assert self.log_dir is not None
@@ -122,6 +160,8 @@ class Fleet:
         )
 
     def close(self) -> None:
+        if self.operator is not None:
+            self.operator.close()
         for robot in list(self.agents):
             self.stop_agent(robot)
         if self.world is not None:
@@ -216,8 +256,10 @@ def launch(
     step_timeout: float = 10.0,
     server_extra: list[str] | None = None,
     agent_extra: list[str] | None = None,
+    simulated_operator: bool = True,
 ) -> Fleet:
-    """Start (or attach to) a server, the world and ``robots`` agents r1..rN; wait until all are online."""
+    """Start (or attach to) a server, the world and ``robots`` agents r1..rN; wait until all are online.
+    With ``simulated_operator`` a ``SimulatedOperator`` decides the detections that await one."""
     import zenoh
 
     from shared.tools.world import World
@@ -254,6 +296,8 @@ def launch(
         fleet.world = World(
             fleet.session, health["fleet"], graph, target, sensor, step_timeout=step_timeout, step_delay=step_delay
         )
+        if simulated_operator:
+            fleet.operator = SimulatedOperator(fleet.api, fleet.world)
         for i in range(robots):
             fleet.start_agent(f"r{i + 1}", agent_extra)
         want = {f"r{i + 1}" for i in range(robots)}

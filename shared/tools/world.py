@@ -3,10 +3,14 @@
 Each simulated robot (robot_agent.backend.SimBackend) sends its (t, node) as a query on
 ``mures/<fleet>/sim/<mission>/<robot>``. When every robot still in the mission has reported step
 t, the world moves the target (t > 0: e_t ~ Gamma(e_{t-1}, .)), draws each robot's z_t from the
-sensor model (docs/SPEC.md section 1), replies to every query, and, if some robot has e_t in D(p_t) and
-z_t = 1, publishes {"type": "captured", "t", "captured_by"} on the mission's key. Robots learn the
-outcome only from that message. A robot that does not report within ``step_timeout`` is
-withdrawn from the mission and the others go on (robustness, paper Fig. 12).
+sensor model (docs/SPEC.md section 1) and replies to every query. It only answers z: a robot that
+reads z = 1 reports the detection to the server as a real robot does, and the server decides the
+capture (docs/SPEC.md section 6), so every fleet-sim mission exercises that path. The world
+ends a mission when the server says it is over, or at its step limit (where the agents stop
+on their own). A robot that does not report
+within ``step_timeout`` is withdrawn from the mission and the others go on (robustness, paper
+Fig. 12). ``seen(mission, robot, t)`` tells whether e_t was in D(p_t): the truth that a simulated
+operator confirms or dismisses a detection with (fleet-sim under ``--capture confirm``).
 
 Deterministic for a mission seed: the target's path and every z are drawn from one generator
 seeded by the mission seed, in the mission's robot order, whatever order the queries arrive in.
@@ -46,6 +50,10 @@ class _Mission:
     ended: bool = False
     ended_at: float = 0.0
     path: list[int] = field(default_factory=list)  # target rows over t
+    seen: dict[tuple[str, int], bool] = field(default_factory=dict)  # (robot, t) -> e_t in D(p_t)
+    confirm: bool = False  # the mission's detections wait for an operator (capture "confirm")
+    undecided: set[tuple[str, int]] = field(default_factory=set)  # (robot, t) of z = 1 not yet decided
+    undecided_since: float = 0.0
 
 
 class World:
@@ -118,13 +126,20 @@ class World:
                 max_steps=int(msg.get("max_steps") or 3 * self.graph.n),
                 target=min(e0, self.graph.n - 1),
                 active=set(robots),
+                confirm=msg.get("capture") == "confirm",
             )
             m.path.append(m.target)
             self.missions[mid] = m
             for q in self.parked.pop(mid, []):
                 self._on_query(q)
         elif msg["type"] in ("captured", "stop") and mid in self.missions:
+            self.finished.setdefault(mid, msg)
             self._end(mid, publish=None)
+        elif msg["type"] == "dismissed" and mid in self.missions:
+            m = self.missions[mid]
+            m.undecided.discard((str(msg.get("robot_id")), msg.get("t")))
+            m.waiting_since = time.monotonic()  # the robots' wait for the decision is no timeout of theirs
+            self._advance_if_ready(mid, m)
 
     def _on_query(self, q: Any) -> None:
         parts = str(q.key_expr).split("/")
@@ -151,9 +166,16 @@ class World:
         if not m.reports:
             m.waiting_since = time.monotonic()
         m.reports[robot] = (row, q)
-        if set(m.reports) >= m.active:
-            self._advance(mid, m)
+        self._advance_if_ready(mid, m)
         return None
+
+    def _advance_if_ready(self, mid: str, m: _Mission) -> None:
+        """Advance when every active robot has reported and, under "confirm", the operator has
+        decided every detection of the last step: a decision takes no step of the simulated world,
+        so its missions capture as the batched simulator's do (the first z = 1 with the target in
+        D(p); a false alarm ends nothing)."""
+        if not m.ended and set(m.reports) >= m.active and not m.undecided:
+            self._advance(mid, m)
 
     def _err(self, q: Any, text: str) -> None:
         try:
@@ -169,7 +191,11 @@ class World:
                 if now - m.ended_at > 60:
                     del self.missions[mid]
                 continue
-            if m.reports and now - m.waiting_since > self.step_timeout:
+            if m.undecided and now - m.undecided_since > self.step_timeout:
+                log.warning("mission %s: no decision on the detections %s; going on", mid, sorted(m.undecided))
+                m.undecided.clear()
+                self._advance_if_ready(mid, m)
+            elif m.reports and now - m.waiting_since > self.step_timeout:
                 gone = m.active - set(m.reports)
                 log.warning("mission %s: %s did not report step %d; withdrawn", mid, ", ".join(sorted(gone)), m.t)
                 m.active -= gone
@@ -178,7 +204,7 @@ class World:
             del self.parked[mid]
 
     def _advance(self, mid: str, m: _Mission) -> None:
-        """All active robots reported step m.t: move the target (t > 0), observe, reply, check capture."""
+        """All active robots reported step m.t: move the target (t > 0), observe, reply."""
         if self.step_delay:
             time.sleep(self.step_delay)
         if m.t > 0:
@@ -186,7 +212,6 @@ class World:
             m.target = min(m.target, self.graph.n - 1)
             m.path.append(m.target)
         (_in0, in1), (_out0, out1) = self.sensor.likelihoods()
-        captured_by = None
         replies = []
         replies_by_robot: dict[str, dict[str, Any]] = {}
         for robot in m.robots:  # fixed order: deterministic draws
@@ -194,12 +219,14 @@ class World:
                 continue
             row, q = m.reports[robot]
             u = m.rng.random()
-            seen = self.detect[row, m.target]
+            seen = bool(self.detect[row, m.target])
             z = int(u < (in1 if seen else out1))
-            if z and seen and captured_by is None:
-                captured_by = robot
+            m.seen[robot, m.t] = seen
+            if z and m.confirm:
+                m.undecided.add((robot, m.t))
+                m.undecided_since = time.monotonic()
             replies.append((q, z))
-            replies_by_robot[robot] = {"node": int(self.graph.labels[row]), "z": z, "seen": bool(seen)}
+            replies_by_robot[robot] = {"node": int(self.graph.labels[row]), "z": z, "seen": seen}
         for q, z in replies:
             q.reply(q.key_expr, json.dumps({"z": z}).encode())
             q.drop()  # finalise: the robot's get() returns now
@@ -212,10 +239,15 @@ class World:
         t = m.t
         m.reports = {}
         m.t += 1
-        if captured_by is not None:
-            self._end(mid, {"type": "captured", "mission_id": mid, "t": t, "captured_by": captured_by})
-        elif t >= m.max_steps or not m.active:
-            self._end(mid, {"type": "stop", "mission_id": mid, "reason": "step limit" if m.active else "no robots"})
+        if not m.active:
+            self._end(mid, {"type": "stop", "mission_id": mid, "reason": "no robots"})
+        elif t >= m.max_steps:  # the agents stop there on their own, as real robots do
+            self._end(mid, None)
+
+    def seen(self, mission_id: str, robot: str, t: int) -> bool | None:
+        """Whether the target was in D(p_t) of ``robot`` at step t (None: no such step known)."""
+        m = self.missions.get(mission_id)
+        return None if m is None else m.seen.get((robot, t))
 
     def _publish_truth(self, mid: str, m: _Mission, robots: dict[str, dict[str, Any]]) -> None:
         """The step's ground truth on mures/<fleet>/truth/<mission> for the console's debugging

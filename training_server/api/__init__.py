@@ -18,7 +18,18 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from training_server.api import episodes, fleet, health, live, maps, metrics, missions, policies, training_runs
+from training_server.api import (
+    detections,
+    episodes,
+    fleet,
+    health,
+    live,
+    maps,
+    metrics,
+    missions,
+    policies,
+    training_runs,
+)
 from training_server.api.deps import DESCRIPTIONS
 from training_server.api.limits import BodyLimit
 from training_server.console import mount as mount_console
@@ -52,7 +63,7 @@ def create_app(srv: Any) -> FastAPI:
     app = FastAPI(title="MuRES fleet training server", version="1", description=__doc__)
     app.state.server = srv
     app.state.metrics = metrics.registry_for(srv)
-    for module in (health, maps, fleet, live, missions, episodes, policies, training_runs):
+    for module in (health, maps, fleet, live, missions, detections, episodes, policies, training_runs):
         app.include_router(module.router, prefix=API_PREFIX)
     app.include_router(metrics.router)
     mount_console(app)

@@ -40,6 +40,7 @@ def fleet_view(srv: Any) -> FleetOut:
                 policy_version=live.get("policy_version"),
                 z=live.get("z") if same else None,
                 backend=live.get("backend"),
+                down_reason=live.get("reason") if live.get("state") == "down" and not a["online"] else None,
             )
         )
     return FleetOut(fleet=srv.fleet, online=sum(a.online for a in agents), agents=agents)

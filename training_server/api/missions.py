@@ -38,7 +38,8 @@ def mission_view(srv: Any, mid: str, m: dict[str, Any] | None = None) -> Mission
         outcome = {
             "captured": bool(caps),
             "capture_time": min(caps) if caps else None,
-            "steps": max((ct or 0) for *_x, ct, _pv in recs) if caps else None,
+            # the capture time, or the last step any robot recorded when none captured
+            "steps": max((ct or 0) for *_x, ct, _pv in recs) if caps else srv.store.mission_steps(srv.fleet, mid) - 1,
             "policy_versions": sorted({pv for *_x, pv in recs if pv is not None}),
         }
         if m["event"] and m["event"].get("type") == "captured":
@@ -82,6 +83,7 @@ def start_mission(req: MissionRequest, response: Response, srv: Srv) -> Mission:
         "seed": req.seed if req.seed is not None else random.SystemRandom().randrange(2**31),
         "max_steps": req.max_steps or 3 * srv.graph.n,
         "start_node": int(srv.graph.labels[srv.graph.start]),
+        "capture": req.capture or srv.default_capture(),
     }
     pv = srv.current_version()
     srv.store.add_mission(mid, srv.fleet, robots, params, pv, deadline=time.time() + timeout)

@@ -72,6 +72,9 @@ class Agent(BaseModel):
     policy_version: int | None = Field(description="the policy version it last reported running (telemetry)")
     z: int | None = Field(None, description="its last observation z_t in that mission (1: it detected the target)")
     backend: str | None = Field(None, description="its robot backend (sim, or MODULE:CLASS), from its telemetry")
+    down_reason: str | None = Field(
+        None, description="why its agent stopped, when it stopped on an error it cannot retry (e.g. its backend)"
+    )
 
 
 class FleetOut(BaseModel):
@@ -86,9 +89,9 @@ class WhoAmI(BaseModel):
 
 
 class Alert(BaseModel):
-    kind: Literal["robot-lost", "run-failed", "run-gated-out", "ingest-rejections"]
+    kind: Literal["robot-lost", "run-failed", "run-gated-out", "ingest-rejections", "detection"]
     level: Literal["warning", "error"]
-    subject: str = Field(description="the robot, the training run, or 'ingest'")
+    subject: str = Field(description="the robot, the training run, 'ingest', or the detection's id")
     since: float | None = Field(description="Unix time it began")
     text: str
 
@@ -121,12 +124,41 @@ class MissionRequest(_Request):
         "--mission-timeout)",
     )
     mission_id: str | None = Field(default=None, pattern=ID_RE.pattern, description="default: generated")
+    capture: Literal["auto", "confirm"] | None = Field(
+        default=None,
+        description="what a robot's detection does: auto ends the mission as captured, confirm waits for an "
+        "operator to confirm or dismiss it (default: the server's --capture)",
+    )
 
 
 class MissionParams(BaseModel):
     seed: int
     max_steps: int
     start_node: int
+    capture: Literal["auto", "confirm"] | None = Field(
+        default=None, description="how detections end this mission (None: a mission from before capture modes)"
+    )
+
+
+class Detection(BaseModel):
+    """A robot's z = 1 during a mission, and what became of it."""
+
+    id: int
+    mission_id: str
+    robot_id: str
+    t: int = Field(description="the step of the reading")
+    node: int = Field(description="the node the robot read it on")
+    received: float = Field(description="when the server received it (Unix time)")
+    status: Literal["pending", "confirmed", "dismissed", "closed"] = Field(
+        description="pending: awaits an operator; confirmed: it ended the mission as captured; dismissed: a false "
+        "alarm, the search went on; closed: the mission ended otherwise first"
+    )
+    decided: float | None
+    decided_by: str | None = Field(description="auto (the server's --capture auto) or who decided")
+
+
+class DetectionList(BaseModel):
+    items: list[Detection]
 
 
 class Mission(BaseModel):
@@ -174,6 +206,11 @@ class EpisodeSummary(BaseModel):
     captured: bool
     capture_time: int | None
     received: float
+    set_aside: str | None = Field(
+        default=None,
+        description="why no path of the target explains this record under its sensor model: kept, but never "
+        "used to estimate the model (None: usable)",
+    )
 
 
 class EpisodePage(BaseModel):
@@ -184,7 +221,11 @@ class EpisodePage(BaseModel):
 class EpisodeStats(BaseModel):
     stored: int
     rejected: dict[str, int] = Field(description="rejected records by reason")
+    set_aside: dict[str, int] = Field(
+        default_factory=dict, description="records stored but set aside from estimation, by reason"
+    )
     missions: int
+    usable_missions: int = Field(default=0, description="missions with at least one record that is not set aside")
     by_policy_version: dict[str, int]
 
 

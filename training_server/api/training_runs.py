@@ -25,8 +25,13 @@ def run_view(srv: Srv, run_id: str) -> TrainingRun:
 def start_run(response: Response, srv: Srv, req: TrainingParams | None = None) -> TrainingRun:
     """Queue a retrain: EM on the stored records, CE-PG from the current policy, the gate, a new version."""
     params = req or TrainingParams()
-    if srv.store.episode_stats(srv.fleet)["stored"] == 0:
-        raise HTTPException(409, "no episodes stored yet: fly some missions before training")
+    usable = srv.store.episode_stats(srv.fleet)["usable_missions"]
+    if usable < params.min_missions:
+        raise HTTPException(
+            409,
+            f"too little data to retrain: {usable} missions recorded, {params.min_missions} needed "
+            f"({params.min_missions - usable} more); fly more missions (or lower min_missions)",
+        )
     run_id = f"run-{time.strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
     srv.store.add_run(run_id, params.model_dump())
     srv.supervisor.submit(run_id)

@@ -128,6 +128,17 @@ class Hub:
                     "text": f"training run {r['id']} {'was gated out' if gated else 'failed'}: {r['error']}",
                 }
             )
+        for d in self.srv.store.detections(self.srv.fleet, status="pending"):
+            out.append(
+                {
+                    "kind": "detection",
+                    "level": "error",
+                    "subject": str(d["id"]),
+                    "since": d["received"],
+                    "text": f"robot {d['robot_id']} reports the target on node {d['node']} at step {d['t']} of "
+                    f"mission {d['mission_id']}: confirm (the mission ends as captured) or dismiss (a false alarm)",
+                }
+            )
         total = sum(stats["rejected"].values())
         self._rejections.append((now, total))
         while len(self._rejections) > 1 and now - self._rejections[1][0] >= REJECTION_WINDOW:

@@ -331,9 +331,28 @@ async function loadMap(svg) {
 }
 
 // ------------------------------------------------------------------ alerts (every page)
+// A detection awaiting an operator carries its two decisions (POST /api/v1/detections/{id}/...).
+function detectionButtons(a) {
+  const decide = (verb, done) =>
+    el(
+      "button",
+      {
+        type: "button",
+        "data-action": verb,
+        onclick: () => act(done, () => api(`/api/v1/detections/${a.subject}/${verb}`, { method: "POST" })),
+      },
+      verb === "confirm" ? "Confirm: captured" : "Dismiss: false alarm",
+    );
+  return el("span", { class: "alert-actions" }, decide("confirm", "Mission ended as captured"), decide("dismiss", "Recorded as a false alarm; the search goes on"));
+}
+
 function showAlerts(alerts) {
   const box = $("#alerts");
-  box.replaceChildren(...alerts.map((a) => el("div", { class: `alert ${a.level}`, "data-kind": a.kind }, a.text)));
+  box.replaceChildren(
+    ...alerts.map((a) =>
+      el("div", { class: `alert ${a.level}`, "data-kind": a.kind, "data-subject": a.subject }, a.text, a.kind === "detection" ? detectionButtons(a) : null),
+    ),
+  );
 }
 
 // ------------------------------------------------------------------ pages
@@ -411,7 +430,7 @@ pages.fleet = async function (ctx) {
       if (cls !== undefined && cells[i].className !== cls) cells[i].className = cls;
     };
     set(0, a.robot_id);
-    set(1, a.online ? `online · ${a.state}` : "offline (lost)", `state-${a.online ? "online" : "offline"}`);
+    set(1, a.online ? `online · ${a.state}` : a.down_reason ? `down: ${a.down_reason}` : "offline (lost)", `state-${a.online ? "online" : "offline"}`);
     cells[2].dataset.ts = a.last_seen;
     set(2, fmtAgo(a.last_seen));
     if ((cells[3].dataset.mission || "") !== (a.mission_id || "")) {

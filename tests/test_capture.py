@@ -1,0 +1,172 @@
+"""A real robot's detection ends a search: robot-agent processes with a backend that is not the
+fleet simulator (tests/scripted_backend.py), a training server under --capture auto and confirm,
+and the operator's decisions over the REST API."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from shared.core.files import read_token
+from shared.core.http import ApiClient, ApiError
+from shared.core.models import Sensor
+from shared.tools.fleetsim import _child_env, reap, start_server, wait_until
+
+pytestmark = pytest.mark.slow
+
+TESTS = Path(__file__).resolve().parent
+BACKEND = "scripted_backend:ScriptedBackend"
+
+
+@pytest.fixture(scope="module")
+def robots(tmp_path_factory):
+    """A server (capture auto by default: the sensor has no false positives) and agents r1, r2 on
+    the scripted backend: r1 reads z = 1 at t = 5, r2 at t = 5 and 7, r1 again at t = 12."""
+    work = tmp_path_factory.mktemp("capture")
+    (work / "logs").mkdir()
+    proc, base, endpoint = start_server(["--env", "office"], work / "server", 2, Sensor(), work / "logs")
+    api = ApiClient(base, read_token(work / "server" / "operator.token"))
+    env = _child_env(agent=True)
+    env["PYTHONPATH"] = f"{TESTS}:{env['PYTHONPATH']}"
+    env["MURES_TEST_DETECT"] = "r1:5,r2:5,r2:7,r1:12"
+    env["MURES_TEST_STEP_S"] = "0.05"
+    agents = []
+    for r in ("r1", "r2"):
+        cmd = [
+            sys.executable,
+            "-m",
+            "robot_agent.agent",
+            "--robot-id",
+            r,
+            "--server",
+            base,
+            "--zenoh-connect",
+            endpoint,
+        ]
+        cmd += [
+            "--token-file",
+            str(work / "server" / "agent.token"),
+            "--state-dir",
+            str(work / r),
+            "--backend",
+            BACKEND,
+        ]
+        log = open(work / "logs" / f"{r}.log", "ab")  # noqa: SIM115 - owned by the process
+        agents.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env))
+    online = lambda: {a["robot_id"] for a in api.get("/api/v1/fleet")["agents"] if a["online"]}  # noqa: E731
+    wait_until(lambda: online() >= {"r1", "r2"}, 90, "two agents online", every=0.2)
+    api.work, api.env, api.endpoint = work, env, endpoint  # for the tests that start more agents
+    yield api
+    for p in agents:
+        p.terminate()
+        reap(p, 20)
+    proc.terminate()
+    reap(proc, 30)
+
+
+def _done(api, mid, timeout=60):
+    return wait_until(
+        lambda: (m := api.get(f"/api/v1/missions/{mid}"))["status"] == "completed" and m, timeout, mid, every=0.05
+    )
+
+
+def test_auto_a_detection_ends_the_mission_as_captured(robots):
+    api = robots
+    m = api.post("/api/v1/missions", {"robots": ["r1", "r2"], "seed": 1, "max_steps": 40})
+    assert m["params"]["capture"] == "auto"  # the sensor has no false positives
+    done = _done(api, m["id"])
+    # both read z = 1 at t = 5: the earlier one wins, ties go to the robot listed first
+    assert done["outcome"]["captured"] and done["outcome"]["capture_time"] == 5
+    assert done["event"]["captured_by"] == "r1" and done["outcome"]["captured_by"] == "r1"
+    dets = api.get(f"/api/v1/detections?mission_id={m['id']}")["items"]
+    assert [(d["robot_id"], d["t"]) for d in dets if d["status"] == "confirmed"] == [("r1", 5)]
+    assert ("r2", 5) in {(d["robot_id"], d["t"]) for d in dets}  # its tie, recorded and closed
+    assert all(d["status"] == "closed" for d in dets if (d["robot_id"], d["t"]) != ("r1", 5))
+    assert next(d["decided_by"] for d in dets if d["robot_id"] == "r1") == "auto"
+    for r in ("r1", "r2"):  # the records end at the capture
+        rec = api.get(f"/api/v1/episodes/{r}/{m['id']}")
+        assert len(rec["steps"]) == 6 and rec["outcome"]["capture_time"] == 5
+
+
+def test_confirm_waits_for_the_operator_and_a_dismissal_lets_the_search_go_on(robots):
+    api = robots
+    m = api.post("/api/v1/missions", {"robots": ["r1", "r2"], "seed": 2, "max_steps": 200, "capture": "confirm"})
+    pending = wait_until(
+        lambda: (d := api.get("/api/v1/detections?status=pending")["items"]) and len(d) >= 3 and d, 30, "detections"
+    )
+    assert sorted((d["robot_id"], d["t"]) for d in pending[:3]) == [("r1", 5), ("r2", 5), ("r2", 7)]
+    assert api.get(f"/api/v1/missions/{m['id']}")["status"] == "running"  # waits for the operator
+    alerts = api.get("/api/v1/alerts")["items"]
+    assert {a["subject"] for a in alerts if a["kind"] == "detection"} >= {str(d["id"]) for d in pending[:3]}
+    by = {(d["robot_id"], d["t"]): d["id"] for d in pending}
+    assert api.post(f"/api/v1/detections/{by['r1', 5]}/dismiss", {})["status"] == "dismissed"
+    with pytest.raises(ApiError) as again:  # decided once
+        api.post(f"/api/v1/detections/{by['r1', 5]}/confirm", {})
+    assert again.value.status == 409
+    api.post(f"/api/v1/detections/{by['r2', 5]}/dismiss", {})
+    assert api.get(f"/api/v1/missions/{m['id']}")["status"] == "running"  # a false alarm ends nothing
+    confirmed = api.post(f"/api/v1/detections/{by['r2', 7]}/confirm", {})
+    assert confirmed["status"] == "confirmed" and confirmed["decided_by"] == "operator"
+    done = _done(api, m["id"])
+    assert done["outcome"]["capture_time"] == 7 and done["event"]["captured_by"] == "r2"
+    statuses = {
+        (d["robot_id"], d["t"]): d["status"] for d in api.get(f"/api/v1/detections?mission_id={m['id']}")["items"]
+    }
+    assert statuses[("r1", 5)] == "dismissed" and statuses[("r2", 7)] == "confirmed"
+    # r1's record: its dismissed z = 1 at t = 5 is a false alarm before the capture at 7
+    rec = api.get(f"/api/v1/episodes/r1/{m['id']}")
+    assert rec["outcome"] == {"captured": True, "capture_time": 7, "captured_by": "r2"} and rec["steps"][5]["z"] == 1
+
+
+def test_a_mission_the_robots_end_at_their_step_limit_says_when_and_after_how_many_steps(robots):
+    api = robots
+    m = api.post("/api/v1/missions", {"robots": ["r1", "r2"], "seed": 3, "max_steps": 4})
+    done = _done(api, m["id"])
+    assert done["outcome"]["captured"] is False and done["outcome"]["steps"] == 4
+    assert done["ended"] is not None and done["event"]["reason"] == "step limit"
+    perf = api.get("/api/v1/policies/performance")
+    assert perf["items"][0]["missions"] >= 3  # a miss at the step limit counts too (its limit)
+
+
+def test_an_unloadable_backend_ends_the_agent_with_one_line_and_status_2(tmp_path):
+    cmd = [sys.executable, "-m", "robot_agent.agent", "--robot-id", "r1", "--server", "http://127.0.0.1:9"]
+    for backend, words in (
+        ("nosuch:Thing", "cannot load"),
+        ("robot_agent.examples.nav_goal", "MODULE:CLASS"),
+        ("robot_agent.backend:Nothing", "cannot load"),
+    ):
+        out = subprocess.run(
+            [*cmd, "--zenoh-connect", "tcp/127.0.0.1:9", "--state-dir", str(tmp_path), "--backend", backend],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=_child_env(agent=True),
+        )
+        lines = out.stderr.strip().splitlines()
+        assert out.returncode == 2 and len(lines) == 1 and lines[0].startswith("robot-agent: error:"), out.stderr
+        assert words in lines[0], lines[0]
+
+
+def test_deploys_default_backend_refuses_to_start_and_the_fleet_shows_why(robots):
+    """deploy/'s example backend is an adapter to subclass: launched as it is, the agent stops with
+    one line and status 2 (systemd does not restart it: RestartPreventExitStatus=2), and the fleet
+    view says why the robot is down."""
+    api = robots
+    cmd = [sys.executable, "-m", "robot_agent.agent", "--robot-id", "r3", "--server", api.base]
+    cmd += ["--zenoh-connect", api.endpoint, "--token-file", str(api.work / "server" / "agent.token")]
+    cmd += ["--state-dir", str(api.work / "r3"), "--backend", "robot_agent.examples.nav_goal:NavGoalBackend"]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=api.env)
+    last = out.stderr.strip().splitlines()[-1]
+    assert out.returncode == 2 and last.startswith("robot-agent: error: --backend"), out.stderr[-2000:]
+    assert "adapter to subclass" in last
+    r3 = wait_until(
+        lambda: next(
+            (a for a in api.get("/api/v1/fleet")["agents"] if a["robot_id"] == "r3" and not a["online"]), None
+        ),
+        30,
+        "r3 to show as down",
+    )
+    assert "adapter to subclass" in (r3["down_reason"] or "")
