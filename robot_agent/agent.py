@@ -159,6 +159,20 @@ class PolicyStore:
             log.warning("cached policy unusable (%s); will download", exc)
             return False
 
+    def use(self, version: int) -> bool:
+        """Switch to a version installed before (verified again); False when there is none."""
+        if version == self.version:
+            return True
+        if not (self.root / f"v{version}").is_dir():
+            return False
+        try:
+            snap = read_snapshot(self.root / f"v{version}", self.graph)
+        except SnapshotError as exc:
+            log.warning("installed version %d unusable (%s); will download", version, exc)
+            return False
+        self.snapshot, self.version = snap, version
+        return True
+
     def install(self, version: int, tar_path: Path, sha256: str) -> None:
         """Verify and swap in a downloaded artifact; raise ValueError (keeping the last good one)."""
         h = hashlib.sha256(tar_path.read_bytes()).hexdigest()
@@ -246,11 +260,15 @@ class Agent:
                 self.stop.wait(2.0)
         raise SystemExit(0)
 
-    def sync_policy(self, reason: str) -> None:
-        """Between missions only: take the server's current version if it differs from ours."""
+    def sync_policy(self, reason: str, version: int | None = None) -> None:
+        """Between missions only: take ``version`` (a mission's), else the server's current one, if
+        it differs from ours; a version installed before is switched to without a download."""
         assert self.policies is not None and self.graph is not None
         try:
-            meta = self.api.get("/api/v1/policies/current")
+            if version is not None and self.policies.use(version):
+                log.info("policy version -> %d (%s; installed before)", version, reason)
+                return
+            meta = self.api.get("/api/v1/policies/current" if version is None else f"/api/v1/policies/{int(version)}")
             version, sha = int(meta["version"]), str(meta["sha256"])
             if meta.get("meta", {}).get("graph_id") != self.graph.graph_id:
                 raise ValueError(f"version {version} is for another map")
@@ -442,7 +460,7 @@ class Agent:
         robots = msg.get("robots") or [self.robot_id]
         index = robots.index(self.robot_id)
         if msg.get("policy_version") is not None and msg["policy_version"] != self.policies.version:
-            self.sync_policy(f"before mission {mid}")  # still between missions
+            self.sync_policy(f"before mission {mid}", version=int(msg["policy_version"]))  # still between missions
         snap = self.policies.snapshot
         assert snap is not None, "run() waits for a policy before taking missions"
         agent = PolicyAgent(snap, graph, index, seed=mission_seed(msg.get("seed", 0), index))

@@ -183,6 +183,8 @@ def test_an_operators_session(fleet, page, tmp_path):
     goto(pg, f"{base}/training")
     pg.fill("#run-episodes", "512")
     pg.fill("#run-gate-episodes", "50")
+    pg.fill("#run-min-missions", "1")  # the fleet has flown a handful of missions
+    pg.fill("#run-canary-pairs", "0")  # current at once: no trial
     pg.uncheck("#run-gate")  # publish whatever it learns: this is about the console, not the gate
     pg.click("#start-run")
     pg.wait_for_selector("#notice.ok")
@@ -257,3 +259,64 @@ def test_pages_without_a_token_send_the_browser_to_sign_in(fleet, page):
         page.goto(f"{fleet.api.base}{path}")
         page.wait_for_url("**/signin?next=**")
         assert Path(page.url.split("next=")[1].split("&")[0].replace("%2F", "/")).as_posix() == path
+
+
+# What an operator needs at each size: nothing wider than the window, every column of every table
+# inside its card, every button on screen (tables wrap their cells instead; console.css).
+SIZES = {"laptop": (1366, 768), "phone": (390, 844)}
+LAYOUT_JS = """() => {
+  const w = window.innerWidth;
+  const tables = [...document.querySelectorAll("table.grid")].filter((t) => t.offsetParent !== null);
+  return {
+    width: w,
+    page: document.documentElement.scrollWidth,
+    tables: tables.map((t) => [t.id, t.getBoundingClientRect().right, t.parentElement.getBoundingClientRect().right]),
+    buttons: [...document.querySelectorAll("main button")].filter((b) => b.offsetParent !== null)
+      .map((b) => [b.textContent, b.getBoundingClientRect().right]),
+    header: [...document.querySelectorAll("header.top nav a, header.top .who")]
+      .map((a) => [a.textContent, a.getBoundingClientRect().right]),
+  };
+}"""
+
+
+@pytest.mark.parametrize("size", SIZES)
+def test_every_table_and_action_fits_a_laptop_and_a_phone(fleet, browser, size):
+    width, height = SIZES[size]
+    context = browser.new_context(viewport={"width": width, "height": height})
+    pg = context.new_page()
+    pg.set_default_timeout(WAIT_MS)
+    shots = os.environ.get("MURES_CONSOLE_SCREENSHOTS")  # e.g. docs/console: the pictures docs/ shows
+    try:
+        sign_in(pg, fleet.api.base, read_token(fleet.workdir / "server" / "operator.token"))
+        fleet.fly(["r1", "r2"], seed=11)  # a mission in every list
+        for page in ("/", "/missions", "/policies", "/training", "/data"):
+            goto(pg, f"{fleet.api.base}{page}")
+            pg.wait_for_selector("table.grid tbody tr", state="attached")
+            time.sleep(0.5)  # the stream's first fill
+            got = pg.evaluate(LAYOUT_JS)
+            where = f"{page} at {width} px"
+            assert got["page"] <= width, f"{where}: the page is {got['page']} px wide"
+            for table, right, card in got["tables"]:
+                assert right <= card + 1, f"{where}: table {table} overflows its card ({right} > {card})"
+            for text, right in got["buttons"] + got["header"]:
+                assert right <= width, f"{where}: {text!r} is off-screen ({right} > {width})"
+            if page == "/policies":
+                versions = pg.locator("#policies-table tbody tr").count()
+                assert pg.locator("#policies-table .badge").count() == 1  # the current one, on screen
+                assert pg.locator("#policies-table button[data-action='promote']").count() == versions - 1
+            if page == "/" and size == "phone":  # the fleet first, then a map that fits the screen
+                table = pg.locator("#fleet-table").bounding_box()
+                svg = pg.locator("svg#map").bounding_box()
+                assert table["y"] < svg["y"] and svg["height"] <= 0.95 * width + 1 and svg["width"] <= width
+                assert pg.locator("#fleet-table th:visible").all_inner_texts() == [
+                    "robot",
+                    "state",
+                    "mission",
+                    "step",
+                    "node",
+                ]
+            if shots:
+                name = "fleet" if page == "/" else page.strip("/")
+                pg.screenshot(path=str(Path(shots) / f"{name}-{width}.png"), full_page=True)
+    finally:
+        context.close()

@@ -21,7 +21,7 @@ from shared.core.files import read_token
 from shared.core.graph import builtin_graph
 from shared.core.http import ApiClient
 from shared.core.models import Sensor
-from shared.core.records import canonical_record, parse_record
+from shared.core.records import canonical_record, parse_record, unexplained
 from shared.core.wire import episode_key, zenoh_config
 from shared.tools.fleetsim import start_server
 
@@ -71,7 +71,9 @@ def test_generated_records_are_stored_once_or_rejected_with_their_reason(tmp_pat
                 if s.valid:
                     key = (s.robot, s.mission)
                     want = "duplicate" if key in stored else "stored"
-                    assert ok is True and body == {"status": want}, (s, body)
+                    # a valid record that no path of the target explains is stored, and set aside
+                    aside = unexplained(parse_record(json.loads(s.payload), GRAPH), GRAPH)
+                    assert ok is True and body == {"status": want, **({"set_aside": aside} if aside else {})}, (s, body)
                     stored.setdefault(key, s.payload)
                 else:
                     assert ok is False and body["reason"] == s.reason and body["error"], (s, body)

@@ -232,9 +232,6 @@ class Bus:
             _t, _order, first = min(found, key=lambda f: (f[0], f[1]))
             try:
                 self.server.capture(first, by="auto")
-                for _t2, _o2, other in found:
-                    if other is not first:
-                        self.server.store.decide_detection(other["id"], "closed", "auto")
             except Exception:
                 log.exception("ending mission %s on a detection", mid)
 
@@ -343,6 +340,11 @@ class Bus:
                 self.server.records_complete(mission_id)
             except Exception:
                 log.exception("ending mission %s on its records", mission_id)
+        if any(stored):
+            try:  # a new version on trial: decided once enough pairs of missions are complete
+                self.server.check_canary()
+            except Exception:
+                log.exception("deciding the canary")
 
     def close(self) -> None:
         self.running = False

@@ -75,6 +75,12 @@ class TrainingParams(BaseModel):
         1000, description="evaluation episodes of the gate (the same seeds for both policies)"
     )
     gate: bool = Field(True, description="publish only if the new policy is not worse than the current one")
+    canary_pairs: Annotated[int, Field(ge=0, le=100_000), INTEGRAL] = Field(
+        20,
+        description="with promote: the new version first flies every other mission beside the current one until "
+        "this many pairs of missions are complete, and is made current only if its mean capture time over them is "
+        "not higher (otherwise rolled back, with an alert); 0 makes it current at once",
+    )
     min_missions: Annotated[int, Field(ge=1, le=10_000_000), INTEGRAL] = Field(
         50,
         description="missions with usable records needed before a run may start (a model fitted on fewer is "
@@ -173,8 +179,8 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     say("em", message="reading episode records")
     rows = read_episode_records(job["db"], job["fleet"], p.max_records)
     data = collect_missions(((i, json.loads(r)) for i, r in enumerate(rows)), graph, fleet=job["fleet"])
-    if len(data.length) < 2:
-        raise ValueError(f"{len(data.length)} usable missions: fly some missions before training")
+    if len(data.length) == 0:
+        raise ValueError("no usable missions: fly some missions before training")
     if data.impossible:
         say(
             "em",
@@ -184,21 +190,21 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
         )
     fit, held = split_missions(data, p.holdout, p.seed)
     say("em", message=f"EM on {len(fit.length)} missions ({fit.used_records} records); {len(held.length)} held out")
-    last_em = [time.perf_counter()]
+    last_em = [0.0]  # the first pass of each fit is reported at once, then one every 0.25 s
 
-    def em_progress(iteration: int, loglik: float) -> None:
-        if time.perf_counter() - last_em[0] >= 0.5:
-            last_em[0] = time.perf_counter()
-            say(
-                "em",
-                iteration=iteration,
-                max_iter=p.em_max_iter,
-                message=f"EM pass {iteration} (log-likelihood {loglik:.1f})",
-            )
-        if cancel.is_set():
-            raise _Cancelled
+    def estimate(missions: Any, which: str) -> Any:
+        def em_progress(iteration: int, loglik: float) -> None:
+            if iteration == 1 or time.perf_counter() - last_em[0] >= 0.25:
+                last_em[0] = time.perf_counter()
+                say(
+                    "em",
+                    iteration=iteration,
+                    max_iter=p.em_max_iter,
+                    message=f"EM pass {iteration} {which} (log-likelihood {loglik:.1f})",
+                )
+            if cancel.is_set():
+                raise _Cancelled
 
-    def estimate(missions: Any) -> Any:
         return em(
             graph,
             missions,
@@ -210,16 +216,18 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
             b0_pseudo_count=p.em_b0_pseudo_count,
         )
 
-    est = estimate(fit)
+    est = estimate(fit, "on the missions fitted")
     model = est.model
-    gate_est = estimate(held)
+    # one mission cannot be split: the gate's model is then the prior alone, the uniform walk
+    gate_est = estimate(held, "on the missions held out") if len(held.length) else None
+    gate_model = gate_est.model if gate_est is not None else uniform_walk(graph)
     em_info = {
         "missions": len(fit.length),
         "held_out": len(held.length),
         "records": fit.used_records,
         "iterations": est.iterations,
         "converged": est.converged,
-        "gate_model_converged": gate_est.converged,
+        "gate_model_converged": gate_est.converged if gate_est is not None else None,
         "skipped": dict(data.skipped),
         "impossible_missions": data.impossible[:100],
         "prior": {"pseudo_count": p.em_pseudo_count, "b0_pseudo_count": p.em_b0_pseudo_count},
@@ -266,11 +274,10 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     # 3. the evaluation gate: both policies on the same seeds under the held-out missions' model,
     # which the new policy was not trained on (a model fitted on few missions flatters the policy
     # trained on it; the prior keeps the held-out one cautious)
-    gate_model = gate_est.model
     say(
         "gate",
-        message=f"evaluating new and current policy on {p.gate_episodes} episodes under the model of "
-        f"{len(held.length)} held-out missions",
+        message=f"evaluating new and current policy on {p.gate_episodes} episodes under "
+        + (f"the model of {len(held.length)} held-out missions" if len(held.length) else "the uniform walk"),
     )
     from shared.learning.snapshot import Snapshot
 
@@ -308,7 +315,7 @@ def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
                 **figures,
                 "passed": passed,
                 "enforced": p.gate,
-                "model": f"EM on {len(held.length)} held-out missions",
+                "model": f"EM on {len(held.length)} held-out missions" if len(held.length) else "the uniform walk",
             },
             "wall_seconds": round(time.perf_counter() - t0, 2),
         },
@@ -321,7 +328,7 @@ def split_missions(data: Any, holdout: float, seed: int) -> tuple[Any, Any]:
     into two sets, ``holdout`` of them (at least one, at most all but one) held out."""
     M = len(data.length)
     order = np.random.default_rng(seed).permutation(M)
-    k = min(M - 1, max(1, round(holdout * M)))
+    k = min(M - 1, max(1, round(holdout * M)))  # none of a single mission
     return data.subset(order[k:]), data.subset(order[:k])
 
 
@@ -463,9 +470,13 @@ class Supervisor:
             )
             log.info("training run %s did not pass the gate; version %s stays current", run_id, parent)
         else:
+            params = TrainingParams.model_validate(run["params"])
+            staged = params.promote and params.canary_pairs > 0
             version = srv.publish_version(
-                staging, parent=parent, run_id=run_id, metrics=result["metrics"], promote=bool(run["params"]["promote"])
+                staging, parent=parent, run_id=run_id, metrics=result["metrics"], promote=params.promote and not staged
             )
-            finish("succeeded", "done", metrics=result["metrics"], version=version)
-            log.info("training run %s succeeded: version %d", run_id, version)
+            if staged:
+                srv.start_canary(version, parent, run_id, params.canary_pairs)
+            finish("succeeded", "canary" if staged else "done", metrics=result["metrics"], version=version)
+            log.info("training run %s succeeded: version %d%s", run_id, version, " (on trial)" * staged)
         shutil.rmtree(staging, ignore_errors=True)

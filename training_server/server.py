@@ -221,7 +221,9 @@ class Server:
             log.info("detection by %s at t=%s in mission %s ignored: %s", robot, det["t"], mid, why)
             return None
         mode = m["params"].get("capture") or self.default_capture()
-        det_id = self.store.add_detection(self.fleet, mid, robot, det["t"], det["node"], "pending")
+        # "pending" awaits an operator; under "auto" the capture window decides (confirmed or closed)
+        status = "pending" if mode == "confirm" else "closed"
+        det_id = self.store.add_detection(self.fleet, mid, robot, det["t"], det["node"], status)
         det["id"] = det_id
         if mode == "confirm":
             log.warning(
@@ -240,7 +242,7 @@ class Server:
         mid = detection["mission_id"]
         msg = {"type": "captured", "mission_id": mid, "t": int(detection["t"]), "captured_by": detection["robot_id"]}
         if not self.store.mission_event(mid, msg, "captured"):
-            self.store.decide_detection(detection["id"], "closed", by)
+            self.store.decide_detection(detection["id"], "closed", by)  # (when it was pending)
             return False
         self.store.decide_detection(detection["id"], "confirmed", by, only_if=None)
         if self.bus is not None:
@@ -297,10 +299,116 @@ class Server:
             raise RuntimeError("no policy version yet")
         return int(v)
 
-    def set_current(self, version: int) -> None:
+    def set_current(self, version: int, by: str = "operator") -> None:
+        """Make ``version`` current. An operator's choice ends a canary in progress (recorded as such)."""
         if self.store.policy(version) is None:
             raise KeyError(version)
-        self.store.set_setting("current_version", str(version))
+        with self.version_lock:
+            canary = self.canary()
+            if canary is not None and by == "operator":
+                self._end_canary(canary, "ended by the operator", {"made_current": version})
+            self.store.set_setting("current_version", str(version))
+
+    # ------------------------------------------------------------------ canary (staged promotion)
+    # A version that passed its run's gate does not become current at once: it flies every other
+    # mission (the canary arm) beside the current version (the baseline arm) until ``pairs`` pairs
+    # of missions are complete. The canary mission of a pair repeats its baseline mission's seed,
+    # so in simulation both meet the same target path (with real robots the pair is two missions
+    # in a row). Then the fleet's own capture times decide: the canary is made current if its mean
+    # over the pairs is not higher than the baseline's (the paired difference's mean <= 0),
+    # otherwise it is rolled back (never made current) with an alert. A mission counts as the
+    # performance view counts it: captured, or run to its step limit (the limit counts); a pair
+    # with an arm that does not count is skipped and another pair is flown.
+    def canary(self) -> dict[str, Any] | None:
+        raw = self.store.get_setting("canary")
+        return json.loads(raw) if raw else None
+
+    def start_canary(self, version: int, baseline: int, run_id: str | None, pairs: int) -> None:
+        with self.version_lock:
+            old = self.canary()
+            if old is not None:
+                self._end_canary(old, f"replaced by version {version}", {})
+            canary: dict[str, Any] = {"version": version, "baseline": baseline, "run_id": run_id, "pairs": pairs}
+            canary.update(started=time.time(), next_pair=0, pending_seed=None)
+            self.store.set_setting("canary", json.dumps(canary))
+        self.store.update_policy_meta(version, {"canary": {"state": "flying", "pairs": pairs, "baseline": baseline}})
+        log.info("version %d flies as a canary beside version %d for %d pairs of missions", version, baseline, pairs)
+
+    def mission_policy(self, seed: int) -> tuple[int, int, dict[str, Any] | None]:
+        """(version, seed, canary arm or None) for the next mission asked for with ``seed``."""
+        with self.version_lock:
+            canary = self.canary()
+            if canary is None:
+                return self.current_version(), seed, None
+            if canary["pending_seed"] is None:  # a pair begins: the baseline arm, this mission's seed
+                canary["pending_seed"] = seed
+                arm = {"arm": "baseline", "pair": canary["next_pair"], "canary_version": canary["version"]}
+                version = canary["baseline"]
+            else:  # the pair's canary arm repeats its baseline's seed
+                seed = canary["pending_seed"]
+                arm = {"arm": "canary", "pair": canary["next_pair"], "canary_version": canary["version"]}
+                canary["pending_seed"] = None
+                canary["next_pair"] += 1
+                version = canary["version"]
+            self.store.set_setting("canary", json.dumps(canary))
+        return version, seed, arm
+
+    def check_canary(self) -> dict[str, Any] | None:
+        """Decide the canary once enough pairs are complete; returns the decision, if one was made."""
+        from shared.engine.evaluate import mean_ci95
+
+        canary = self.canary()
+        if canary is None:
+            return None
+        arms: dict[int, dict[str, float]] = {}
+        for o in self.store.canary_outcomes(self.fleet, canary["version"]):
+            if o["captured"] and o["capture_time"] is not None:
+                ct = float(o["capture_time"])
+            elif o["stop_reason"] == "step limit" and o["max_steps"]:
+                ct = float(o["max_steps"])
+            else:
+                continue  # stopped or timed out early: no capture time
+            arms.setdefault(o["pair"], {})[o["arm"]] = ct
+        pairs = sorted(k for k, a in arms.items() if {"canary", "baseline"} <= set(a))
+        if len(pairs) < canary["pairs"]:
+            return None
+        used = pairs[: canary["pairs"]]
+        c = [arms[k]["canary"] for k in used]
+        b = [arms[k]["baseline"] for k in used]
+        diff, half = mean_ci95([x - y for x, y in zip(c, b, strict=True)])
+        keep = diff <= 0
+        evidence = {
+            "pairs": len(used),
+            "canary_mean": round(sum(c) / len(c), 3),
+            "baseline_mean": round(sum(b) / len(b), 3),
+            "mean_difference": round(diff, 3),
+            "ci95": round(half, 3),
+        }
+        with self.version_lock:
+            if self.canary() != canary:
+                return None  # decided or replaced meanwhile
+            self._end_canary(canary, "kept" if keep else "rolled back", evidence)
+            if keep:
+                self.store.set_setting("current_version", str(canary["version"]))
+        log.log(
+            logging.INFO if keep else logging.WARNING,
+            "canary version %d %s: %.2f vs %.2f steps over %d pairs (difference %+.2f ± %.2f)",
+            canary["version"],
+            "kept and made current" if keep else "rolled back: it flew worse than the current version",
+            evidence["canary_mean"],
+            evidence["baseline_mean"],
+            len(used),
+            diff,
+            half,
+        )
+        return {"decision": "kept" if keep else "rolled back", **evidence}
+
+    def _end_canary(self, canary: dict[str, Any], state: str, evidence: dict[str, Any]) -> None:
+        """(under version_lock) The canary's end, recorded in its version's meta."""
+        self.store.set_setting("canary", "")
+        record = {"state": state, "decided": time.time(), "baseline": canary["baseline"], **evidence}
+        record.setdefault("pairs_asked", canary["pairs"])
+        self.store.update_policy_meta(canary["version"], {"canary": record})
 
     def publish_version(
         self, snapshot_dir: Path, parent: int | None, run_id: str | None, metrics: dict[str, Any], promote: bool

@@ -299,7 +299,13 @@ class Store:
         }
 
     def list_episodes(
-        self, fleet: str, limit: int, after: int, mission_id: str | None, robot_id: str | None
+        self,
+        fleet: str,
+        limit: int,
+        after: int,
+        mission_id: str | None,
+        robot_id: str | None,
+        set_aside: bool | None = None,
     ) -> list[dict[str, Any]]:
         e = episodes.c
         if not _storable(fleet, mission_id, robot_id):
@@ -320,6 +326,8 @@ class Store:
             q = q.where(e.mission_id == mission_id)
         if robot_id:
             q = q.where(e.robot_id == robot_id)
+        if set_aside is not None:
+            q = q.where(e.set_aside.is_not(None) if set_aside else e.set_aside.is_(None))
         with self._tx() as conn:
             rows = conn.execute(q.order_by(e.id).limit(limit)).all()
         return [{**dict(zip(keys, r, strict=True)), "captured": bool(r[5])} for r in rows]
@@ -534,6 +542,37 @@ class Store:
             )
         return out
 
+    def canary_outcomes(self, fleet: str, canary_version: int) -> list[dict[str, Any]]:
+        """The missions flown for the canary of ``canary_version`` whose every record has arrived:
+        their arm and pair (mission params "canary"), step limit, stop reason, and the first capture
+        time if some robot captured."""
+        m, e = missions.c, episodes.c
+        tag = f'%"canary_version":{int(canary_version)}%'
+        with self._tx() as conn:
+            rows = conn.execute(
+                select(m.id, m.robots, m.params, m.event).where(m.fleet == fleet, m.params.like(tag))
+            ).all()
+            out = []
+            for mid, robots, params, ev in rows:
+                recs = conn.execute(
+                    select(e.robot_id, e.captured, e.capture_time).where(e.fleet == fleet, e.mission_id == mid)
+                ).all()
+                if not set(_unj(robots)) <= {r for r, _c, _t in recs}:
+                    continue
+                p, caps = _unj(params), [t for _r, c, t in recs if c and t is not None]
+                out.append(
+                    {
+                        "mission_id": mid,
+                        "arm": p["canary"]["arm"],
+                        "pair": p["canary"]["pair"],
+                        "max_steps": p.get("max_steps"),
+                        "stop_reason": (_unj(ev) or {}).get("reason"),
+                        "captured": bool(caps),
+                        "capture_time": min(caps) if caps else None,
+                    }
+                )
+        return out
+
     def busy_robots(self, fleet: str) -> dict[str, str]:
         """{robot: mission} for every robot of a running mission whose record has not arrived."""
         busy = {}
@@ -577,6 +616,16 @@ class Store:
             meta = conn.execute(select(p.meta).where(p.version == version)).scalar_one()
             meta = {**json.loads(meta), "weights_sha256": weights_sha256}
             conn.execute(update(policies).where(p.version == version).values(sha256=sha256, bytes=size, meta=_j(meta)))
+
+    def update_policy_meta(self, version: int, extra: dict[str, Any]) -> None:
+        """Add (or replace) top-level entries of a version's meta (e.g. its canary's evidence)."""
+        p = policies.c
+        with self._tx() as conn:
+            meta = conn.execute(select(p.meta).where(p.version == version)).scalar_one_or_none()
+            if meta is not None:
+                conn.execute(
+                    update(policies).where(p.version == version).values(meta=_j({**json.loads(meta), **extra}))
+                )
 
     _POLICY_KEYS = ("version", "created", "sha256", "bytes", "parent", "run_id", "meta")
 

@@ -23,9 +23,12 @@ def episodes(
     ] = 0,
     mission_id: Annotated[str | None, Query(pattern=ID_RE.pattern, description="this mission's only")] = None,
     robot_id: Annotated[str | None, Query(pattern=ID_RE.pattern, description="this robot's only")] = None,
+    set_aside: Annotated[
+        bool | None, Query(description="true: only records set aside (no target path explains them); false: none")
+    ] = None,
 ) -> EpisodePage:
     robot_id = robot_scope(request, robot_id) or robot_id  # a robot's own token lists its own records
-    items = srv.store.list_episodes(srv.fleet, limit, after, mission_id, robot_id)
+    items = srv.store.list_episodes(srv.fleet, limit, after, mission_id, robot_id, set_aside)
     return EpisodePage(
         items=[EpisodeSummary(**i) for i in items], next_after=items[-1]["id"] if len(items) == limit else None
     )

@@ -79,13 +79,16 @@ def start_mission(req: MissionRequest, response: Response, srv: Srv) -> Mission:
     if srv.store.get_mission(mid) is not None:
         raise HTTPException(409, f"mission {mid!r} exists")
     timeout = min(req.timeout_s or srv.mission_timeout, srv.mission_timeout)
+    seed = req.seed if req.seed is not None else random.SystemRandom().randrange(2**31)
+    pv, seed, canary = srv.mission_policy(seed)  # during a canary, every other mission flies it
     params = {
-        "seed": req.seed if req.seed is not None else random.SystemRandom().randrange(2**31),
+        "seed": seed,
         "max_steps": req.max_steps or 3 * srv.graph.n,
         "start_node": int(srv.graph.labels[srv.graph.start]),
         "capture": req.capture or srv.default_capture(),
     }
-    pv = srv.current_version()
+    if canary is not None:
+        params["canary"] = canary
     srv.store.add_mission(mid, srv.fleet, robots, params, pv, deadline=time.time() + timeout)
     srv.bus.publish_mission({"type": "start", "mission_id": mid, "robots": robots, "policy_version": pv, **params})
     response.headers["Location"] = f"/api/v1/missions/{mid}"

@@ -89,7 +89,7 @@ class WhoAmI(BaseModel):
 
 
 class Alert(BaseModel):
-    kind: Literal["robot-lost", "run-failed", "run-gated-out", "ingest-rejections", "detection"]
+    kind: Literal["robot-lost", "run-failed", "run-gated-out", "ingest-rejections", "detection", "canary-rolled-back"]
     level: Literal["warning", "error"]
     subject: str = Field(description="the robot, the training run, 'ingest', or the detection's id")
     since: float | None = Field(description="Unix time it began")
@@ -138,6 +138,11 @@ class MissionParams(BaseModel):
     capture: Literal["auto", "confirm"] | None = Field(
         default=None, description="how detections end this mission (None: a mission from before capture modes)"
     )
+    canary: dict[str, Any] | None = Field(
+        default=None,
+        description="flown while a new version was on trial: {arm: baseline|canary, pair, canary_version}; "
+        "the canary arm of a pair repeats its baseline mission's seed",
+    )
 
 
 class Detection(BaseModel):
@@ -151,7 +156,8 @@ class Detection(BaseModel):
     received: float = Field(description="when the server received it (Unix time)")
     status: Literal["pending", "confirmed", "dismissed", "closed"] = Field(
         description="pending: awaits an operator; confirmed: it ended the mission as captured; dismissed: a false "
-        "alarm, the search went on; closed: the mission ended otherwise first"
+        "alarm, the search went on; closed: the mission ended otherwise first (under capture auto: another "
+        "detection, earlier or of a robot listed first, ended it)"
     )
     decided: float | None
     decided_by: str | None = Field(description="auto (the server's --capture auto) or who decided")

@@ -128,6 +128,20 @@ class Hub:
                     "text": f"training run {r['id']} {'was gated out' if gated else 'failed'}: {r['error']}",
                 }
             )
+        for p in self.srv.store.policies():
+            c = (p["meta"] or {}).get("canary") or {}
+            if c.get("state") == "rolled back" and now - c.get("decided", 0) <= RUN_ALERT_AGE:
+                out.append(
+                    {
+                        "kind": "canary-rolled-back",
+                        "level": "warning",
+                        "subject": str(p["version"]),
+                        "since": c["decided"],
+                        "text": f"version {p['version']} was rolled back after its trial: {c['canary_mean']:.2f} "
+                        f"steps against {c['baseline_mean']:.2f} for version {c['baseline']} over {c['pairs']} "
+                        "pairs of the fleet's missions",
+                    }
+                )
         for d in self.srv.store.detections(self.srv.fleet, status="pending"):
             out.append(
                 {

@@ -420,7 +420,8 @@ pages.fleet = async function (ctx) {
     let tr = rowOf[a.robot_id];
     if (!tr) {
       tr = el("tr", { class: "clickable", "data-robot": a.robot_id });
-      tr.append(...Array.from({ length: 8 }, () => el("td")));
+      // last seen, policy and backend: columns a phone hides (console.css)
+      tr.append(...Array.from({ length: 8 }, (_, i) => el("td", { class: [2, 6, 7].includes(i) ? "opt" : null })));
       tr.addEventListener("click", (ev) => ev.target.tagName !== "A" && select(a.robot_id));
       rowOf[a.robot_id] = tr;
     }
@@ -503,7 +504,7 @@ pages.missions = async function (ctx) {
           ? "—"
           : o.captured
             ? `captured at t = ${o.capture_time}` + (o.captured_by ? ` by ${o.captured_by}` : "")
-            : "not captured";
+            : `not captured: ended after ${o.steps} steps${m.ended ? `, ${fmtTime(m.ended)}` : ""}${m.event && m.event.reason ? ` (${m.event.reason})` : ""}`;
         return el(
           "tr",
           { "data-mission": m.id, "data-status": m.status },
@@ -607,7 +608,14 @@ pages.replay = async function (ctx) {
       ["records", `${m.episodes_received.length} of ${m.robots.length}`],
       ["policy version", m.policy_version ?? "—"],
       ["started", fmtTime(m.created)],
-      ["outcome", !o ? "no record yet" : o.captured ? `captured at t = ${o.capture_time}${o.captured_by ? " by " + o.captured_by : ""}` : "not captured"],
+      [
+        "outcome",
+        !o
+          ? "no record yet"
+          : o.captured
+            ? `captured at t = ${o.capture_time}${o.captured_by ? " by " + o.captured_by : ""}`
+            : `not captured: ended after ${o.steps} steps${m.event && m.event.reason ? ` (${m.event.reason})` : ""}`,
+      ],
       ["seed", m.params.seed],
     ];
     $("#replay-summary").replaceChildren(...facts.flatMap(([k, v]) => [el("dt", {}, k), el("dd", { "data-fact": k }, v)]));
@@ -690,17 +698,33 @@ pages.policies = async function (ctx) {
       const run = p.run_id ? runOf[p.run_id] : null;
       const g = run && run.metrics ? run.metrics.gate : null;
       const gate = g
-        ? `${g.passed ? "passed" : "failed"}: ${fmtNum(g.new.mean_capture_time)} vs ${fmtNum(g.current.mean_capture_time)} steps`
-        : p.run_id
-          ? "—"
-          : "initial";
+        ? [
+            `${g.passed ? "passed" : "failed"}: ${fmtNum(g.new.mean_capture_time)} vs ${fmtNum(g.current.mean_capture_time)} steps`,
+            el("span", { class: "sub" }, `${g.new.episodes} episodes${g.model ? `, ${g.model}` : ""}`),
+          ]
+        : [p.run_id ? "—" : "initial"];
       const mt = run && run.metrics ? run.metrics : null;
+      const em = mt ? mt.em : null;
       const trained = mt
-        ? `${mt.train.episodes.toLocaleString()} episodes in ${fmtNum(mt.train.wall_seconds, 0)} s; EM on ${mt.em.missions} missions`
-        : "—";
+        ? [
+            `${mt.train.episodes.toLocaleString()} episodes in ${fmtNum(mt.train.wall_seconds, 0)} s`,
+            el("span", { class: "sub" }, `EM on ${em.missions} missions${em.held_out ? ` (${em.held_out} held out)` : ""} · from v${p.parent} · ${p.run_id}`),
+          ]
+        : [p.parent ? `from v${p.parent}` : "—"];
       const pf = perfOf[p.version];
       const ct = pf ? `${fmtNum(pf.mean_capture_time)} ± ${pf.ci95 === null ? "?" : fmtNum(pf.ci95)} (${pf.missions} missions)` : "no missions yet";
       const m = p.meta || {};
+      const c = m.canary;
+      const trial = !c
+        ? ["—"]
+        : c.state === "flying"
+          ? [`on trial beside v${c.baseline}: ${c.pairs} pairs of missions`]
+          : c.canary_mean !== undefined
+            ? [
+                `${c.state}: ${fmtNum(c.canary_mean)} vs ${fmtNum(c.baseline_mean)} steps (v${c.baseline})`,
+                el("span", { class: "sub" }, `difference ${c.mean_difference >= 0 ? "+" : ""}${fmtNum(c.mean_difference)} ± ${fmtNum(c.ci95)} over ${c.pairs} pairs`),
+              ]
+            : [c.state];
       const method = [m.algorithm || "cepg", m.variant, m.beta !== undefined ? `beta ${JSON.stringify(m.beta)}` : null].filter(Boolean).join(" · ");
       let action = el("span", { class: "badge operator" }, "current");
       if (!p.current) {
@@ -719,18 +743,17 @@ pages.policies = async function (ctx) {
           verb,
         );
       }
+      // the version, when it was made, and what an operator can do with it, in the first column:
+      // always on screen, however narrow the window
       return el(
         "tr",
         { "data-version": p.version, class: p.current ? "selected" : "" },
-        el("td", {}, `v${p.version}`),
-        el("td", {}, fmtTime(p.created)),
-        el("td", {}, p.parent ? `v${p.parent}` : "—"),
-        el("td", {}, p.run_id || "—"),
+        el("td", { class: "version" }, el("strong", {}, `v${p.version} `), action, el("span", { class: "sub" }, fmtTime(p.created))),
         el("td", {}, method),
-        el("td", { class: "trained" }, trained),
-        el("td", {}, gate),
+        el("td", { class: "trained" }, ...trained),
+        el("td", { class: "gate" }, ...gate),
+        el("td", { class: "trial" }, ...trial),
         el("td", { class: "perf" }, ct),
-        el("td", {}, action),
       );
     });
     $("#policies-table tbody").replaceChildren(...rows);
@@ -838,6 +861,8 @@ pages.training = async function (ctx) {
       beta: Number($("#run-beta").value),
       seed: Number($("#run-seed").value),
       gate_episodes: Number($("#run-gate-episodes").value),
+      min_missions: Number($("#run-min-missions").value),
+      canary_pairs: Number($("#run-canary-pairs").value),
       gate: $("#run-gate").checked,
       promote: $("#run-promote").checked,
     };
@@ -860,6 +885,8 @@ pages.data = async function (ctx) {
         ["episodes stored", s.stored],
         ["missions", s.missions],
         ["records rejected", rejected],
+        ["records set aside", Object.values(s.set_aside || {}).reduce((a, b) => a + b, 0)],
+        ["missions usable for training", s.usable_missions],
       ].flatMap(([k, v]) => [el("dt", {}, k), el("dd", { "data-fact": k }, v)]),
     );
     const byv = Object.entries(s.by_policy_version).sort((a, b) => Number(a[0]) - Number(b[0]));
@@ -867,6 +894,12 @@ pages.data = async function (ctx) {
     const rej = Object.entries(s.rejected);
     $("#rejections tbody").replaceChildren(
       ...(rej.length ? rej.map(([k, c]) => el("tr", { "data-reason": k }, el("td", {}, k), el("td", {}, c))) : [el("tr", {}, el("td", { colspan: 2, class: "muted" }, "none"))]),
+    );
+    const aside = (await api("/api/v1/episodes?set_aside=true&limit=50")).items;
+    $("#set-aside tbody").replaceChildren(
+      ...(aside.length
+        ? aside.map((e) => el("tr", { "data-mission": e.mission_id }, el("td", {}, `${e.robot_id} · ${e.mission_id}`), el("td", {}, e.set_aside)))
+        : [el("tr", {}, el("td", { colspan: 2, class: "muted" }, "none"))]),
     );
   }
   async function model() {
@@ -889,6 +922,20 @@ pages.data = async function (ctx) {
   followStatus(ctx, (s) => JSON.stringify(s.episodes), stats);
   await Promise.all([stats(), model().catch((e) => notice(e.message))]);
 };
+
+// Each table cell carries its column's name (data-label), which a narrow screen shows beside the
+// value when it stacks a table's rows as cards (console.css); kept up to date as tables refill.
+function labelCells(root = document) {
+  for (const table of root.querySelectorAll("table.grid")) {
+    const names = [...table.querySelectorAll("thead th")].map((th) => th.textContent.trim());
+    for (const tr of table.querySelectorAll("tbody tr")) {
+      [...tr.children].forEach((td, i) => {
+        if (names[i] && td.dataset.label !== names[i]) td.dataset.label = names[i];
+      });
+    }
+  }
+}
+new MutationObserver(() => labelCells()).observe(document.documentElement, { childList: true, subtree: true });
 
 // ------------------------------------------------------------------ start
 async function start() {
