@@ -19,7 +19,14 @@ from shared.core.graph import builtin_graph
 from shared.core.http import ApiClient, ApiError
 from shared.core.models import Sensor
 from shared.core.records import make_record
-from shared.core.wire import agent_key, episode_key, mission_key, zenoh_config
+from shared.core.wire import (
+    agent_key,
+    detection_key,
+    detection_message,
+    episode_key,
+    mission_key,
+    zenoh_config,
+)
 from shared.tools.fleetsim import start_server, wait_until
 from training_server.server import main as server_main
 
@@ -138,9 +145,22 @@ def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, 
             ]
             for forged in forgeries:
                 r1.put(mission_key("default", "m-sec"), json.dumps({**forged, "mission_id": "m-sec"}).encode())
+            # a detection in r2's name is refused by the router; r1's own reaches the server and
+            # ends the mission (capture auto: the sensor has no false positives)
+            r1.put(
+                detection_key("default", "r2", "m-sec"), json.dumps(detection_message("m-sec", "r2", 1, 43)).encode()
+            )
             time.sleep(1.5)
             assert heard == []
             assert api.get(f"/api/v1/missions/{m['id']}")["status"] == "running" and m["status"] == "running"
+            assert api.get("/api/v1/detections")["items"] == []
+            r1.put(
+                detection_key("default", "r1", "m-sec"), json.dumps(detection_message("m-sec", "r1", 2, 43)).encode()
+            )
+            wait_until(lambda: api.get(f"/api/v1/missions/{m['id']}")["status"] == "captured", 10, "the capture")
+            assert [(d["robot_id"], d["status"]) for d in api.get("/api/v1/detections")["items"]] == [
+                ("r1", "confirmed")
+            ]
         finally:
             sub.undeclare()
             tok.undeclare()

@@ -273,7 +273,7 @@ class Server:
         """Every robot's record of a running mission has arrived: the robots ended it themselves
         (at its step limit, or a robot's own end), so the server ends it too."""
         m = self.store.get_mission(mission_id)
-        if m is None or m["status"] != "running" or (self.bus is not None and mission_id in self.bus.capturing):
+        if m is None or m["status"] != "running" or mission_id in getattr(self.bus, "capturing", {}):
             return  # (a detection's verdict is due: it ends the mission)
         recs = self.store.mission_records(self.fleet, mission_id)
         if not set(m["robots"]) <= {r for r, *_ in recs}:
@@ -282,6 +282,43 @@ class Server:
         limit = m["params"]["max_steps"]
         reason = "step limit" if steps >= limit + 1 else "ended by the robots"
         self.store.mission_event(mission_id, {"type": "stop", "mission_id": mission_id, "reason": reason}, "stopped")
+
+    def reopen_router_on_credentials(self, make_conf: Any, stop: threading.Event, every: float = 1.0) -> None:
+        """While the server is its fleet's secured router: whenever the robots holding credentials
+        change (`training-server robots add|revoke`, `training-server kit`), re-open the Zenoh
+        session with the new users and access rules. Robots reconnect by themselves (their clients
+        retry) and declare their tokens and subscriptions again; a record sent in the gap is resent
+        from the outbox. Checked every ``every`` seconds."""
+        from training_server.bus import Bus
+
+        def fingerprint() -> list[tuple[str, str]]:
+            return sorted((r, str(e.get("zenoh_password"))) for r, e in credentials.robots(self.data_dir).items())
+
+        seen = fingerprint()
+        while not stop.wait(every):
+            now = fingerprint()
+            if now == seen:
+                continue
+            added = sorted({r for r, _ in now} - {r for r, _ in seen})
+            gone = sorted({r for r, _ in seen} - {r for r, _ in now})
+            seen = now
+            t0 = time.perf_counter()
+            try:
+                conf = make_conf()
+                with self.version_lock:  # no mission start in between (it takes this lock)
+                    self.bus.close()  # frees the listening port for the new session
+                    self.bus = Bus(self, conf)
+            except Exception:
+                log.exception("re-opening the Zenoh router after a change of credentials")
+                continue
+            log.warning(
+                "robots' credentials changed (added: %s; revoked: %s; reissued or unchanged: the rest): the router "
+                "re-opened in %.2f s with %d robots",
+                ", ".join(added) or "none",
+                ", ".join(gone) or "none",
+                time.perf_counter() - t0,
+                len(now),
+            )
 
     # ------------------------------------------------------------------ policy versions
     def policy_dir(self, version: int) -> Path:
@@ -709,7 +746,10 @@ def robots_main(argv: list[str]) -> int:
             print(f"training-server: error: robot {robot} holds no credentials", file=sys.stderr)
             return 2
         audit.write(who="admin", client="local", action=f"robots revoke {robot}", status="done")
-        print(f"revoked {robot}: its HTTP token is refused now, its Zenoh password from the server's next start")
+        print(
+            f"revoked {robot}: its HTTP token is refused now; a running server's router re-opens without it "
+            "within seconds"
+        )
         return 0
     token, password = credentials.issue(data_dir, robot)
     out = Path(args.out) if args.out else data_dir / "robots" / f"{robot}-credentials"
@@ -718,8 +758,9 @@ def robots_main(argv: list[str]) -> int:
     write_private(out / "zenoh-password", password + "\n")
     audit.write(who="admin", client="local", action=f"robots add {robot}", status="done")
     print(
-        f"issued credentials for {robot} in {out}: copy 'token' (robot-agent --token-file) and 'zenoh-password' "
-        "(--zenoh-password-file) to the robot; the server's router takes the new user at its next start"
+        f"issued credentials for {robot} in {out}: copy 'token' and 'zenoh-password' to /etc/mures/robot/ on the "
+        "robot (with the fleet's ca.pem; `training-server kit` writes the whole bundle); a running server's "
+        "router takes the new user within seconds"
     )
     return 0
 
@@ -730,6 +771,10 @@ def main(argv: list[str] | None = None) -> int:
         return rotate_token_main(argv[1:])
     if argv[:1] == ["robots"]:
         return robots_main(argv[1:])
+    if argv[:1] == ["kit"]:
+        from training_server.kit import kit_main
+
+        return kit_main(argv[1:])
     args = build_parser().parse_args(argv)
     setup_logging(args.log_json, args.log_level.upper())
     try:
@@ -779,14 +824,19 @@ def _run(args: argparse.Namespace) -> int:
     srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)
     for run_id, status in srv.store.end_interrupted_runs():
         log.warning("training run %s was interrupted by a server restart: now %s", run_id, status)
+    secured_conf = None
     if args.zenoh_config:
         conf = zenoh_config("router", config_file=args.zenoh_config)
     elif args.zenoh_tls_cert:
         listen = args.zenoh_listen or []
         if not listen or any(not ep.startswith("tls/") for ep in listen):
             raise ValueError("--zenoh-tls-cert needs --zenoh-listen tls/HOST:PORT endpoints (and only tls/ ones)")
-        extra = credentials.secured_router(data_dir, args.fleet, args.zenoh_tls_cert, args.zenoh_tls_key)
-        conf = zenoh_config("router", listen=listen, extra=extra)
+
+        def secured() -> Any:  # read again whenever the robots' credentials change
+            extra = credentials.secured_router(data_dir, args.fleet, args.zenoh_tls_cert, args.zenoh_tls_key)
+            return zenoh_config("router", listen=listen, extra=extra)
+
+        conf, secured_conf = secured(), secured
         log.info("zenoh: TLS, user/password and access control for %d robots", len(credentials.robots(data_dir)))
     elif args.zenoh_connect:
         conf = zenoh_config("client", connect=args.zenoh_connect)
@@ -799,6 +849,11 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError(f"cannot start Zenoh: {str(exc).split(' at /')[0]}") from None
     srv.supervisor = Supervisor(srv)
     srv.supervisor.start()
+    stop_watch = threading.Event()
+    if secured_conf is not None:  # robots added or revoked take effect without a restart
+        threading.Thread(
+            target=srv.reopen_router_on_credentials, args=(secured_conf, stop_watch), name="credentials", daemon=True
+        ).start()
     host, port = args.http
     app = create_app(srv)
     tls = {"ssl_certfile": args.tls_cert, "ssl_keyfile": args.tls_key} if args.tls_cert else {}
@@ -828,6 +883,7 @@ def _run(args: argparse.Namespace) -> int:
         http.run()  # returns on SIGINT/SIGTERM
     finally:
         log.info("shutting down")
+        stop_watch.set()
         srv.supervisor.stop()
         srv.bus.close()
         srv.close()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, HTTPException, Path, Query, Request
 
 from training_server.api.deps import READ, WRITE, Srv, errors
 from training_server.api.schemas import MAX_ID, Detection, DetectionList
@@ -18,8 +18,11 @@ from training_server.api.schemas import MAX_ID, Detection, DetectionList
 router = APIRouter(prefix="/detections", tags=["detections"])
 
 
+DetectionId = Annotated[int, Path(ge=1, le=MAX_ID, description="the detection's id")]
+
+
 def _detection(srv: Srv, detection_id: int) -> Detection:
-    d = srv.store.detection(detection_id) if detection_id <= MAX_ID else None
+    d = srv.store.detection(detection_id)
     if d is None:
         raise HTTPException(404, f"no detection {detection_id}")
     return Detection(**d)
@@ -41,7 +44,7 @@ def list_detections(
 
 
 @router.get("/{detection_id}", dependencies=READ, responses=errors(401, 404, 422))
-def get_detection(detection_id: int, srv: Srv) -> Detection:
+def get_detection(detection_id: DetectionId, srv: Srv) -> Detection:
     return _detection(srv, detection_id)
 
 
@@ -58,12 +61,12 @@ def _decide(detection_id: int, request: Request, srv: Srv, confirm: bool) -> Det
 
 
 @router.post("/{detection_id}/confirm", dependencies=WRITE, responses=errors(401, 403, 404, 409, 422))
-def confirm_detection(detection_id: int, request: Request, srv: Srv) -> Detection:
+def confirm_detection(detection_id: DetectionId, request: Request, srv: Srv) -> Detection:
     """The target is there: end the mission as captured at the detection's step, by its robot."""
     return _decide(detection_id, request, srv, confirm=True)
 
 
 @router.post("/{detection_id}/dismiss", dependencies=WRITE, responses=errors(401, 403, 404, 409, 422))
-def dismiss_detection(detection_id: int, request: Request, srv: Srv) -> Detection:
+def dismiss_detection(detection_id: DetectionId, request: Request, srv: Srv) -> Detection:
     """A false alarm: recorded as one, and the search goes on."""
     return _decide(detection_id, request, srv, confirm=False)

@@ -29,6 +29,9 @@ def mission_view(srv: Any, mid: str, m: dict[str, Any] | None = None) -> Mission
         raise HTTPException(404, f"no mission {mid!r}")
     recs = srv.store.mission_records(srv.fleet, mid)
     got = sorted(r for r, *_ in recs)
+    if m["status"] == "running" and set(m["robots"]) <= set(got):  # the robots ended it: so does the server
+        srv.records_complete(mid)
+        m = srv.store.get_mission(mid) or m
     status = m["status"]
     if set(m["robots"]) <= set(got):
         status = "completed"
