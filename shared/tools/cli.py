@@ -560,6 +560,13 @@ def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
             f"  policy version {v}: {d['missions']} missions, {d['mean_capture_time']:.2f} "
             f"± {d['ci95_halfwidth']:.2f} steps, censored {100 * d['censored_fraction']:.1f}%"
         )
+    for t in res.get("trials", []):
+        if "canary_mean" in t:
+            print(
+                f"  trial of version {t['version']}: {t['state']}, {t['canary_mean']:.2f} vs {t['baseline_mean']:.2f} "
+                f"steps for version {t['baseline']} on {t['pairs']} pairs (paired difference "
+                f"{t['mean_difference']:+.2f} ± {t['ci95']:.2f})"
+            )
     print(
         f"episodes stored: {res['episodes_stored']}; rejected: {sum(res['episodes_rejected'].values())}; "
         f"policy versions used: {', '.join(map(str, res['policy_versions_used']))}; "

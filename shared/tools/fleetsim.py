@@ -365,6 +365,8 @@ def run_fleet_sim(
     ids = [f"r{i + 1}" for i in range(robots)]
     results: list[dict[str, Any]] = []
     runs: list[dict[str, Any]] = []
+    trials: list[dict[str, Any]] = []  # the new versions' trials beside the current one, as decided
+    on_trial: int | None = None
     try:
         say(f"fleet-sim: {robots} agents online after {time.perf_counter() - t0:.1f} s; flying {missions} missions")
         for k in range(missions):
@@ -380,6 +382,20 @@ def run_fleet_sim(
                     "policy_version": (out.get("policy_versions") or [m["policy_version"]])[0],
                 }
             )
+            if on_trial is not None:
+                trial = fleet.api.get(f"/api/v1/policies/{on_trial}")["meta"].get("canary") or {}
+                if trial.get("state") not in (None, "flying"):
+                    trials.append({"version": on_trial, **trial})
+                    say(
+                        f"fleet-sim: version {on_trial} {trial['state']} after its trial"
+                        + (
+                            f": {trial['canary_mean']:.2f} vs {trial['baseline_mean']:.2f} steps for version "
+                            f"{trial['baseline']} over {trial['pairs']} pairs of missions"
+                            if "canary_mean" in trial
+                            else ""
+                        )
+                    )
+                    on_trial = None
             if (k + 1) % max(1, missions // 10) == 0 or k + 1 == missions:
                 done = [r["capture_time"] for r in results]
                 mean, half = mean_ci95(done)
@@ -405,6 +421,13 @@ def run_fleet_sim(
                     f"fleet-sim: run {r['id']} {r['status']}"
                     + (f": version {r['version']}" if r["version"] else f" ({r['error']})")
                 )
+                if r["status"] == "succeeded" and (r.get("progress") or {}).get("phase") == "canary":
+                    on_trial = r["version"]
+                    trial = fleet.api.get(f"/api/v1/policies/{on_trial}")["meta"].get("canary") or {}
+                    say(
+                        f"fleet-sim: version {on_trial} on trial: it flies every other mission beside version "
+                        f"{trial.get('baseline')} for {trial.get('pairs')} pairs, then is kept or rolled back"
+                    )
         if serve:
             _serve(fleet, robots)
         stats = fleet.api.get("/api/v1/episodes/stats")
@@ -438,6 +461,7 @@ def run_fleet_sim(
         "policy_versions_used": sorted({r["policy_version"] for r in results}),
         "by_policy_version": by_version,
         "training_runs": runs,
+        "trials": trials,
         "lockstep_step_ms_median": float(np.median(step_ms)) if len(step_ms) else None,
         "wall_seconds": round(time.perf_counter() - t0, 2),
         "results": results,
