@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo demo-train test test-fast lint format bench clean
+.PHONY: install demo demo-train test test-fast lint docs format bench clean
 
 install: $(STAMP)
 
@@ -41,6 +41,11 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
+
+# The documentation site (mkdocs.yml, docs/) in build/site; --strict: a broken link or a missing
+# page fails. The command-line and REST API pages are generated from the code (docs/hooks/).
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
 
 # The suite without the multi-process tests (servers, agents, fleets, subprocess training): minutes less.
 test-fast: $(STAMP)

@@ -1,5 +1,5 @@
-"""Step rate of the TorchRL environment against the raw simulator it wraps (issue: the TorchRL
-environment must step at least half as fast as the raw simulator).
+"""Step rate of the TorchRL environment against the raw simulator it wraps (the target set for it:
+at least half as fast as the raw simulator).
 
 Run: python benchmarks/bench_envs.py [--batch B ...] [--seconds S] [--rounds R] [--threads T] [--default-malloc] [--forms]
 

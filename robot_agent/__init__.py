@@ -1,1 +1,1 @@
-"""The robot agent: runs a committed policy with its own belief filter (issue 4)."""
+"""The robot agent: flies a committed policy with its own belief filter and reports its missions."""

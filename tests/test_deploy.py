@@ -1,6 +1,6 @@
-"""deploy/ as shipped: its Zenoh access control lets a robot write only its own keys and never
-mission control, the same holds for the rules the server builds, and nothing listens in plaintext
-beyond loopback."""
+"""deploy/ and the deployment kit: the zenohd configuration `training-server kit` writes lets a
+robot write only its own keys and never mission control, the same holds for the rules the server
+builds, and nothing listens in plaintext beyond loopback."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from pathlib import Path
 import zenoh
 
 from training_server.credentials import access_control
+from training_server.kit import zenohd_config
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
 
@@ -37,11 +38,16 @@ def robot_ingress_violations(acl: dict, robots: list[str]) -> list[str]:
     return bad
 
 
-def test_shipped_router_rules_keep_robots_to_their_own_keys():
-    conf = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "router.json5"))
+def test_the_kits_zenohd_rules_keep_robots_to_their_own_keys(tmp_path):
+    """What `training-server kit` writes for zenohd, for any fleet name and robots, read by Zenoh."""
+    robots = ["r1", "r2", "r3", "r4"]
+    path = tmp_path / "router.json5"
+    path.write_text(json.dumps(zenohd_config("site-b", robots, 7447)))
+    conf = zenoh.Config.from_file(str(path))
     acl = json.loads(conf.get_json("access_control"))
     assert acl["enabled"] is True
-    assert robot_ingress_violations(acl, ["r1", "r2"]) == []
+    assert robot_ingress_violations(acl, robots) == []
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tls/0.0.0.0:7447"]
 
 
 def test_the_servers_generated_rules_keep_robots_to_their_own_keys():

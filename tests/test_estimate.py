@@ -35,7 +35,7 @@ def test_em_recovers_a_lazy_target_from_robot_records_only(grid_data):
     ll = np.array(est.log_likelihood)
     assert np.all(np.diff(ll) >= -1e-6 * abs(ll[0]))  # EM (with SQUAREM safeguard) never goes down
     tv = mean_row_tv(est.model, truth)
-    assert tv < 0.2, tv  # the acceptance bar of the engine issue (1000 missions there, 400 here)
+    assert tv < 0.2, tv  # the estimator's acceptance bar (set for 1000 missions; 400 here)
     assert tv < mean_row_tv(uniform_walk(g), truth) / 3
     assert np.allclose(est.model.dense().sum(1), 1)
     assert np.all(est.model.dense()[~g.adjacency(closed=True)] == 0)  # support stays on N[u]

@@ -1,4 +1,4 @@
-"""The per-robot policy networks and the CE-PG loss (work in progress: the trainer issue builds on these)."""
+"""The per-robot policy networks and the CE-PG loss (Eq. 9-13)."""
 
 import math
 

@@ -7,7 +7,7 @@ its sha256). A revoked robot's HTTP token is refused at its next request; its Ze
 refused from the server's next start (the router reads its user list when it opens).
 
 With `--zenoh-tls-cert/--zenoh-tls-key` the server's own session is the fleet's router with
-(docs/SPEC.md section 6, deploy/README.md):
+(docs/SPEC.md section 6, docs/deploying.md):
 - TLS on its tls/ endpoints;
 - user/password authentication: a session without a valid robot's credentials is refused;
 - access control, deny by default. A robot may declare its own liveliness token, publish its own

@@ -19,7 +19,7 @@ as `training-server robots add` does). It writes::
     KIT/robots/<id>/                     copy to /etc/mures/robot/ on robot <id>
         robot.env                        the settings deploy/systemd/mures-robot-agent@.service reads
         token, zenoh-password, ca.pem    its HTTP token (scoped to it), Zenoh password, the CA
-    KIT/operators/ca.pem                 what operators' browsers must trust (docs: deploy/README.md)
+    KIT/operators/ca.pem                 what operators' browsers must trust (docs: docs/deploying.md)
 
 A robot that already holds credentials keeps them (its bundle is not rewritten: the server keeps
 only a hash of its token) unless ``--reissue`` is given. Secrets are written with mode 0600.
@@ -308,7 +308,7 @@ def _url_host(host: str) -> str:
         return host
 
 
-def kit_main(argv: list[str]) -> int:
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="training-server kit",
         description="the files a deployment needs: the fleet's CA, the server's certificate and settings, "
@@ -336,6 +336,11 @@ def kit_main(argv: list[str]) -> int:
     )
     p.add_argument("--days", type=int, default=CERT_DAYS, help=f"certificates' validity (default {CERT_DAYS})")
     p.add_argument("--reissue", action="store_true", help="new credentials for robots that have them already")
+    return p
+
+
+def kit_main(argv: list[str]) -> int:
+    p = build_parser()
     args = p.parse_args(argv)
     if not 0 < args.http_port < 65536 or not 0 < args.zenoh_port < 65536:
         p.error("--http-port and --zenoh-port must be ports (1-65535)")

@@ -529,8 +529,8 @@ def checkpoint_dir(results: Path) -> Path:
     under ``$MURES_CHECKPOINTS``, else ``$XDG_CACHE_HOME/mures/checkpoints``, else
     ``~/.cache/mures/checkpoints``, in a folder named after the results directory's absolute path
     (its name and a hash of the path), so that two results directories never share a team's
-    checkpoint. Outside the checkout: a checkout laid anew on the same machine (a new sitting, a
-    fresh clone at the same place) still finds a killed team's checkpoint and continues it, and
+    checkpoint. Outside the checkout: a checkout laid anew on the same machine (a fresh clone at
+    the same place) still finds a killed team's checkpoint and continues it, and
     git never sees it (a checkpoint is a work file, gigabytes for a team with a full replay
     buffer, never a result)."""
     base = os.environ.get(CHECKPOINTS_ENV) or os.path.join(

@@ -1,6 +1,6 @@
 """Resumable training of the MARL baselines: a run's whole state in a directory, written every
 ``every_s`` seconds of training and when a stop is asked, so that a run that is killed (a machine
-handed back, a session's end) or stopped continues from its last checkpoint. A resumed run gives
+handed back, a job's time limit) or stopped continues from its last checkpoint. A resumed run gives
 the same numbers, bit for bit, as one never interrupted (tests/test_marl.py): what is saved is
 everything the next step depends on (networks, optimisers, replay buffers, the episodes in
 flight and their beliefs, every random generator, the collector's carried step, the budget's
