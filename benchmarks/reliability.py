@@ -47,7 +47,7 @@ from shared.core.graph import builtin_graph  # noqa: E402
 from shared.core.http import ApiClient, ApiError  # noqa: E402
 from shared.core.models import Sensor, uniform_walk  # noqa: E402
 from shared.core.records import make_record  # noqa: E402
-from shared.core.wire import episode_key, zenoh_config  # noqa: E402
+from shared.core.wire import send_episode, zenoh_config  # noqa: E402
 from shared.tools.fleetsim import _child_env, free_port, launch, reap, wait_until  # noqa: E402
 
 GRAPH = builtin_graph("office")
@@ -160,19 +160,7 @@ def record(mission: str, robot: str = "r1", rng: random.Random | None = None, st
 
 def send(session: Any, robot: str, mission: str, payload: bytes, timeout: float = 5.0) -> tuple[bool | None, Any]:
     """(True, body) stored/duplicate, (False, body) rejected, (None, None) no answer."""
-    try:
-        for reply in session.get(
-            episode_key("default", robot, mission),
-            payload=payload,
-            timeout=timeout,
-            consolidation=zenoh.ConsolidationMode.NONE,
-        ):
-            if reply.ok is not None:
-                return True, json.loads(reply.ok.payload.to_bytes())
-            return False, json.loads(reply.err.payload.to_bytes())
-    except Exception:  # the session itself failed: no answer
-        return None, None
-    return None, None
+    return send_episode(session, "default", robot, mission, payload, timeout)
 
 
 def stored_missions(api: ApiClient, robot: str | None = None) -> Counter[str]:

@@ -21,7 +21,7 @@ from shared.core.graph import builtin_graph
 from shared.core.http import ApiClient, ApiError
 from shared.core.models import Sensor, uniform_walk
 from shared.core.records import make_record
-from shared.core.wire import episode_key, zenoh_config
+from shared.core.wire import send_episode, zenoh_config
 from shared.engine.evaluate import evaluate, mean_ci95, means_differ
 from shared.learning.snapshot import PolicySearcher, load_snapshot
 from shared.tools.fleetsim import agent_rss_mb, launch, start_server, wait_until
@@ -110,7 +110,7 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
         captured_by=None,
     )
     with zenoh.open(zenoh_config("client", connect=[fleet.zenoh_endpoint])) as s:
-        ok, reply = _send(s, "default", "r1", "impossible-1", json.dumps(impossible).encode())
+        ok, reply = send_episode(s, "default", "r1", "impossible-1", json.dumps(impossible).encode())
     assert ok and reply["status"] == "stored" and reply["set_aside"].startswith("impossible: z = 1 at t=0")
     assert fleet.api.get("/api/v1/episodes/stats")["set_aside"] == {"impossible": 1}
     # canary_pairs 0: made current at once (the canary has a test of its own)
@@ -218,16 +218,6 @@ def test_agent_killed_mid_mission_resends_its_journal_and_outbox(fleet):
     wait_until(lambda: "r1" in fleet.online(), 60, "r1 back online")
 
 
-def _send(session, fleet_name, robot, mission, payload: bytes):
-    for reply in session.get(
-        episode_key(fleet_name, robot, mission), payload=payload, timeout=10, consolidation=zenoh.ConsolidationMode.NONE
-    ):
-        if reply.ok is not None:
-            return True, json.loads(reply.ok.payload.to_bytes())
-        return False, json.loads(reply.err.payload.to_bytes())
-    return None, None
-
-
 def test_bad_records_and_requests_get_clear_errors_and_change_nothing(fleet):
     g = fleet.graph
     good = make_record(
@@ -259,12 +249,12 @@ def test_bad_records_and_requests_get_clear_errors_and_change_nothing(fleet):
     before = fleet.api.get("/api/v1/episodes/stats")
     with zenoh.open(zenoh_config("client", connect=[fleet.zenoh_endpoint])) as s:
         for reason, payload in cases.items():
-            ok, body = _send(s, "default", "r9", "bad-test", payload)
+            ok, body = send_episode(s, "default", "r9", "bad-test", payload)
             assert ok is False and body["reason"] == reason and body["error"], (reason, body)
         padded = {**good, "extra": "x" * 100_000, "outcome": {**good["outcome"], "note": "y"}}
-        ok, body = _send(s, "default", "r9", "bad-test", json.dumps(padded).encode())
+        ok, body = send_episode(s, "default", "r9", "bad-test", json.dumps(padded).encode())
         assert ok and body == {"status": "stored"}
-        ok, body = _send(s, "default", "r9", "bad-test", json.dumps(good).encode())
+        ok, body = send_episode(s, "default", "r9", "bad-test", json.dumps(good).encode())
         assert ok and body == {"status": "duplicate"}
     # what is stored is the record's contract fields: the unknown ones were dropped, not kept verbatim
     assert fleet.api.get("/api/v1/episodes/r9/bad-test") == good
@@ -336,7 +326,7 @@ def test_server_killed_loses_no_acknowledged_episode(tmp_path, database_url):
                     capture_time=None,
                     captured_by=None,
                 )
-                ok, _body = _send(s, "default", "r1", f"m{k}", json.dumps(rec).encode())
+                ok, _body = send_episode(s, "default", "r1", f"m{k}", json.dumps(rec).encode())
                 if ok:
                     acked.append(f"m{k}")
         proc.send_signal(signal.SIGKILL)  # a crash right after the last acknowledgement

@@ -22,26 +22,13 @@ from shared.core.graph import builtin_graph
 from shared.core.http import ApiClient
 from shared.core.models import Sensor
 from shared.core.records import canonical_record, parse_record, unexplained
-from shared.core.wire import episode_key, zenoh_config
+from shared.core.wire import send_episode, zenoh_config
 from shared.tools.fleetsim import start_server
 
 pytestmark = pytest.mark.slow  # a server process
 
 GRAPH = builtin_graph("office")
 EXAMPLES = {"sqlite": 1500, "postgresql": 500}  # MURES_FUZZ_EXAMPLES overrides (benchmarks/reliability.py)
-
-
-def send(session: zenoh.Session, s: Sending) -> tuple[bool | None, dict]:
-    for reply in session.get(
-        episode_key("default", s.robot, s.mission),
-        payload=s.payload,
-        timeout=10,
-        consolidation=zenoh.ConsolidationMode.NONE,
-    ):
-        if reply.ok is not None:
-            return True, json.loads(reply.ok.payload.to_bytes())
-        return False, json.loads(reply.err.payload.to_bytes())
-    return None, {}
 
 
 def test_generated_records_are_stored_once_or_rejected_with_their_reason(tmp_path, database_url, request):
@@ -66,7 +53,7 @@ def test_generated_records_are_stored_once_or_rejected_with_their_reason(tmp_pat
             )
             @given(s=sendings(GRAPH, "default"))
             def one(s: Sending) -> None:
-                ok, body = send(session, s)
+                ok, body = send_episode(session, "default", s.robot, s.mission, s.payload)
                 sent["valid" if s.valid else "invalid"] += 1
                 if s.valid:
                     key = (s.robot, s.mission)

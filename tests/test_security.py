@@ -23,8 +23,8 @@ from shared.core.wire import (
     agent_key,
     detection_key,
     detection_message,
-    episode_key,
     mission_key,
+    send_episode,
     zenoh_config,
 )
 from shared.tools.fleetsim import start_server, wait_until
@@ -65,15 +65,6 @@ def test_rest_api_over_https_with_a_self_signed_certificate(tmp_path):
 
 def _session(endpoint, ca, user=None, password=None):
     return zenoh.open(zenoh_config("client", connect=[endpoint], tls_ca=str(ca), user=user, password=password))
-
-
-def _query(session, key, payload):
-    """(ok, body) of the first reply to a query, (None, None) when nobody answers."""
-    for reply in session.get(key, payload=payload, timeout=3, consolidation=zenoh.ConsolidationMode.NONE):
-        if reply.ok is not None:
-            return True, json.loads(reply.ok.payload.to_bytes())
-        return False, reply.err.payload.to_bytes().decode()
-    return None, None
 
 
 def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, certificates):
@@ -128,9 +119,9 @@ def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, 
                     captured_by=None,
                 )
 
-            ok, body = _query(r1, episode_key("default", "r1", "m1"), json.dumps(rec("r1", "m1")).encode())
+            ok, body = send_episode(r1, "default", "r1", "m1", json.dumps(rec("r1", "m1")).encode(), timeout=3)
             assert ok and body == {"status": "stored"}
-            ok, body = _query(r1, episode_key("default", "r2", "m1"), json.dumps(rec("r2", "m1")).encode())
+            ok, body = send_episode(r1, "default", "r2", "m1", json.dumps(rec("r2", "m1")).encode(), timeout=3)
             assert ok is None  # refused by the router: the server never sees it
             assert api.get("/api/v1/episodes/stats")["stored"] == 1
             # the server's mission control reaches the robots ...

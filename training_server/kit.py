@@ -17,7 +17,7 @@ as `training-server robots add` does). It writes::
                                           per robot and one for the server, access control for all robots)
         zenohd/server-client.json5       the server's client configuration for that router
     KIT/robots/<id>/                     copy to /etc/mures/robot/ on robot <id>
-        robot.env                        the settings deploy/systemd/mures-robot-agent@.service reads
+        robot.env                        the settings deploy/systemd/mures-robot-agent.service reads
         token, zenoh-password, ca.pem    its HTTP token (scoped to it), Zenoh password, the CA
     KIT/operators/ca.pem                 what operators' browsers must trust (docs: docs/deploying.md)
 
@@ -259,7 +259,7 @@ def build_kit(args: argparse.Namespace) -> dict[str, Any]:
                 "MURES_ROBOT_DIR": ROBOT_ETC,
                 "MURES_BACKEND": args.backend,
             },
-            f"robot-agent settings of robot {r} (deploy/systemd/mures-robot-agent@.service, instance {r}).\n"
+            f"robot-agent settings of robot {r} (deploy/systemd/mures-robot-agent.service).\n"
             f"Install: copy this directory to {ROBOT_ETC}/ on the robot (token and zenoh-password\n"
             "are secrets: mode 0600, owned by the user the agent runs as). MURES_BACKEND: your robot's\n"
             "backend (robot_agent/backend.py); sim flies in `mures world`'s simulated building.",

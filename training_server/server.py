@@ -577,7 +577,7 @@ def _write_artifact(version_dir: Path) -> None:
 
 def check_exposure(args: argparse.Namespace) -> None:
     """Safe by default: beyond loopback, HTTP needs TLS and Zenoh needs a config file (TLS, user
-    and password, access control: deploy/zenoh/), unless the operator says --insecure."""
+    and password, access control: `training-server kit` writes them), unless the operator says --insecure."""
     if bool(args.tls_cert) != bool(args.tls_key):
         raise ValueError("--tls-cert and --tls-key go together")
     if bool(args.zenoh_tls_cert) != bool(args.zenoh_tls_key):
@@ -595,7 +595,8 @@ def check_exposure(args: argparse.Namespace) -> None:
         if not is_loopback(zhost) and not (proto == "tls" and args.zenoh_tls_cert):
             raise ValueError(
                 f"--zenoh-listen {ep} is reachable from the network without TLS or authentication: use "
-                "tls/ with --zenoh-tls-cert/--zenoh-tls-key, or --zenoh-config with a deploy/zenoh/ configuration "
+                "tls/ with --zenoh-tls-cert/--zenoh-tls-key (training-server kit makes them), or --zenoh-config "
+                "with a secured configuration "
                 "(or say --insecure)"
             )
 

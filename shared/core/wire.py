@@ -95,6 +95,34 @@ def truth_key(fleet: str, mission: str = "*") -> str:
     return f"mures/{fleet}/truth/{mission}"
 
 
+def send_episode(
+    session: Any, fleet: str, robot: str, mission: str, payload: bytes, timeout: float = 10.0
+) -> tuple[bool | None, dict[str, Any] | None]:
+    """Send one episode record as an agent does (the payload of a query on its episode key) and
+    read the server's answer: (True, {"status": "stored"|"duplicate", ...}), (False, {"reason",
+    "error"}) when it was rejected, (None, None) when nothing answered within ``timeout`` or the
+    session failed. For tools and tests; the agent's outbox keeps its own loop (resends, backoff)."""
+    import zenoh
+
+    try:
+        for reply in session.get(
+            episode_key(fleet, robot, mission),
+            payload=payload,
+            timeout=timeout,
+            consolidation=zenoh.ConsolidationMode.NONE,
+        ):
+            if reply.ok is not None:
+                return True, json.loads(reply.ok.payload.to_bytes())
+            text = reply.err.payload.to_bytes()
+            try:
+                return False, json.loads(text)
+            except ValueError:  # not the server's answer (a router's, say)
+                return False, {"reason": "unknown", "error": text.decode(errors="replace")}
+    except zenoh.ZError:
+        return None, None
+    return None, None
+
+
 def check_id(kind: str, value: str) -> str:
     if not isinstance(value, str) or not ID_RE.match(value):
         raise ValueError(f"{kind} {value!r} must be 1-128 characters of A-Z a-z 0-9 _ . -")
