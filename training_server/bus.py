@@ -335,7 +335,12 @@ class Bus:
             self._reply_err(q, reason, error)
         for q in batch:  # finalise now: the querier's get() ends here, not when Python collects q
             q.drop()
-        for mission_id in {row[2] for row, got in zip(rows, stored, strict=True) if got}:
+        try:
+            running = store.running_among({row[2] for row, got in zip(rows, stored, strict=True) if got})
+        except Exception:
+            log.exception("finding the batch's running missions")
+            running = []
+        for mission_id in running:
             try:  # robots that ended a mission themselves (step limit): the server ends it too
                 self.server.records_complete(mission_id)
             except Exception:

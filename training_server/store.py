@@ -497,6 +497,16 @@ class Store:
             ).all()
         return [self._mission(r) for r in rows], total
 
+    def running_among(self, mission_ids: Iterable[str]) -> list[str]:
+        """Those of ``mission_ids`` that are running missions (one query)."""
+        ids = [m for m in mission_ids if _storable(m)]
+        if not ids:
+            return []
+        m = missions.c
+        with self._tx() as conn:
+            rows = conn.execute(select(m.id).where(m.id.in_(ids), m.status == "running")).all()
+        return sorted(r for (r,) in rows)
+
     def running_missions(self, fleet: str) -> list[dict[str, Any]]:
         m = missions.c
         with self._tx() as conn:

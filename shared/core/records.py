@@ -209,8 +209,15 @@ def unexplained(ep: Episode, graph: Graph) -> str | None:
     Lambda can rule a path out (eta_fn = 0 or eta_fp = 0, or a false alarm), so this is the support
     of the forward filter (Eq. 1) under any model whose Gamma_hat and b0 have full support on
     the map: O(T (n + m)) on the CSR neighbourhoods, no dense array."""
-    l_in, l_out = emission_likelihoods(ep)
     ptr, idx = graph.detection_sets(ep.sensor.detection)
+    (_in0, _in1), (out0, _out1) = ep.sensor.likelihoods()
+    last = len(ep.z) - 1
+    claims_capture = ep.captured and ep.captured_by == ep.robot_id and ep.capture_time == last
+    if out0 > 0 and not claims_capture and not (ep.z == 1).any() and int(np.diff(ptr).max()) < graph.n:
+        # every reading 0, none of which rules out a node outside D(p_t): V \ D(p_t) stays possible
+        # at every step (a closed neighbourhood holds its node), so the record is explained
+        return None
+    l_in, l_out = emission_likelihoods(ep)
     src = np.repeat(np.arange(graph.n), np.diff(graph.closed_ptr))  # (u, v) pairs of the closed neighbourhoods
     dst = graph.closed_idx
     possible = np.ones(graph.n, dtype=bool)
