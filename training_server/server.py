@@ -851,10 +851,12 @@ def _run(args: argparse.Namespace) -> int:
     srv.supervisor = Supervisor(srv)
     srv.supervisor.start()
     stop_watch = threading.Event()
+    watcher = None
     if secured_conf is not None:  # robots added or revoked take effect without a restart
-        threading.Thread(
+        watcher = threading.Thread(
             target=srv.reopen_router_on_credentials, args=(secured_conf, stop_watch), name="credentials", daemon=True
-        ).start()
+        )
+        watcher.start()
     host, port = args.http
     app = create_app(srv)
     tls = {"ssl_certfile": args.tls_cert, "ssl_keyfile": args.tls_key} if args.tls_cert else {}
@@ -885,6 +887,8 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         log.info("shutting down")
         stop_watch.set()
+        if watcher is not None:
+            watcher.join(15)  # a router re-opening now finishes first: the bus closed below is the last one
         srv.supervisor.stop()
         srv.bus.close()
         srv.close()
