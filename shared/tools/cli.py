@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from shared.core.choices import BUILTIN_MAPS, DETECTIONS, ESTIMATORS
+from shared.core.choices import ESTIMATORS
 from shared.core.files import atomic_write
-from shared.core.graph import Graph, GraphError, builtin_graph, load_graph_file
+from shared.core.graph import Graph, GraphError
 from shared.core.models import ModelError, Sensor, TargetModel, parse_target
 from shared.core.records import read_jsonl
 from shared.core.snapshot import SnapshotError
@@ -34,91 +34,20 @@ from shared.engine.estimate import EMWorkerError, collect_missions, em, eq8, mea
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
 from shared.learning import config as train_config
-from shared.learning.config import CHECKPOINT_EVERY_S, positive_int, seconds, whole_number
+from shared.learning.config import CHECKPOINT_EVERY_S, positive_int, seconds
 from shared.learning.snapshot import load_snapshot, save_snapshot
 from shared.registry import searcher_factory
-
-
-class CliError(Exception):
-    pass
-
-
-def _number_where(text: str, ok: Callable[[float], bool], what: str) -> float:
-    """A float that ``ok`` accepts, else an argparse error saying ``what`` was expected."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-    if not ok(v):
-        raise argparse.ArgumentTypeError(f"expected {what}, got {v}")
-    return v
-
-
-def _eta(text: str) -> float:
-    return _number_where(text, lambda v: 0.0 <= v <= 0.5, "a number in [0, 0.5]")
-
-
-def _positive_hours(text: str) -> float:
-    """``--hours``: a finite number of hours above 0 (argparse type)."""
-    return _number_where(text, lambda v: 0.0 < v < float("inf"), "a number of hours above 0")
-
-
-def _map_names(text: str) -> tuple[str, ...]:
-    """``office,museum``: comma-separated names (argparse type; `mures experiment` checks them)."""
-    names = tuple(t.strip().lower() for t in text.split(",") if t.strip())
-    if not names:
-        raise argparse.ArgumentTypeError(f"expected map names separated by commas, got {text!r}")
-    return names
-
-
-def _team_sizes(text: str) -> tuple[int, ...]:
-    """``4`` or ``1,2,3``: comma-separated positive integers (argparse type)."""
-    sizes = tuple(positive_int(t.strip()) for t in text.split(",") if t.strip())
-    if not sizes:
-        raise argparse.ArgumentTypeError(f"expected team sizes separated by commas, got {text!r}")
-    return sizes
-
-
-def _add_map_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--env", choices=BUILTIN_MAPS, help="a built-in map")
-    g.add_argument("--graph", metavar="FILE", help="a JSON graph file (docs/SPEC.md section 7)")
-
-
-def _add_world_args(p: argparse.ArgumentParser) -> None:
-    _add_map_args(p)
-    p.add_argument("--robots", type=positive_int, required=True, help="number of robots N")
-    p.add_argument("--eta-fn", type=_eta, default=0.0, help="false-negative rate, in [0, 0.5] (default 0)")
-    p.add_argument("--eta-fp", type=_eta, default=0.0, help="false-positive rate, in [0, 0.5] (default 0)")
-    p.add_argument(
-        "--detection",
-        choices=DETECTIONS,
-        default=None,
-        help="detection set D(p): {p}, N[p], or the graph file's sensing table (default node; "
-        "neighbourhood for cepg+; a policy snapshot's own when evaluating one)",
-    )
-    p.add_argument(
-        "--target",
-        default="uniform",
-        metavar="MODEL",
-        help="target motion: uniform (default, the paper's), lazy:STAY, or a model.json file",
-    )
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
-
-
-def _graph(args: argparse.Namespace) -> Graph:
-    return builtin_graph(args.env) if args.env else load_graph_file(args.graph)
-
-
-def _world(args: argparse.Namespace, detection: str = "node") -> tuple[Graph, TargetModel, Sensor]:
-    """The map, the true target model and the sensor; ``detection`` when --detection is not given."""
-    graph = _graph(args)
-    target = parse_target(graph, args.target)
-    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection or detection)
-    if sensor.detection == "custom":
-        graph.detection_sets("custom")  # raises a clear error when the graph has no table
-    return graph, target, sensor
+from shared.tools.cli_args import (
+    CliError,
+    add_map_args,
+    add_world_args,
+    graph_of,
+    map_names,
+    positive_hours,
+    team_sizes,
+    world_of,
+)
+from shared.tools.fleet_commands import add_fleet_commands
 
 
 def _device(name: str) -> torch.device:
@@ -164,7 +93,7 @@ def _snapshot_detection(args: argparse.Namespace) -> str:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    graph, target, sensor = _world(args, _snapshot_detection(args))
+    graph, target, sensor = world_of(args, _snapshot_detection(args))
     device = _device(args.device)
     factory = _searcher_factory(args, graph, target, sensor, device)
     res = evaluate(graph, target, sensor, args.robots, factory, episodes=args.episodes, seed=args.seed, device=device)
@@ -196,7 +125,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------- simulate
 def cmd_simulate(args: argparse.Namespace) -> int:
-    graph, target, sensor = _world(args)
+    graph, target, sensor = world_of(args)
     device = _device(args.device)
     factory = _searcher_factory(args, graph, target, sensor, device)
     res = evaluate(
@@ -225,7 +154,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     # shared by two on this 2-core machine, quiet; torch's own threads gained little (18.5 s on two:
     # each small operation waits for the other thread at its end), and lost much under load
     torch.set_num_threads(1)
-    graph = _graph(args)
+    graph = graph_of(args)
     if not Path(args.episodes).is_file():
         raise CliError(f"episode file {args.episodes!r} does not exist")
     t0 = time.perf_counter()
@@ -337,7 +266,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     detection = "neighbourhood" if args.variant == "cepg+" else "node"
     if args.variant == "cepg+" and args.detection == "node":
         raise CliError("cepg+ trains with a sensing range: use --detection neighbourhood or custom, or leave it out")
-    graph, target, sensor = _world(args, detection)
+    graph, target, sensor = world_of(args, detection)
     device = _device(args.device)
     out = Path(args.out)
     if out.exists() and not (out / "policy.json").is_file():
@@ -478,7 +407,7 @@ def cmd_snapshot_convert(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------- map
 def cmd_map(args: argparse.Namespace) -> int:
-    g = _graph(args)
+    g = graph_of(args)
     deg = g.deg_closed - 1
     info = {
         "name": g.name,
@@ -490,131 +419,6 @@ def cmd_map(args: argparse.Namespace) -> int:
         "graph_id": g.graph_id,
     }
     print(json.dumps(info, indent=2))
-    return 0
-
-
-# ---------------------------------------------------------------------- fleet-sim
-def cmd_fleet_sim(args: argparse.Namespace) -> int:
-    from shared.core.http import ApiError
-    from shared.tools.fleetsim import run_fleet_sim
-
-    if args.missions is None:
-        if not args.serve:
-            raise CliError("fleet-sim: give --missions N, or --serve to keep the fleet up for the console")
-        args.missions = 0
-    elif args.missions == 0 and not args.serve:
-        raise CliError("fleet-sim: --missions must be at least 1 (0 only with --serve)")
-    graph, target, sensor = _world(args, "node")
-    graph_args = ["--env", args.env] if args.env else ["--graph", str(Path(args.graph).resolve())]
-    if args.server and not (args.zenoh_connect and args.token_file):
-        raise CliError("--server needs --zenoh-connect ENDPOINT and --token-file FILE (the operator token)")
-    retrain = {"episodes": args.retrain_episodes}
-    server_extra = ["--init-policy", str(Path(args.init_policy).resolve())] if args.init_policy else None
-    if args.init_policy:
-        load_snapshot(args.init_policy, graph)  # a clear error before anything starts
-    try:
-        res = run_fleet_sim(
-            graph,
-            graph_args,
-            target,
-            sensor,
-            args.robots,
-            args.missions,
-            args.seed,
-            args.retrain_every,
-            retrain,
-            Path(args.workdir) if args.workdir else None,
-            quiet=args.json,
-            serve=args.serve,
-            server=args.server,
-            zenoh_connect=args.zenoh_connect,
-            token_file=args.token_file,
-            agent_token_file=args.agent_token_file,
-            step_delay=args.step_delay,
-            server_extra=server_extra,
-        )
-    except (ValueError, TimeoutError, RuntimeError, ApiError) as exc:
-        raise CliError(f"fleet-sim: {exc}") from None
-    except OSError as exc:  # urllib's URLError included
-        raise CliError(
-            f"fleet-sim: cannot reach the server {args.server or ''}: {getattr(exc, 'reason', exc)}"
-        ) from None
-    return _print_fleet_sim(args, res)
-
-
-def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
-    if args.json:
-        print(json.dumps({k: v for k, v in res.items() if k != "results"}, indent=1))
-        return 0
-    lo, hi = res["ci95"]
-    print(
-        f"missions: {res['missions']} on {res['map']} with {res['robots']} robots (seed {res['seed']}), "
-        f"{res['wall_seconds']:.1f} s"
-    )
-    print(
-        f"mean capture time: {res['mean_capture_time']:.2f} (95% CI {lo:.2f}..{hi:.2f}), "
-        f"censored {100 * res['censored_fraction']:.1f}%"
-    )
-    for v, d in res["by_policy_version"].items():
-        print(
-            f"  policy version {v}: {d['missions']} missions, {d['mean_capture_time']:.2f} "
-            f"± {d['ci95_halfwidth']:.2f} steps, censored {100 * d['censored_fraction']:.1f}%"
-        )
-    for t in res.get("trials", []):
-        if "canary_mean" in t:
-            print(
-                f"  trial of version {t['version']}: {t['state']}, {t['canary_mean']:.2f} vs {t['baseline_mean']:.2f} "
-                f"steps for version {t['baseline']} on {t['pairs']} pairs (paired difference "
-                f"{t['mean_difference']:+.2f} ± {t['ci95']:.2f})"
-            )
-    print(
-        f"episodes stored: {res['episodes_stored']}; rejected: {sum(res['episodes_rejected'].values())}; "
-        f"policy versions used: {', '.join(map(str, res['policy_versions_used']))}; "
-        f"lockstep step median {res['lockstep_step_ms_median']:.2f} ms"
-    )
-    return 0
-
-
-# ---------------------------------------------------------------------- world
-def cmd_world(args: argparse.Namespace) -> int:
-    """The simulated world alone, for agents started by hand with ``--backend sim``: it owns the
-    hidden target of every mission the server starts and answers the agents' detections."""
-    import threading
-
-    import zenoh
-
-    from shared.core.wire import DEFAULT_ZENOH_ENDPOINT, check_id, zenoh_config
-    from shared.tools.world import World
-
-    graph, target, sensor = _world(args, "node")
-    for ep in args.zenoh_connect or []:
-        if "/" not in ep or not ep.split("/", 1)[0].isalnum():
-            raise CliError(f"world: --zenoh-connect {ep!r} is not a Zenoh endpoint such as tcp/127.0.0.1:7447")
-    try:
-        check_id("fleet", args.fleet)
-        connect = args.zenoh_connect or [DEFAULT_ZENOH_ENDPOINT]
-        conf = zenoh_config("client", connect=connect, config_file=args.zenoh_config)
-        session = zenoh.open(conf)
-    except (ValueError, zenoh.ZError) as exc:
-        raise CliError(f"world: {str(exc).split(' at /')[0]}") from None
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_a: stop.set())
-    signal.signal(signal.SIGINT, lambda *_a: stop.set())
-    world = World(
-        session, args.fleet, graph, target, sensor, step_timeout=args.step_timeout, step_delay=args.step_delay
-    )
-    print(
-        f"world: simulating fleet {args.fleet!r} on {graph.name} (n={graph.n}), target {args.target}, sensor "
-        f"eta_fn={sensor.eta_fn} eta_fp={sensor.eta_fp} {sensor.detection}; connected to "
-        f"{args.zenoh_config or ', '.join(connect)}; Ctrl-C stops it",
-        file=sys.stderr,
-        flush=True,
-    )
-    try:
-        stop.wait()
-    finally:
-        world.close()
-        session.close()
     return 0
 
 
@@ -685,7 +489,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("evaluate", help="evaluate a searcher in simulation and print capture-time statistics")
-    _add_world_args(p)
+    add_world_args(p)
     p.add_argument(
         "--searcher", required=True, help="random, greedy, fhpe, fhpe-sa, milp, d-milp, oracle, or policy:DIR"
     )
@@ -694,7 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("simulate", help="simulate missions and write their episode records (JSON Lines)")
-    _add_world_args(p)
+    add_world_args(p)
     p.add_argument("--searcher", default="random", help="searcher that drives the robots (default random)")
     p.add_argument("--missions", type=positive_int, required=True, help="number of missions")
     p.add_argument("--fleet", default="default", help="fleet name written into the records")
@@ -703,7 +507,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("estimate", help="estimate Gamma_hat and b0 from episode records")
-    _add_map_args(p)
+    add_map_args(p)
     p.add_argument("--episodes", required=True, metavar="FILE.jsonl", help="episode records (JSON Lines)")
     p.add_argument("--out", required=True, metavar="model.json")
     p.add_argument("--method", choices=ESTIMATORS, default="em", help="EM (default) or the paper's Eq. 8")
@@ -736,7 +540,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "train", help="train a team in simulation (CE-PG or a MARL baseline) and write a policy snapshot"
     )
-    _add_world_args(p)
+    add_world_args(p)
     p.add_argument("--out", required=True, metavar="DIR", help="snapshot directory to write")
     train_config.add_flags(p)  # one flag per TrainConfig field, its defaults
     p.add_argument("--true-model", dest="belief", action="store_const", const="true", help="the same as --belief true")
@@ -772,45 +576,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("fleet-sim", help="run server, simulated world and N robot agents on loopback; fly missions")
-    _add_world_args(p)
-    p.add_argument("--missions", type=whole_number, default=None, help="missions to fly (0 with --serve)")
-    p.add_argument(
-        "--serve",
-        action="store_true",
-        help="then keep the fleet up for the operator console (http://HOST:PORT/) until Ctrl-C",
-    )
-    p.add_argument("--retrain-every", type=int, default=0, metavar="K", help="retrain over HTTP every K missions")
-    p.add_argument("--retrain-episodes", type=positive_int, default=20_000, help="CE-PG episodes per retrain")
-    p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")
-    p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step, seconds")
-    p.add_argument("--workdir", help="keep the server's data, agents' state and logs here (default: a temp dir)")
-    p.add_argument("--server", metavar="URL", help="attach to this running server instead of starting one")
-    p.add_argument("--zenoh-connect", metavar="ENDPOINT", help="with --server: the fleet's Zenoh router")
-    p.add_argument("--token-file", metavar="FILE", help="with --server: the operator token")
-    p.add_argument("--agent-token-file", metavar="FILE", help="with --server: the agent token (default --token-file)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.set_defaults(func=cmd_fleet_sim)
-
-    p = sub.add_parser(
-        "world", help="the simulated world alone (the target, the detections) for agents run by hand with --backend sim"
-    )
-    _add_map_args(p)
-    p.add_argument(
-        "--zenoh-connect",
-        action="append",
-        metavar="ENDPOINT",
-        help="the fleet's router (repeatable; default the server's own, tcp/127.0.0.1:7447)",
-    )
-    p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file instead (TLS, credentials)")
-    p.add_argument("--fleet", default="default", help="fleet name (default 'default')")
-    p.add_argument("--eta-fn", type=_eta, default=0.0, help="false-negative rate, in [0, 0.5] (default 0)")
-    p.add_argument("--eta-fp", type=_eta, default=0.0, help="false-positive rate, in [0, 0.5] (default 0)")
-    p.add_argument("--detection", choices=DETECTIONS, default=None, help="detection set D(p) (default node)")
-    p.add_argument("--target", default="uniform", metavar="MODEL", help="uniform (default), lazy:STAY or a model.json")
-    p.add_argument("--step-timeout", type=float, default=10.0, help="withdraw a robot silent this long (s, default 10)")
-    p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step (s, default 0)")
-    p.set_defaults(func=cmd_world)
+    add_fleet_commands(sub)
 
     p = sub.add_parser("experiment", help="regenerate one of the paper's figures as data and a plot")
     p.add_argument("name", help="fig4 .. fig13 (fig8 comes with fig7), marl (the MARL baselines), or all")
@@ -852,13 +618,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--maps",
-        type=_map_names,
+        type=map_names,
         metavar="MAP[,MAP]",
         help="run on these of the paper's maps only: office, museum (default both)",
     )
     p.add_argument(
         "--robots",
-        type=_team_sizes,
+        type=team_sizes,
         metavar="N[,N...]",
         help="team sizes of fig6, fig7, fig9 and fig10 (default: 1..5 for fig7, 1..5 or 2,4 with --quick for the "
         "others); the N = 4 figures keep N = 4",
@@ -877,7 +643,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--hours",
-        type=_positive_hours,
+        type=positive_hours,
         metavar="H",
         help="start no job whose estimate (x1.7) would end more than H hours from now, longest jobs first; if "
         "any is left, write no figure and exit with status 3: the same command later goes on from the cache "
@@ -898,7 +664,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("map", help="print a map's size and graph_id")
-    _add_map_args(p)
+    add_map_args(p)
     p.set_defaults(func=cmd_map)
 
     p = sub.add_parser("snapshot", help="policy snapshot tools")

@@ -1,0 +1,93 @@
+"""What the `mures` commands share: their error, argument types, and the map and world arguments."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+
+from shared.core.choices import BUILTIN_MAPS, DETECTIONS
+from shared.core.graph import Graph, builtin_graph, load_graph_file
+from shared.core.models import Sensor, TargetModel, parse_target
+from shared.learning.config import positive_int
+
+
+class CliError(Exception):
+    pass
+
+
+def number_where(text: str, ok: Callable[[float], bool], what: str) -> float:
+    """A float that ``ok`` accepts, else an argparse error saying ``what`` was expected."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not ok(v):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {v}")
+    return v
+
+
+def eta_arg(text: str) -> float:
+    return number_where(text, lambda v: 0.0 <= v <= 0.5, "a number in [0, 0.5]")
+
+
+def positive_hours(text: str) -> float:
+    """``--hours``: a finite number of hours above 0 (argparse type)."""
+    return number_where(text, lambda v: 0.0 < v < float("inf"), "a number of hours above 0")
+
+
+def map_names(text: str) -> tuple[str, ...]:
+    """``office,museum``: comma-separated names (argparse type; `mures experiment` checks them)."""
+    names = tuple(t.strip().lower() for t in text.split(",") if t.strip())
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected map names separated by commas, got {text!r}")
+    return names
+
+
+def team_sizes(text: str) -> tuple[int, ...]:
+    """``4`` or ``1,2,3``: comma-separated positive integers (argparse type)."""
+    sizes = tuple(positive_int(t.strip()) for t in text.split(",") if t.strip())
+    if not sizes:
+        raise argparse.ArgumentTypeError(f"expected team sizes separated by commas, got {text!r}")
+    return sizes
+
+
+def add_map_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--env", choices=BUILTIN_MAPS, help="a built-in map")
+    g.add_argument("--graph", metavar="FILE", help="a JSON graph file (docs/SPEC.md section 7)")
+
+
+def add_world_args(p: argparse.ArgumentParser) -> None:
+    add_map_args(p)
+    p.add_argument("--robots", type=positive_int, required=True, help="number of robots N")
+    p.add_argument("--eta-fn", type=eta_arg, default=0.0, help="false-negative rate, in [0, 0.5] (default 0)")
+    p.add_argument("--eta-fp", type=eta_arg, default=0.0, help="false-positive rate, in [0, 0.5] (default 0)")
+    p.add_argument(
+        "--detection",
+        choices=DETECTIONS,
+        default=None,
+        help="detection set D(p): {p}, N[p], or the graph file's sensing table (default node; "
+        "neighbourhood for cepg+; a policy snapshot's own when evaluating one)",
+    )
+    p.add_argument(
+        "--target",
+        default="uniform",
+        metavar="MODEL",
+        help="target motion: uniform (default, the paper's), lazy:STAY, or a model.json file",
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+
+
+def graph_of(args: argparse.Namespace) -> Graph:
+    return builtin_graph(args.env) if args.env else load_graph_file(args.graph)
+
+
+def world_of(args: argparse.Namespace, detection: str = "node") -> tuple[Graph, TargetModel, Sensor]:
+    """The map, the true target model and the sensor; ``detection`` when --detection is not given."""
+    graph = graph_of(args)
+    target = parse_target(graph, args.target)
+    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection or detection)
+    if sensor.detection == "custom":
+        graph.detection_sets("custom")  # raises a clear error when the graph has no table
+    return graph, target, sensor

@@ -1,0 +1,182 @@
+"""`mures fleet-sim` and `mures world`: the fleet on loopback, and the simulated world alone."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+from shared.core.choices import DETECTIONS
+from shared.learning.config import positive_int, whole_number
+from shared.learning.snapshot import load_snapshot
+from shared.tools.cli_args import CliError, add_map_args, add_world_args, eta_arg, world_of
+
+
+def cmd_fleet_sim(args: argparse.Namespace) -> int:
+    from shared.core.http import ApiError
+    from shared.tools.fleetsim import run_fleet_sim
+
+    if args.missions is None:
+        if not args.serve:
+            raise CliError("fleet-sim: give --missions N, or --serve to keep the fleet up for the console")
+        args.missions = 0
+    elif args.missions == 0 and not args.serve:
+        raise CliError("fleet-sim: --missions must be at least 1 (0 only with --serve)")
+    graph, target, sensor = world_of(args, "node")
+    graph_args = ["--env", args.env] if args.env else ["--graph", str(Path(args.graph).resolve())]
+    if args.server and not (args.zenoh_connect and args.token_file):
+        raise CliError("--server needs --zenoh-connect ENDPOINT and --token-file FILE (the operator token)")
+    retrain = {"episodes": args.retrain_episodes}
+    server_extra = ["--init-policy", str(Path(args.init_policy).resolve())] if args.init_policy else None
+    if args.init_policy:
+        load_snapshot(args.init_policy, graph)  # a clear error before anything starts
+    try:
+        res = run_fleet_sim(
+            graph,
+            graph_args,
+            target,
+            sensor,
+            args.robots,
+            args.missions,
+            args.seed,
+            args.retrain_every,
+            retrain,
+            Path(args.workdir) if args.workdir else None,
+            quiet=args.json,
+            serve=args.serve,
+            server=args.server,
+            zenoh_connect=args.zenoh_connect,
+            token_file=args.token_file,
+            agent_token_file=args.agent_token_file,
+            step_delay=args.step_delay,
+            server_extra=server_extra,
+        )
+    except (ValueError, TimeoutError, RuntimeError, ApiError) as exc:
+        raise CliError(f"fleet-sim: {exc}") from None
+    except OSError as exc:  # urllib's URLError included
+        raise CliError(
+            f"fleet-sim: cannot reach the server {args.server or ''}: {getattr(exc, 'reason', exc)}"
+        ) from None
+    return _print_fleet_sim(args, res)
+
+
+def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
+    if args.json:
+        print(json.dumps({k: v for k, v in res.items() if k != "results"}, indent=1))
+        return 0
+    lo, hi = res["ci95"]
+    print(
+        f"missions: {res['missions']} on {res['map']} with {res['robots']} robots (seed {res['seed']}), "
+        f"{res['wall_seconds']:.1f} s"
+    )
+    print(
+        f"mean capture time: {res['mean_capture_time']:.2f} (95% CI {lo:.2f}..{hi:.2f}), "
+        f"censored {100 * res['censored_fraction']:.1f}%"
+    )
+    for v, d in res["by_policy_version"].items():
+        print(
+            f"  policy version {v}: {d['missions']} missions, {d['mean_capture_time']:.2f} "
+            f"± {d['ci95_halfwidth']:.2f} steps, censored {100 * d['censored_fraction']:.1f}%"
+        )
+    for t in res.get("trials", []):
+        if "canary_mean" in t:
+            print(
+                f"  trial of version {t['version']}: {t['state']}, {t['canary_mean']:.2f} vs {t['baseline_mean']:.2f} "
+                f"steps for version {t['baseline']} on {t['pairs']} pairs (paired difference "
+                f"{t['mean_difference']:+.2f} ± {t['ci95']:.2f})"
+            )
+    print(
+        f"episodes stored: {res['episodes_stored']}; rejected: {sum(res['episodes_rejected'].values())}; "
+        f"policy versions used: {', '.join(map(str, res['policy_versions_used']))}; "
+        f"lockstep step median {res['lockstep_step_ms_median']:.2f} ms"
+    )
+    return 0
+
+
+# ---------------------------------------------------------------------- world
+def cmd_world(args: argparse.Namespace) -> int:
+    """The simulated world alone, for agents started by hand with ``--backend sim``: it owns the
+    hidden target of every mission the server starts and answers the agents' detections."""
+    import threading
+
+    import zenoh
+
+    from shared.core.wire import DEFAULT_ZENOH_ENDPOINT, check_id, zenoh_config
+    from shared.tools.world import World
+
+    graph, target, sensor = world_of(args, "node")
+    for ep in args.zenoh_connect or []:
+        if "/" not in ep or not ep.split("/", 1)[0].isalnum():
+            raise CliError(f"world: --zenoh-connect {ep!r} is not a Zenoh endpoint such as tcp/127.0.0.1:7447")
+    try:
+        check_id("fleet", args.fleet)
+        connect = args.zenoh_connect or [DEFAULT_ZENOH_ENDPOINT]
+        conf = zenoh_config("client", connect=connect, config_file=args.zenoh_config)
+        session = zenoh.open(conf)
+    except (ValueError, zenoh.ZError) as exc:
+        raise CliError(f"world: {str(exc).split(' at /')[0]}") from None
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_a: stop.set())
+    signal.signal(signal.SIGINT, lambda *_a: stop.set())
+    world = World(
+        session, args.fleet, graph, target, sensor, step_timeout=args.step_timeout, step_delay=args.step_delay
+    )
+    print(
+        f"world: simulating fleet {args.fleet!r} on {graph.name} (n={graph.n}), target {args.target}, sensor "
+        f"eta_fn={sensor.eta_fn} eta_fp={sensor.eta_fp} {sensor.detection}; connected to "
+        f"{args.zenoh_config or ', '.join(connect)}; Ctrl-C stops it",
+        file=sys.stderr,
+        flush=True,
+    )
+    try:
+        stop.wait()
+    finally:
+        world.close()
+        session.close()
+    return 0
+
+
+def add_fleet_commands(sub: Any) -> None:
+    """The fleet-sim and world subcommands of `mures` (``sub``: its subparsers)."""
+    p = sub.add_parser("fleet-sim", help="run server, simulated world and N robot agents on loopback; fly missions")
+    add_world_args(p)
+    p.add_argument("--missions", type=whole_number, default=None, help="missions to fly (0 with --serve)")
+    p.add_argument(
+        "--serve",
+        action="store_true",
+        help="then keep the fleet up for the operator console (http://HOST:PORT/) until Ctrl-C",
+    )
+    p.add_argument("--retrain-every", type=int, default=0, metavar="K", help="retrain over HTTP every K missions")
+    p.add_argument("--retrain-episodes", type=positive_int, default=20_000, help="CE-PG episodes per retrain")
+    p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")
+    p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step, seconds")
+    p.add_argument("--workdir", help="keep the server's data, agents' state and logs here (default: a temp dir)")
+    p.add_argument("--server", metavar="URL", help="attach to this running server instead of starting one")
+    p.add_argument("--zenoh-connect", metavar="ENDPOINT", help="with --server: the fleet's Zenoh router")
+    p.add_argument("--token-file", metavar="FILE", help="with --server: the operator token")
+    p.add_argument("--agent-token-file", metavar="FILE", help="with --server: the agent token (default --token-file)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_fleet_sim)
+
+    p = sub.add_parser(
+        "world", help="the simulated world alone (the target, the detections) for agents run by hand with --backend sim"
+    )
+    add_map_args(p)
+    p.add_argument(
+        "--zenoh-connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="the fleet's router (repeatable; default the server's own, tcp/127.0.0.1:7447)",
+    )
+    p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file instead (TLS, credentials)")
+    p.add_argument("--fleet", default="default", help="fleet name (default 'default')")
+    p.add_argument("--eta-fn", type=eta_arg, default=0.0, help="false-negative rate, in [0, 0.5] (default 0)")
+    p.add_argument("--eta-fp", type=eta_arg, default=0.0, help="false-positive rate, in [0, 0.5] (default 0)")
+    p.add_argument("--detection", choices=DETECTIONS, default=None, help="detection set D(p) (default node)")
+    p.add_argument("--target", default="uniform", metavar="MODEL", help="uniform (default), lazy:STAY or a model.json")
+    p.add_argument("--step-timeout", type=float, default=10.0, help="withdraw a robot silent this long (s, default 10)")
+    p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step (s, default 0)")
+    p.set_defaults(func=cmd_world)
