@@ -127,6 +127,7 @@ class Server:
         self.supervisor: Any = None
         self.is_stopping: Any = lambda: False  # main() points it at uvicorn's should_exit
         self.started = time.time()
+        self.router_reopened = 0  # times the secured router re-opened (credentials changed)
         map_id = self.store.get_setting("graph_id")
         if map_id is None:
             self.store.set_setting("graph_id", graph.graph_id)
@@ -308,6 +309,7 @@ class Server:
                 with self.version_lock:  # no mission start in between (it takes this lock)
                     self.bus.close()  # frees the listening port for the new session
                     self.bus = Bus(self, conf)
+                    self.router_reopened += 1
             except Exception:
                 log.exception("re-opening the Zenoh router after a change of credentials")
                 continue
@@ -892,6 +894,14 @@ def _run(args: argparse.Namespace) -> int:
         srv.supervisor.stop()
         srv.bus.close()
         srv.close()
+    if srv.router_reopened:
+        # A Zenoh session closed at a re-opening can leave its runtime's threads behind, and one of
+        # them reaching into Python while the interpreter finalises aborts the process (SIGABRT,
+        # "exception not rethrown"). Everything is closed and written by now: end here, with 0.
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0
 
 
