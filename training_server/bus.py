@@ -216,10 +216,8 @@ class Bus:
         try:
             mode = self.server.on_detection(det)
             if mode == "auto":
-                mission = self.server.store.get_mission(det["mission_id"])
-                order = mission["robots"].index(det["robot_id"]) if mission else 0
                 _due, found = self.capturing.setdefault(det["mission_id"], (time.monotonic() + CAPTURE_WINDOW_S, []))
-                found.append((det["t"], order, det))
+                found.append((det["t"], det["order"], det))
         except Exception:
             log.exception("handling detection %s", det)
 

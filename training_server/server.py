@@ -201,26 +201,27 @@ class Server:
     def on_detection(self, det: dict[str, Any]) -> str | None:
         """A robot's detection (wire.parse_detection's message), from the bus's worker. Checked
         against the mission (running, the robot in it, t within its step limit, a node of the map)
-        and recorded; under "auto" the caller ends the mission (returns "auto"), under "confirm"
-        it waits for an operator (returns "confirm"). None: ignored, with the reason logged."""
+        and recorded (``det`` gains its "id" and the robot's "order" in the mission); under "auto"
+        the caller ends the mission (returns "auto"), under "confirm" it waits for an operator
+        (returns "confirm"). None: ignored, with the reason logged."""
         mid, robot = det["mission_id"], det["robot_id"]
         m = self.store.get_mission(mid)
-        why = (
-            "no such mission"
-            if m is None
-            else f"{robot} is not in it"
-            if robot not in m["robots"]
-            else f"t={det['t']} is past its step limit {m['params']['max_steps']}"
-            if det["t"] > m["params"]["max_steps"]
-            else f"node {det['node']} is not on the map"
-            if det["node"] not in self.graph.index
-            else f"the mission is {m['status']}"
-            if m["status"] != "running"
-            else ""
-        )
-        if why or m is None:
+        if m is None:
+            why = "no such mission"
+        elif robot not in m["robots"]:
+            why = f"{robot} is not in it"
+        elif det["t"] > m["params"]["max_steps"]:
+            why = f"t={det['t']} is past its step limit {m['params']['max_steps']}"
+        elif det["node"] not in self.graph.index:
+            why = f"node {det['node']} is not on the map"
+        elif m["status"] != "running":
+            why = f"the mission is {m['status']}"
+        else:
+            why = ""
+        if m is None or why:
             log.info("detection by %s at t=%s in mission %s ignored: %s", robot, det["t"], mid, why)
             return None
+        det["order"] = m["robots"].index(robot)  # its place in the mission's list: the capture window's tie-break
         mode = m["params"].get("capture") or self.default_capture()
         # "pending" awaits an operator; under "auto" the capture window decides (confirmed or closed)
         status = "pending" if mode == "confirm" else "closed"
@@ -338,13 +339,13 @@ class Server:
             raise RuntimeError("no policy version yet")
         return int(v)
 
-    def set_current(self, version: int, by: str = "operator") -> None:
-        """Make ``version`` current. An operator's choice ends a canary in progress (recorded as such)."""
+    def set_current(self, version: int) -> None:
+        """Make ``version`` current (an operator's choice): it ends a canary in progress, recorded as such."""
         if self.store.policy(version) is None:
             raise KeyError(version)
         with self.version_lock:
             canary = self.canary()
-            if canary is not None and by == "operator":
+            if canary is not None:
                 self._end_canary(canary, "ended by the operator", {"made_current": version})
             self.store.set_setting("current_version", str(version))
 
@@ -401,13 +402,9 @@ class Server:
             return None
         arms: dict[int, dict[str, float]] = {}
         for o in self.store.canary_outcomes(self.fleet, canary["version"]):
-            if o["captured"] and o["capture_time"] is not None:
-                ct = float(o["capture_time"])
-            elif o["stop_reason"] == "step limit" and o["max_steps"]:
-                ct = float(o["max_steps"])
-            else:
-                continue  # stopped or timed out early: no capture time
-            arms.setdefault(o["pair"], {})[o["arm"]] = ct
+            ct = self.store.counted_capture_time(o)
+            if ct is not None:  # (stopped or timed out early: no capture time)
+                arms.setdefault(o["pair"], {})[o["arm"]] = ct
         pairs = sorted(k for k, a in arms.items() if {"canary", "baseline"} <= set(a))
         if len(pairs) < canary["pairs"]:
             return None

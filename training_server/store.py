@@ -39,6 +39,7 @@ from sqlalchemy.exc import (
 )
 from sqlalchemy.pool import StaticPool
 
+from shared.core.records import SET_ASIDE_REASONS
 from training_server.schema import detections, episodes, missions, policies, rejections, settings, training_runs
 
 log = logging.getLogger("mures.server.store")
@@ -277,18 +278,18 @@ class Store:
             byv = conn.execute(
                 select(e.policy_version, func.count()).where(e.fleet == fleet).group_by(e.policy_version)
             ).all()
-            aside = conn.execute(
-                select(e.set_aside, func.count())
-                .where(e.fleet == fleet, e.set_aside.is_not(None))
-                .group_by(e.set_aside)
-            ).all()
+            by_reason = {  # "<code>: <why>": a count per code, not a row per message
+                code: n
+                for code in SET_ASIDE_REASONS
+                if (
+                    n := conn.execute(
+                        select(func.count()).where(e.fleet == fleet, e.set_aside.like(f"{code}:%"))
+                    ).scalar_one()
+                )
+            }
             usable = conn.execute(
                 select(func.count(e.mission_id.distinct())).where(e.fleet == fleet, e.set_aside.is_(None))
             ).scalar_one()
-        by_reason: dict[str, int] = {}
-        for text, count in aside:  # "<code>: <message>"
-            code = text.split(":", 1)[0]
-            by_reason[code] = by_reason.get(code, 0) + count
         return {
             "stored": stored,
             "rejected": rej,
@@ -551,6 +552,17 @@ class Store:
                 }
             )
         return out
+
+    @staticmethod
+    def counted_capture_time(outcome: dict[str, Any]) -> float | None:
+        """The capture time a mission outcome (``mission_outcomes``, ``canary_outcomes``) counts
+        for: its capture time when captured, its step limit when it ran to it, None when it was
+        stopped or timed out early (it does not count)."""
+        if outcome["captured"] and outcome["capture_time"] is not None:
+            return float(outcome["capture_time"])
+        if outcome["stop_reason"] == "step limit" and outcome["max_steps"]:
+            return float(outcome["max_steps"])
+        return None
 
     def canary_outcomes(self, fleet: str, canary_version: int) -> list[dict[str, Any]]:
         """The missions flown for the canary of ``canary_version`` whose every record has arrived:

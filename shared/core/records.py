@@ -25,6 +25,7 @@ SCHEMA = "mures.episode/1"
 MAX_STEPS = 100_000
 MAX_INT = 2**63 - 1  # integers must fit the database's 64 bits
 MAX_RECORD_BYTES = 16 * 1024 * 1024
+SET_ASIDE_REASONS = ("impossible",)  # the codes that start a set-aside record's "<code>: <why>" (unexplained)
 ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,128}$")  # usable as one Zenoh key segment
 
 
@@ -203,6 +204,12 @@ def emission_likelihoods(ep: Episode, capture_aware: bool = True) -> tuple[np.nd
     return l_in, l_out
 
 
+def spread(graph: Graph, possible: np.ndarray) -> np.ndarray:
+    """Where the target can be one step later: ``possible`` (..., n) bool over nodes, each node
+    reachable from any node of its closed neighbourhood (the support of Gamma^T b, O(n + m))."""
+    return np.logical_or.reduceat(possible[..., graph.closed_idx], graph.closed_ptr[:-1], axis=-1)
+
+
 def unexplained(ep: Episode, graph: Graph) -> str | None:
     """Why no path of the target on the map (a walk over closed neighbourhoods from any node)
     explains the record under its own sensor model, or None when some path does. Only a zero in
@@ -218,14 +225,10 @@ def unexplained(ep: Episode, graph: Graph) -> str | None:
         # at every step (a closed neighbourhood holds its node), so the record is explained
         return None
     l_in, l_out = emission_likelihoods(ep)
-    src = np.repeat(np.arange(graph.n), np.diff(graph.closed_ptr))  # (u, v) pairs of the closed neighbourhoods
-    dst = graph.closed_idx
     possible = np.ones(graph.n, dtype=bool)
     for t in range(len(ep.z)):
         if t:
-            nxt = np.zeros(graph.n, dtype=bool)
-            nxt[dst[possible[src]]] = True  # where the target can be at t: a step from where it could be
-            possible = nxt
+            possible = spread(graph, possible)  # where the target can be at t
         inside = np.zeros(graph.n, dtype=bool)
         p = int(ep.nodes[t])
         inside[idx[ptr[p] : ptr[p + 1]]] = True

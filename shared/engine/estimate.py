@@ -35,7 +35,7 @@ import torch
 
 from shared.core.graph import Graph
 from shared.core.models import TargetModel, from_matrix, uniform_walk
-from shared.core.records import Episode, RecordError, emission_likelihoods, parse_record
+from shared.core.records import Episode, RecordError, emission_likelihoods, parse_record, spread
 
 
 @dataclass
@@ -121,13 +121,11 @@ def explained(graph: Graph, lik: np.ndarray, length: np.ndarray) -> np.ndarray:
     starts (the uniform walk). O(M T (n + m))."""
     T = lik.shape[1]
     possible = lik[:, 0] > 0
-    starts = graph.closed_ptr[:-1]
     for t in range(1, T):
         running = length > t
         if not running.any():
             break
-        step = np.logical_or.reduceat(possible[:, graph.closed_idx], starts, axis=1)  # a move within N[u]
-        possible = np.where(running[:, None], step & (lik[:, t] > 0), possible)
+        possible = np.where(running[:, None], spread(graph, possible) & (lik[:, t] > 0), possible)
     return np.asarray(possible.any(1), dtype=bool)
 
 

@@ -70,14 +70,12 @@ def performance(srv: Srv) -> PerformanceOut:
     caught: dict[int, int] = {}
     excluded = 0
     for o in srv.store.mission_outcomes(srv.fleet):
-        v = o["policy_version"]
-        if v is not None and o["captured"] and o["capture_time"] is not None:
-            times.setdefault(v, []).append(float(o["capture_time"]))
-            caught[v] = caught.get(v, 0) + 1
-        elif v is not None and o["stop_reason"] == "step limit" and o["max_steps"]:
-            times.setdefault(v, []).append(float(o["max_steps"]))
-        else:
+        v, ct = o["policy_version"], srv.store.counted_capture_time(o)
+        if v is None or ct is None:
             excluded += 1
+            continue
+        times.setdefault(v, []).append(ct)
+        caught[v] = caught.get(v, 0) + int(o["captured"] and o["capture_time"] is not None)
     items = []
     for v in sorted(times):
         mean, half = mean_ci95(times[v])
