@@ -11,7 +11,9 @@ import argparse
 import json
 from pathlib import Path
 
-from shared.tools import experiments as ex
+from shared.tools.experiments import FULL, QUICK, Context
+from shared.tools.experiments.figures.beta import fig5_rows
+from shared.tools.experiments.report.readings import beta_reading
 
 
 def main() -> None:
@@ -20,12 +22,11 @@ def main() -> None:
     p.add_argument("--map", choices=("office", "museum"), default="office")
     p.add_argument("--quick", action="store_true")
     args = p.parse_args()
-    root, b = Path(args.results), ex.QUICK if args.quick else ex.FULL
-    ex._CELLS = root / "cells"
-    rows = ex.fig5_rows(root, args.map, b)
+    root = Path(args.results)
+    rows = fig5_rows(Context(root, QUICK if args.quick else FULL, cells=root / "cells"), args.map)
     for r in rows:
         print(json.dumps(r))
-    print("\n".join(ex._beta_reading(rows)))
+    print("\n".join(beta_reading(rows)))
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """What remains of the paper's protocol, given a results directory's cache: the teams still to
 train and the cells still to evaluate for the parts not yet recorded, each job counted once (a team
 that several figures fly is trained once), with `mures experiment --plan`'s estimates of their time
-on one core (shared/tools/experiments.py, TRAIN_MS_PER_EPISODE).
+on one core (shared/tools/experiments/costs.py, TRAIN_MS_PER_EPISODE).
 
 Run: python benchmarks/protocol_remaining.py [--results results] [--list] [--calibrate]
 
@@ -21,7 +21,11 @@ from pathlib import Path
 from statistics import geometric_mean
 
 from shared.core.snapshot import META, read_meta
-from shared.tools import experiments as ex
+from shared.tools.experiments.budget import budget
+from shared.tools.experiments.cells import cell_job
+from shared.tools.experiments.costs import MAP_COST, train_cost
+from shared.tools.experiments.schedule import outlook
+from shared.tools.runner import Job
 
 # (figure, maps, team sizes or None for the figure's own, a budget fraction applies)
 PARTS = [
@@ -37,10 +41,10 @@ def calibrate(results: Path) -> None:
     for meta_file in sorted((results / "snapshots").glob(f"*/{META}")):
         meta = read_meta(meta_file.parent)
         env, summary = meta["map"].lower(), meta.get("summary", {})
-        if not summary.get("wall_seconds") or env not in ex.MAP_COST:
+        if not summary.get("wall_seconds") or env not in MAP_COST:
             continue  # a team without a measured time, or on a map of one's own
         method = meta.get("algorithm", "cepg")
-        estimate = ex._train_cost(method, env, meta["robots"], summary["episodes"], meta["sensor"]["eta_fn"])
+        estimate = train_cost(method, env, meta["robots"], summary["episodes"], meta["sensor"]["eta_fn"])
         ratios[env, method].append(summary["wall_seconds"] / estimate)
     print(f"{results}: cached teams' wall time / --plan's estimate")
     print(f"  {'map':8s} {'method':8s} {'teams':>5s} {'geo mean':>8s} {'least':>6s} {'most':>6s}")
@@ -58,15 +62,15 @@ def main() -> None:
     if args.calibrate:
         calibrate(args.results)
         return
-    jobs: dict[str, ex.Job] = {}
+    jobs: dict[str, Job] = {}
     later: dict[str, float] = {}
     for name, maps, robots, scalable in PARTS:
-        b = ex.budget(name, False, None, maps, robots, args.fraction if scalable else None, True)
-        planned, waiting = ex.outlook(name, args.results, b)
-        jobs.update((j.key, j) for j in planned)
-        later.update(waiting)
-    teams = [j for j in jobs.values() if j.fn is not ex._cell_job]
-    cells = [j for j in jobs.values() if j.fn is ex._cell_job]
+        b = budget(name, False, None, maps, robots, args.fraction if scalable else None, True)
+        planned = outlook(name, args.results, b)
+        jobs.update((j.key, j) for j in planned.jobs or [])
+        later.update(planned.later.values())
+    teams = [j for j in jobs.values() if j.fn is not cell_job]
+    cells = [j for j in jobs.values() if j.fn is cell_job]
     team_s = sum(j.weight for j in teams)
     cell_s = sum(j.weight for j in cells) + sum(later.values())
     print(

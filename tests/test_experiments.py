@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from shared.tools.cli import main
-from shared.tools.experiments import report
+from shared.tools.experiments.report import report
 
 
 def test_fig4_quick_and_report(tmp_path, capsys):
@@ -87,26 +87,27 @@ def test_report_reading_follows_the_numbers(tmp_path):
     rows.pop()
     # a protocol run flies one team per method: with fig5's training seeds recorded, the reading
     # says how far a team moved with its training run there (not for quick runs, nor without fig5)
-    from shared.tools.experiments import _training_spread
+    from shared.tools.experiments.report.readings import training_spread
 
     assert "Each method here is one team" not in report(tmp_path, tmp_path / "r.md").read_text()
-    assert _training_spread(tmp_path, {"quick": False, "rows": []}) == []
+    assert training_spread(tmp_path, {"quick": False, "rows": []}) == []
     (tmp_path / "fig5").mkdir()
     per_seed = {"method": "cepg", "beta": 0.5, "training_seeds": [0, 1, 2], "diff_to_pg_per_seed": [-0.2, 0.9, 0.4]}
     one_seed = {**per_seed, "beta": 0.5, "training_seeds": [0], "diff_to_pg_per_seed": [0.3]}
     (tmp_path / "fig5" / "fig5.json").write_text(
         json.dumps({"rows": [{"map": "museum", **per_seed}, {"map": "office", **one_seed}]})
     )
-    text = " ".join(_training_spread(tmp_path, {"quick": False, "rows": [{"training_seeds": [0]}, {}]}))
+    text = " ".join(training_spread(tmp_path, {"quick": False, "rows": [{"training_seeds": [0]}, {}]}))
     assert "one team (training seed 0)" in text
     assert "paired difference to PG ranges MUSEUM -0.20 to +0.90 over seeds [0, 1, 2];" in text
-    assert "OFFICE" not in text and _training_spread(tmp_path, {"quick": True, "rows": []}) == []
+    assert "OFFICE" not in text and training_spread(tmp_path, {"quick": True, "rows": []}) == []
 
 
 def test_fig8_tables_and_plots_every_map(tmp_path):
     """Decision times are reported for every map fig7 covers, in fig7's order, each with its own
     team sizes, and plotted one panel per map."""
-    from shared.tools.experiments import _plot_fig8
+    from shared.tools.experiments import QUICK, Context
+    from shared.tools.experiments.figures.methods import fig8
 
     rows = [
         {"map": env, "robots": n, "method": m, "decision_ms": ms, "episodes": 10, "seed": 1}
@@ -120,7 +121,7 @@ def test_fig8_tables_and_plots_every_map(tmp_path):
     setup |= {"horizons": {}, "discount": 0.97, "wall_seconds": 1.0}
     (tmp_path / "fig7").mkdir()
     (tmp_path / "fig7" / "fig7.json").write_text(json.dumps({**setup, "rows": rows}))
-    _plot_fig8(tmp_path / "fig8", rows, setup)
+    fig8(Context(tmp_path, QUICK), rows, setup)
     assert len(json.loads((tmp_path / "fig8" / "fig8.json").read_text())["rows"]) == 6
     assert (tmp_path / "fig8" / "fig8.png").stat().st_size > 1000
     section = report(tmp_path, tmp_path / "results.md").read_text().split("## Fig. 8")[1].split("\n## ")[0]
@@ -132,7 +133,7 @@ def test_fig8_tables_and_plots_every_map(tmp_path):
 
 
 def test_paired_differences_to_cepg_are_over_the_same_episodes():
-    from shared.tools.experiments import _paired_to_cepg
+    from shared.tools.experiments.cells import paired_to_cepg
 
     base = {"map": "office", "robots": 4, "seed": 1, "mean_capture_time": 0.0, "ci95_halfwidth": 0.0}
     rows = [
@@ -141,7 +142,7 @@ def test_paired_differences_to_cepg_are_over_the_same_episodes():
         {**base, "method": "milp", "episodes": 2, "capture_times": np.array([1.0, 2.0])},
         {**base, "method": "fhpe-sa", "episodes": 8},
     ]
-    out = _paired_to_cepg(rows)
+    out = paired_to_cepg(rows)
     assert all("capture_times" not in r for r in out)
     assert out[1]["diff_to_cepg"] == 1.0 and out[1]["diff_to_cepg_ci95"] == 0.0  # one step later in every episode
     assert "diff_to_cepg" not in out[0] and "diff_to_cepg" not in out[2] and "diff_to_cepg" not in out[3]
@@ -150,36 +151,36 @@ def test_paired_differences_to_cepg_are_over_the_same_episodes():
 def test_fig6_reading_uses_fig7_paired_differences_where_it_has_them(tmp_path):
     """The variants against CE-PG: fig7's paired difference for the same map and N when fig7 flew
     the same cells (both rows as fig6's), else whether the two CIs are disjoint."""
-    from shared.tools.experiments import _variants_reading
+    from shared.tools.experiments.report.readings import variants_reading
 
     def row(method, mean, half, N=4):
         return {"map": "museum", "robots": N, "method": method, "mean_capture_time": mean, "ci95_halfwidth": half}
 
     rows = [row("cepg", 20.0, 1.0), row("cepg+", 7.0, 0.5), row("c-cepg", 21.0, 1.0)]
-    (line, _blank) = _variants_reading(rows, tmp_path)
+    (line, _blank) = variants_reading(rows, tmp_path)
     assert "cepg+ captures sooner than CE-PG (7.00 against 20.00, 95% CIs disjoint)" in line
     assert "c-cepg is not separated from CE-PG (21.00 against 20.00, 95% CIs overlap)" in line
     fig7 = tmp_path / "fig7"
     fig7.mkdir()
     paired = {**row("c-cepg", 21.0, 1.0), "diff_to_cepg": 1.0, "diff_to_cepg_ci95": 0.4}
     (fig7 / "fig7.json").write_text(json.dumps({"rows": [row("cepg", 20.0, 1.0), paired]}))
-    (line, _blank) = _variants_reading(rows, tmp_path)
+    (line, _blank) = variants_reading(rows, tmp_path)
     assert "c-cepg captures later than CE-PG (fig7's paired difference +1.00 ± 0.40)" in line
     # a fig7 recorded with other teams (its CE-PG flew 19.5): its paired difference is not these teams'
     (fig7 / "fig7.json").write_text(json.dumps({"rows": [row("cepg", 19.5, 1.0), paired]}))
-    (line, _blank) = _variants_reading(rows, tmp_path)
+    (line, _blank) = variants_reading(rows, tmp_path)
     assert "c-cepg is not separated from CE-PG (21.00 against 20.00, 95% CIs overlap)" in line
-    assert _variants_reading([row("cepg+", 7.0, 0.5)], tmp_path) == []  # no CE-PG row to compare with
+    assert variants_reading([row("cepg+", 7.0, 0.5)], tmp_path) == []  # no CE-PG row to compare with
 
 
 def test_noise_sweep_reading_says_where_the_value_rises():
-    from shared.tools.experiments import _trend_reading
+    from shared.tools.experiments.report.readings import trend_reading
 
     rows = [
         {"robots": 4, "eta_fn": x, "mean_capture_time": m, "ci95_halfwidth": 0.5}
         for x, m in ((0.3, 12.0), (0.0, 8.0), (0.1, 8.5))
     ]
-    (line, _blank) = _trend_reading(rows, "eta_fn", "mean_capture_time", "ci95_halfwidth")
+    (line, _blank) = trend_reading(rows, "eta_fn", "mean_capture_time", "ci95_halfwidth")
     assert line == (
         "The paper: the mean capture time rises with eta_fn. Here, at N = 4, 0.0 -> 0.1: the 95% CIs overlap "
         "(8.00 to 8.50); 0.1 -> 0.3: rises (8.50 to 12.00)."
@@ -187,19 +188,19 @@ def test_noise_sweep_reading_says_where_the_value_rises():
 
 
 def test_fp_sweep_reading_says_whether_the_capture_time_moved():
-    from shared.tools.experiments import _unmoved_reading
+    from shared.tools.experiments.report.readings import unmoved_reading
 
     def row(n, fp, m):
         return {"robots": n, "eta_fp": fp, "mean_capture_time": m, "ci95_halfwidth": 0.5, "episodes": 100}
 
     rows = [row(4, 0.5, 8.8), row(4, 0.0, 8.0), row(4, 0.1, 8.1), row(2, 0.0, 20.0), row(2, 0.5, 22.0)]
-    (line, _blank) = _unmoved_reading(rows, "eta_fp")
+    (line, _blank) = unmoved_reading(rows, "eta_fp")
     assert line == (
         "The paper: eta_fp does not change the capture time. Here, at N = 4, eta_fp 0.0 -> 0.5: "
         "8.00 ± 0.50 to 8.80 ± 0.50, 95% CIs overlap; at N = 2, eta_fp 0.0 -> 0.5: 20.00 ± 0.50 to "
         "22.00 ± 0.50, it rises (95% CIs disjoint)."
     )
-    assert _unmoved_reading([row(4, 0.0, 8.0)], "eta_fp") == []  # one rate: nothing to compare
+    assert unmoved_reading([row(4, 0.0, 8.0)], "eta_fp") == []  # one rate: nothing to compare
 
 
 def test_marl_budgets_per_method():
@@ -207,41 +208,43 @@ def test_marl_budgets_per_method():
     MAPPO 4x10^5 episodes, MADDPG and MASAC 3x10^5, MAMBPO and FACMAC 2x10^5; --train-episodes
     sets every learned team's budget alike."""
     from shared.learning.marl import hyperparameters
-    from shared.tools.experiments import FULL, MARL, _marl_budget, _setup
+    from shared.tools.experiments import FULL, MARL
+    from shared.tools.experiments.recording import figure_setup
+    from shared.tools.experiments.report.text import marl_budget
 
     plateau = {"mappo": 400_000, "maddpg": 300_000, "masac": 300_000, "facmac": 200_000, "mambpo": 200_000}
     assert {m: FULL.marl_episodes(m) for m in MARL} == plateau
     assert {m: hyperparameters(m).episodes for m in MARL} == plateau
-    assert _marl_budget(_setup("fig7", FULL)) == (
+    assert marl_budget(figure_setup("fig7", FULL)) == (
         "each method's default budget (MADDPG 300,000, MASAC 300,000, FACMAC 200,000, MAMBPO 200,000, MAPPO 400,000)"
     )
     b = FULL.with_train(5_000)
     assert b.marl_episodes("mappo") == b.marl_episodes("masac") == 5_000
-    assert _marl_budget(_setup("fig7", b)) == "5,000 episodes"
+    assert marl_budget(figure_setup("fig7", b)) == "5,000 episodes"
     # a file recorded when the defaults were other budgets does not claim today's
     old = {"marl_training_episodes": "each method's default"}
-    assert _marl_budget(old) == "each method's default budget when recorded (each row's training episodes)"
+    assert marl_budget(old) == "each method's default budget when recorded (each row's training episodes)"
 
 
 def test_withdrawal_reading_names_the_best_learned_team_and_each_rise():
-    from shared.tools.experiments import _withdrawal_reading
+    from shared.tools.experiments.report.readings import withdrawal_reading
 
     def row(method, withdrawn, mean, half=0.5):
         return {"method": method, "withdrawn": withdrawn, "mean_capture_time": mean, "ci95_halfwidth": half}
 
     rows = [row("greedy", "none", 20.0), row("cepg", "none", 8.0), row("mappo", "none", 7.0)]
     rows += [row("greedy", "r4@t5", 9.0), row("cepg", "r4@t5", 11.0), row("mappo", "r4@t5", 11.5)]
-    (line, _blank) = _withdrawal_reading(rows)
+    (line, _blank) = withdrawal_reading(rows)
     assert (
         "cepg captures soonest of the learned methods (11.00 ± 0.50), then mappo (11.50 ± 0.50; 95% CIs overlap)"
         in line
     )
     assert line.endswith("Rise over the intact team: cepg +3.00, mappo +4.50.")  # greedy is not a learned method
-    assert _withdrawal_reading(rows[:3]) == []
+    assert withdrawal_reading(rows[:3]) == []
 
 
 def test_fig11_reading_ranks_cepg_among_methods_that_sense_as_it_does():
-    from shared.tools.experiments import _ranking_reading
+    from shared.tools.experiments.report.readings import ranking_reading
 
     def row(method, eta, mean, half=0.5, episodes=1500):
         return {
@@ -255,30 +258,30 @@ def test_fig11_reading_ranks_cepg_among_methods_that_sense_as_it_does():
     rows = [row("cepg", 0.0, 8.0), row("cepg+", 0.0, 3.0), row("masac", 0.0, 6.0), row("mappo", 0.0, 7.8)]
     rows += [row("milp", 0.0, 1.0, float("nan"), 1), row("random", 0.0, 25.0)]
     rows += [row("cepg", 0.3, 9.0), row("random", 0.3, 26.0)]
-    (line, _blank) = _ranking_reading(rows)
+    (line, _blank) = ranking_reading(rows)
     # cepg+ (broader sensor) and a one-episode cell are left out; mappo is ahead by mean but not separated
     assert line.endswith(
         "eta_fn 0.0: cepg ranks 3 of 4 (8.00 ± 0.50); sooner, separated: masac 6.00 ± 0.50 (CIs disjoint); "
         "eta_fn 0.3: cepg ranks 1 of 2 (9.00 ± 0.50); none is sooner and separated."
     )
-    assert _ranking_reading([row("random", 0.0, 25.0), row("masac", 0.0, 6.0)]) == []  # no CE-PG row
+    assert ranking_reading([row("random", 0.0, 25.0), row("masac", 0.0, 6.0)]) == []  # no CE-PG row
 
 
 def test_fig13_reading_ranks_the_teams_trained_for_five():
-    from shared.tools.experiments import _dropout_reading
+    from shared.tools.experiments.report.readings import dropout_reading
 
     def row(method, k, mean, half=0.5):
         return {"method": method, "robots": k, "mean_capture_time": mean, "ci95_halfwidth": half, "episodes": 1500}
 
     rows = [row("cepg trained for 5", 2, 20.0), row("masac trained for 5", 2, 15.0), row("cepg trained for k", 2, 9.0)]
     rows += [row("cepg trained for 5", 5, 8.0), row("masac trained for 5", 5, 9.0)]
-    (line, _blank) = _dropout_reading(rows)
+    (line, _blank) = dropout_reading(rows)
     # the team trained for k is the reference, not ranked; k = 5 is the intact team
     assert line.endswith(
         "of the teams trained for 5: k = 2: cepg trained for 5 ranks 2 of 2 (20.00 ± 0.50); "
         "sooner, separated: masac 15.00 ± 0.50 (CIs disjoint)."
     )
-    assert _dropout_reading(rows[3:]) == []  # only the intact team
+    assert dropout_reading(rows[3:]) == []  # only the intact team
 
 
 def test_fig13_pairs_each_team_with_cepgs_of_the_same_training(tmp_path, monkeypatch):
@@ -286,24 +289,25 @@ def test_fig13_pairs_each_team_with_cepgs_of_the_same_training(tmp_path, monkeyp
     difference to CE-PG's team trained as it was (for 5, or for k). Capture times made up so that
     the answer is known: a MARL team trained for 5 takes 2 steps less than CE-PG's in every
     episode, one trained for k 1 + k steps more."""
-    from shared.tools import experiments as E
+    from shared.tools.experiments import MARL, Budget, Context, cells, teams
+    from shared.tools.experiments.figures.robustness import fig13
 
     base = np.arange(10.0, 20.0)
 
-    def cell(env, k, method, make, episodes, times=False, **kw):
+    def cell(ctx, env, k, method, make, episodes, times=False, **kw):
         m, _, trained = method.partition(" trained for ")
         shift = 0.0 if m == "cepg" else (-2.0 if trained == "5" else 1.0 + k)
         t = base + (k if trained == "5" else 3 * k) + shift  # CE-PG's two teams differ too
         row = {"map": env, "robots": k, "method": method, "episodes": len(t), "seed": 1}
         return {**row, "mean_capture_time": float(t.mean()), "ci95_halfwidth": 1.0, "capture_times": t}
 
-    monkeypatch.setattr(E, "_cell", cell)
-    for stub in ("_snapshot", "_marl_snapshot", "_flown", "_learned"):
-        monkeypatch.setattr(E, stub, lambda *a, **kw: None)
-    b = E.Budget(quick=True, episodes=10, train=256, planner=1, milp_limit=0.05, teams=(4,), maps=("office",))
-    E.fig13(tmp_path, b)
+    monkeypatch.setattr(cells, "cell_row", cell)
+    for stub in ("cepg_snapshot", "marl_snapshot", "Team", "learned_team"):
+        monkeypatch.setattr(teams, stub, lambda *a, **kw: None)
+    b = Budget(quick=True, episodes=10, train=256, planner=1, milp_limit=0.05, teams=(4,), maps=("office",))
+    fig13(Context(tmp_path, b))
     rows = json.loads((tmp_path / "fig13" / "fig13.json").read_text())["rows"]
-    assert len(rows) == 2 * 5 * (1 + len(E.MARL)) and not any("capture_times" in r for r in rows)
+    assert len(rows) == 2 * 5 * (1 + len(MARL)) and not any("capture_times" in r for r in rows)
     for r in rows:
         k, trained = r["robots"], r["method"].rsplit(" ", 1)[1]
         if r["method"].startswith("cepg "):
@@ -352,6 +356,9 @@ def test_plan_says_what_a_run_would_train_and_evaluate_and_runs_nothing(tmp_path
     import re
 
     from shared.tools import experiments as E
+    from shared.tools.experiments.budget import LEARNED
+    from shared.tools.experiments.cells import reference
+    from shared.tools.experiments.costs import cell_cost, planner_step_cost, train_cost
 
     argv = ["experiment", "fig7", "--quick", "--maps", "office", "--robots", "2", "--results", str(tmp_path)]
     assert main([*argv, "--plan"]) == 0
@@ -359,7 +366,7 @@ def test_plan_says_what_a_run_would_train_and_evaluate_and_runs_nothing(tmp_path
     head = re.match(r"fig7 in .*: (\d+) teams to train, (\d+) cells to evaluate now and (\d+) once", lines[0])
     assert head, lines[0]
     teams, now, later = map(int, head.groups())
-    learned = len(E.LEARNED) + len(E.MARL)
+    learned = len(LEARNED) + len(E.MARL)
     assert teams == learned and later == learned and now >= 2 + len(E.PLANNERS)  # random, greedy, planners
     assert len(lines) == 1 + teams + now + later
     assert any("training MADDPG office N=2" in ln for ln in lines) and any(
@@ -367,25 +374,25 @@ def test_plan_says_what_a_run_would_train_and_evaluate_and_runs_nothing(tmp_path
     )
     assert not any(tmp_path.iterdir())
     # a team's estimate follows its method's measured cost per episode, map and team size
-    assert E._train_cost("maddpg", "office", 4, 1000) > 10 * E._train_cost("cepg", "office", 4, 1000)
-    assert E._train_cost("cepg", "museum", 4, 1000) > E._train_cost("cepg", "office", 4, 1000)
+    assert train_cost("maddpg", "office", 4, 1000) > 10 * train_cost("cepg", "office", 4, 1000)
+    assert train_cost("cepg", "museum", 4, 1000) > train_cost("cepg", "office", 4, 1000)
     # and, as a job's steps, it lengthens with the sensor's misses: twice the steps at eta_fn 0.5
-    assert E._train_cost("masac", "office", 4, 1000, eta_fn=0.5) == pytest.approx(
-        2 * E._train_cost("masac", "office", 4, 1000)
+    assert train_cost("masac", "office", 4, 1000, eta_fn=0.5) == pytest.approx(
+        2 * train_cost("masac", "office", 4, 1000)
     )
     cell = {"env": "office", "robots": 4, "episodes": 30, "sensor": {"eta_fn": 0.5, "eta_fp": 0.0}}
-    assert E._cell_cost("d-milp", cell) == pytest.approx(2 * E._cell_cost("d-milp", {**cell, "sensor": {"eta_fn": 0}}))
+    assert cell_cost("d-milp", cell) == pytest.approx(2 * cell_cost("d-milp", {**cell, "sensor": {"eta_fn": 0}}))
     # a planner's step costs more with every robot it plans for (D-MILP a solve each, FHPE-SA's
     # annealing per robot, FHPE's joint paths), and more on the larger map
     for m in ("d-milp", "fhpe-sa", "fhpe"):
-        assert E._planner_step_cost(m, "office", 3) > E._planner_step_cost(m, "office", 1)
-    assert E._planner_step_cost("fhpe-sa", "museum", 4) > E._planner_step_cost("fhpe-sa", "office", 4)
+        assert planner_step_cost(m, "office", 3) > planner_step_cost(m, "office", 1)
+    assert planner_step_cost("fhpe-sa", "museum", 4) > planner_step_cost("fhpe-sa", "office", 4)
     # a MILP cell is priced at the time limit it solves under (--quick's 0.05 s, the protocol's 1 s)
     from shared.core.models import Sensor
 
-    quick, full = (E._reference("office", 4, "milp", Sensor(), time_limit=t) for t in (0.05, 1.0))
+    quick, full = (reference("office", 4, "milp", Sensor(), time_limit=t) for t in (0.05, 1.0))
     cell0 = {**cell, "sensor": {"eta_fn": 0}}
-    assert E._cell_cost("milp", cell0, quick) == pytest.approx(0.05 * E._cell_cost("milp", cell0, full))
+    assert cell_cost("milp", cell0, quick) == pytest.approx(0.05 * cell_cost("milp", cell0, full))
     assert main([*argv, "--plan", "--train-episodes", "10", "--train-fraction", "0.5"]) == 2
     assert "not both" in capsys.readouterr().err
 
@@ -395,10 +402,11 @@ def test_a_run_narrowed_to_one_map_and_team_size(tmp_path):
     the report tables OFFICE alone."""
     from shared.tools import experiments as E
     from shared.tools.experiments import Budget
+    from shared.tools.experiments.schedule import run_one
 
     b = Budget(quick=True, episodes=40, train=256, planner=1, milp_limit=0.05, teams=(2, 4))
     narrowed = dataclasses.replace(b, maps=("office",), robots=(1,))
-    E._run_one("fig6", tmp_path, narrowed, quick=True)  # as `run` does once the teams are trained: cells cached
+    run_one("fig6", tmp_path, narrowed)  # as `run` does once the teams are trained: cells cached
     d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
     assert {(r["map"], r["robots"]) for r in d["rows"]} == {("office", 1)} and d["maps"] == ["office"]
     assert (tmp_path / "fig6" / "fig6.png").stat().st_size > 1000
@@ -412,11 +420,12 @@ def test_a_figure_recorded_in_runs_at_different_budgets(tmp_path):
     """`--add`: a run at other team sizes (here at half the budget, `--train-fraction 0.5`) adds
     its rows to the recorded figure, each row with its own budget; a later run of a size already
     recorded replaces that size's rows; the report lists the runs."""
-    from shared.tools.experiments import Budget, fig6
+    from shared.tools.experiments import Budget, Context
+    from shared.tools.experiments.figures.variants import fig6
 
     b = Budget(quick=True, episodes=30, train=512, planner=1, milp_limit=0.05, teams=(2, 4), maps=("office",))
-    fig6(tmp_path, dataclasses.replace(b, robots=(1,)))
-    fig6(tmp_path, dataclasses.replace(b.scaled(0.5), robots=(2,), add=True))
+    fig6(Context(tmp_path, dataclasses.replace(b, robots=(1,))))
+    fig6(Context(tmp_path, dataclasses.replace(b.scaled(0.5), robots=(2,), add=True)))
     d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
     trained = {(r["robots"], r["method"]): r["train_episodes"] for r in d["rows"]}
     assert set(trained) == {(n, m) for n in (1, 2) for m in ("cepg", "cepg+", "c-cepg")}
@@ -432,7 +441,7 @@ def test_a_figure_recorded_in_runs_at_different_budgets(tmp_path):
     assert "OFFICE N = 2: learned teams trained for 256 episodes" in section
     assert "| method | robots 1 | robots 2 |" in section
 
-    fig6(tmp_path, dataclasses.replace(b, robots=(2,), add=True))  # N = 2 again, at the full budget
+    fig6(Context(tmp_path, dataclasses.replace(b, robots=(2,), add=True)))  # N = 2 again, at the full budget
     d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
     assert [(p["training_episodes"], p["covers"]) for p in d["parts"]] == [
         (512, [["office", 1]]),
@@ -442,9 +451,9 @@ def test_a_figure_recorded_in_runs_at_different_budgets(tmp_path):
     # without --add, a run that covers N = 2 only would drop N = 1's rows: refused before it writes
     before = (tmp_path / "fig6" / "fig6.json").read_bytes()
     with pytest.raises(ValueError, match=r"holds rows of OFFICE N = 1, which this run does not cover: --add"):
-        fig6(tmp_path, dataclasses.replace(b, robots=(2,)))
+        fig6(Context(tmp_path, dataclasses.replace(b, robots=(2,))))
     assert (tmp_path / "fig6" / "fig6.json").read_bytes() == before
-    fig6(tmp_path, dataclasses.replace(b, robots=(2,), overwrite=True))  # --overwrite: the run's rows only
+    fig6(Context(tmp_path, dataclasses.replace(b, robots=(2,), overwrite=True)))  # --overwrite: the run's rows only
     d = json.loads((tmp_path / "fig6" / "fig6.json").read_text())
     assert {r["robots"] for r in d["rows"]} == {2} and "parts" not in d
 
@@ -453,12 +462,12 @@ def test_a_quick_run_does_not_replace_protocol_rows(tmp_path, capsys):
     """A `--quick` run into a results directory whose figure holds the paper's protocol rows (the
     repository's own results/, say) is refused before it trains anything, --add or not, naming the
     rows; `--overwrite` lets it through, and rows of other maps are not protocol rows it loses."""
-    from shared.tools.experiments import _write
+    from shared.tools.experiments.recording import write_figure
 
     fig = tmp_path / "fig6"
     protocol = {"experiment": "fig6", "quick": False}
     rows = [{"map": "office", "robots": 4, "method": "cepg", "mean_capture_time": 8.7}]
-    _write(fig, "fig6", protocol, rows)  # recorded earlier (no Budget: no check)
+    write_figure(fig, "fig6", protocol, rows)  # recorded earlier (no Budget: no check)
     before = (fig / "fig6.json").read_bytes()
     argv = ["experiment", "fig6", "--quick", "--maps", "office", "--robots", "4", "--results", str(tmp_path)]
     why = "holds the paper's protocol rows of OFFICE N = 4; a --quick run would replace them"
@@ -480,6 +489,9 @@ def test_the_remaining_figures_are_recorded_one_map_at_a_time(tmp_path, monkeypa
     MUSEUM run keeps OFFICE's recorded rows. Their cells are stubbed (rows without evaluation): the
     figures' own code, the merge and the plots run. `--add` is refused where it means nothing."""
     from shared.tools import experiments as E
+    from shared.tools.experiments import cells, teams
+    from shared.tools.experiments.budget import BETAS
+    from shared.tools.experiments.figures import beta, methods
 
     def row(env, N, method, **extra):
         return {
@@ -492,15 +504,17 @@ def test_the_remaining_figures_are_recorded_one_map_at_a_time(tmp_path, monkeypa
             **extra,
         }
 
-    monkeypatch.setattr(E, "fig5_rows", lambda root, env, b, N=4: [row(env, N, "cepg", beta=x) for x in E.BETAS])
-    monkeypatch.setattr(E, "_all_methods", lambda root, env, N, b, **kw: [row(env, N, m, **kw) for m in ("cepg", "pg")])
-    monkeypatch.setattr(E, "_cell", lambda env, k, method, make, episodes, **kw: row(env, k, method))
-    for stub in ("_snapshot", "_marl_snapshot", "_flown", "_learned"):
-        monkeypatch.setattr(E, stub, lambda *a, **kw: None)
+    monkeypatch.setattr(beta, "fig5_rows", lambda ctx, env, N=4: [row(env, N, "cepg", beta=x) for x in BETAS])
+    monkeypatch.setattr(
+        methods, "all_methods", lambda ctx, env, N, **kw: [row(env, N, m, **kw) for m in ("cepg", "pg")]
+    )
+    monkeypatch.setattr(cells, "cell_row", lambda ctx, env, k, method, make, episodes, **kw: row(env, k, method))
+    for stub in ("cepg_snapshot", "marl_snapshot", "Team", "learned_team"):
+        monkeypatch.setattr(teams, stub, lambda *a, **kw: None)
     b = E.Budget(quick=True, episodes=3, train=256, planner=1, milp_limit=0.05, teams=(4,))
     for name in ("fig5", "fig11", "fig13"):
-        E.RUNNERS[name](tmp_path, dataclasses.replace(b, maps=("office",)))
-        E.RUNNERS[name](tmp_path, dataclasses.replace(b, maps=("museum",), add=True))
+        E.RUNNERS[name](E.Context(tmp_path, dataclasses.replace(b, maps=("office",))))
+        E.RUNNERS[name](E.Context(tmp_path, dataclasses.replace(b, maps=("museum",), add=True)))
         d = json.loads((tmp_path / name / f"{name}.json").read_text())
         assert d["maps"] == ["office", "museum"] and [p["covers"][0][0] for p in d["parts"]] == ["office", "museum"]
         assert {r["map"] for r in d["rows"]} == {"office", "museum"}, name
@@ -512,7 +526,9 @@ def test_the_remaining_figures_are_recorded_one_map_at_a_time(tmp_path, monkeypa
 
 
 def test_budgets_scaled_keep_the_methods_ratios():
-    from shared.tools.experiments import FULL, _marl_budget, _setup
+    from shared.tools.experiments import FULL
+    from shared.tools.experiments.recording import figure_setup
+    from shared.tools.experiments.report.text import marl_budget
 
     b = FULL.scaled(0.25)
     assert (b.train, b.marl_episodes("facmac"), b.marl_episodes("mappo"), b.marl_episodes("maddpg")) == (
@@ -521,7 +537,7 @@ def test_budgets_scaled_keep_the_methods_ratios():
         100_000,
         75_000,
     )
-    assert _marl_budget(_setup("fig7", b)) == (
+    assert marl_budget(figure_setup("fig7", b)) == (
         "each method's own budget (MADDPG 75,000, MASAC 75,000, FACMAC 50,000, MAMBPO 50,000, MAPPO 100,000)"
     )
     for bad in (0.0, 1.5, float("nan")):
@@ -556,10 +572,12 @@ def test_report_tables_robustness_results(tmp_path):
 def test_sensor_noise_and_variant_experiments_and_their_report(tmp_path):
     """fig10 and fig6 at a tiny budget: the cells say which sensor they were flown with, a noiseless
     sensor never raises a false alarm and eta_fp = 0.5 does, and the report tables both figures."""
-    from shared.tools.experiments import Budget, fig6, fig10
+    from shared.tools.experiments import Budget, Context
+    from shared.tools.experiments.figures.noise import fig10
+    from shared.tools.experiments.figures.variants import fig6
 
     b = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,))
-    fig10(tmp_path, b)
+    fig10(Context(tmp_path, b))
     rows = json.loads((tmp_path / "fig10" / "fig10.json").read_text())["rows"]
     assert {(r["map"], r["eta_fp"]) for r in rows} == {
         (m, e) for m in ("office", "museum") for e in (0.0, 0.1, 0.3, 0.5)
@@ -570,7 +588,7 @@ def test_sensor_noise_and_variant_experiments_and_their_report(tmp_path):
             assert r["false_alarms_per_episode"] == 0.0
         if r["eta_fp"] == 0.5:
             assert r["false_alarms_per_episode"] > 1.0  # 2 robots, each reading z = 1 half the time it is away
-    fig6(tmp_path, b)
+    fig6(Context(tmp_path, b))
     rows = json.loads((tmp_path / "fig6" / "fig6.json").read_text())["rows"]
     assert {r["method"]: r["detection"] for r in rows} == {"cepg": "node", "cepg+": "neighbourhood", "c-cepg": "node"}
     assert (tmp_path / "fig6" / "fig6.png").stat().st_size > 1000
@@ -589,13 +607,12 @@ def test_marl_experiment_and_its_report(tmp_path, monkeypatch):
     """The MARL experiment at a tiny budget (two methods, one sweep setting): rows for random,
     cepg and each method on OFFICE and WARD with training figures and learning curves, the sweep,
     and the report's section."""
-    from shared.tools import experiments
-    from shared.tools.experiments import Budget
+    from shared.tools.experiments import Budget, Context
+    from shared.tools.experiments.figures import marl
 
-    monkeypatch.setattr(experiments, "MARL", ("mappo", "maddpg"))
-    monkeypatch.setattr(experiments, "MARL_SWEEP", {"mappo": [("clip=0.1",)], "maddpg": [("gumbel_tau=0.5",)]})
+    monkeypatch.setattr(marl, "MARL_SWEEP", {"mappo": [("clip=0.1",)], "maddpg": [("gumbel_tau=0.5",)]})
     b = Budget(quick=True, episodes=40, train=256, planner=1, milp_limit=0.05, teams=(2,), marl_train=300)
-    experiments.marl(tmp_path, b)
+    marl.marl(Context(tmp_path, dataclasses.replace(b, marl_methods=("mappo", "maddpg"))))
     d = json.loads((tmp_path / "marl" / "marl.json").read_text())
     assert {(r["map"], r["method"]) for r in d["rows"]} == {
         (m, x) for m in ("office", "ward") for x in ("random", "cepg", "mappo", "maddpg")
@@ -681,7 +698,7 @@ def test_plateau_pairs_each_budget_with_the_methods_next_shorter_one(tmp_path):
     a method's shortest budget get none. The report shows the column."""
     import importlib.util
 
-    from shared.tools.experiments import _plateau_report
+    from shared.tools.experiments.report.marl import plateau_tables
 
     spec = importlib.util.spec_from_file_location(
         "marl_plateau", Path(__file__).parents[1] / "benchmarks" / "marl_plateau.py"
@@ -728,7 +745,7 @@ def test_plateau_pairs_each_budget_with_the_methods_next_shorter_one(tmp_path):
     for r in rows:
         r.update(common, diff_to_reference=0.0, diff_to_reference_ci95=0.0)
     f.write_text(mod._dumps({"map": "office", "robots": 4, "episodes": 4, "seed": 1, "rows": rows}))
-    text = "\n".join(_plateau_report(tmp_path))  # the MARL section's tail (that section needs marl.json)
+    text = "\n".join(plateau_tables(tmp_path))  # the MARL section's tail (that section needs marl.json)
     assert "| mambpo | 400 | 1 | 5.00 ± 1.00 | +0.00 ± 0.00 | -1.00 ± " in text and "(vs 200) |" in text
     assert "| masac | 600 | 1 | 5.00 ± 1.00 | +0.00 ± 0.00 | — |" in text
 
@@ -748,12 +765,13 @@ def test_teams_trained_by_local_processes_and_by_a_dask_cluster_give_the_same_ro
     from pathlib import Path
 
     from shared.tools import experiments
-    from shared.tools.experiments import Budget
+    from shared.tools.experiments import Budget, cells
+    from shared.tools.experiments import budget as budgets
     from shared.tools.fleetsim import free_port
     from shared.tools.runner import local_dask_cluster
 
     tiny = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,), maps=("office",))
-    monkeypatch.setattr(experiments, "QUICK", tiny)
+    monkeypatch.setattr(budgets, "QUICK", tiny)
     experiments.run("fig6", tmp_path / "local", quick=True)
     expected = _rows(tmp_path / "local" / "fig6" / "fig6.json")
     assert len(expected) == 3 and all(r["mean_capture_time"] > 0 for r in expected)
@@ -763,11 +781,11 @@ def test_teams_trained_by_local_processes_and_by_a_dask_cluster_give_the_same_ro
     # the cells too were evaluated by the workers, and are cached: a run again (or one resumed
     # after a kill) evaluates nothing
     assert len(list((tmp_path / "pool" / "cells").glob("*.json"))) == 3
-    evaluate = experiments._evaluate_cell
-    monkeypatch.setattr(experiments, "_evaluate_cell", lambda **kw: pytest.fail(f"evaluated again: {kw}"))
+    evaluate = cells.evaluate_cell
+    monkeypatch.setattr(cells, "evaluate_cell", lambda **kw: pytest.fail(f"evaluated again: {kw}"))
     experiments.run("fig6", tmp_path / "pool", quick=True)
     assert _rows(tmp_path / "pool" / "fig6" / "fig6.json") == expected
-    monkeypatch.setattr(experiments, "_evaluate_cell", evaluate)
+    monkeypatch.setattr(cells, "evaluate_cell", evaluate)
 
     with local_dask_cluster(2, tmp_path, Path(__file__).resolve().parent.parent) as address:
         experiments.run("fig6", tmp_path / "dask", quick=True, scheduler=address)
@@ -871,18 +889,17 @@ def test_a_marl_team_job_continues_from_its_checkpoint_and_clears_it(tmp_path, m
     from shared.core.graph import builtin_graph
     from shared.core.models import uniform_walk
     from shared.learning.marl import train_marl
-    from shared.tools import experiments as E
+    from shared.tools.experiments import QUICK, Context, teams
     from shared.tools.runner import run_jobs
 
     results, store = tmp_path / "results", tmp_path / "store"
-    monkeypatch.setenv(E.CHECKPOINTS_ENV, str(store))
+    monkeypatch.setenv(teams.CHECKPOINTS_ENV, str(store))
     args = ("office", 2, "mappo", 96, 0, 0.0, 0.0, ("steps=4", "envs=8"))
-    cfg, hyper, rel, _config = E._marl_config(*args)
-    jobs = []  # the team's job, as `mures experiment` makes it
-    monkeypatch.setattr(E, "_obtain", lambda root, job: jobs.append(job))
-    E._marl_snapshot(results, *args)
-    (job,) = jobs
-    ckpt = E.checkpoint_dir(results) / rel
+    cfg, hyper, rel, _config = teams.marl_config(*args)
+    planned = Context.planning(results, QUICK)  # the team's job, as `mures experiment` makes it
+    teams.marl_snapshot(planned, *args)
+    (job,) = jobs = planned.jobs
+    ckpt = teams.checkpoint_dir(results) / rel
     assert job.checkpoint == str(ckpt) and ckpt.is_relative_to(store) and "checkpoint" not in job.label
     g = builtin_graph("office")
     calls = iter(range(100))
@@ -890,14 +907,14 @@ def test_a_marl_team_job_continues_from_its_checkpoint_and_clears_it(tmp_path, m
         "mappo",
         g,
         uniform_walk(g),
-        E.sensor_for("cepg", 0.0, 0.0),
+        teams.sensor_for("cepg", 0.0, 0.0),
         cfg,
         hyper,
         should_stop=lambda: next(calls) >= 3,
         checkpoint=ckpt,
     )
     assert stopped.interrupted and (ckpt / "state.pt").is_file()
-    E._marl_snapshot(results, *args)  # planned again: only the rest of its training is left
+    teams.marl_snapshot(planned, *args)  # planned again: only the rest of its training is left
     done = stopped.summary["episodes"]
     assert jobs[-1].label == f"{job.label}, continuing from its checkpoint at {done:,}"
     assert jobs[-1].weight == pytest.approx(job.weight * (1 - done / 96))
@@ -970,11 +987,11 @@ def test_jobs_on_a_dask_cluster_say_what_is_still_running(tmp_path, monkeypatch)
 def test_an_experiment_stopped_by_hours_writes_no_figure(tmp_path, monkeypatch, capsys):
     """`mures experiment --hours H` with too little time for any job: exit status 3, no figure and
     no team written, and it says so; a bad --hours is a clear error."""
-    from shared.tools import experiments
     from shared.tools.experiments import Budget
+    from shared.tools.experiments import budget as budgets
 
     tiny = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,), maps=("office",))
-    monkeypatch.setattr(experiments, "QUICK", tiny)
+    monkeypatch.setattr(budgets, "QUICK", tiny)
     root = tmp_path / "results"
     assert main(["experiment", "fig6", "--quick", "--hours", "1e-7", "--results", str(root)]) == 3
     out = capsys.readouterr()
@@ -991,11 +1008,11 @@ def test_only_runs_the_jobs_whose_labels_match(tmp_path, monkeypatch, capsys):
     """`mures experiment --only REGEX`: --plan lists the matching jobs only; a run trains and
     evaluates those, writes no figure while others are left (exit status 3), and the same command
     without --only then runs just the rest; a pattern that does not compile is a clear error."""
-    from shared.tools import experiments
-    from shared.tools.experiments import Budget
+    from shared.tools.experiments import Budget, teams
+    from shared.tools.experiments import budget as budgets
 
     tiny = Budget(quick=True, episodes=60, train=256, planner=1, milp_limit=0.05, teams=(2,), maps=("office",))
-    monkeypatch.setattr(experiments, "QUICK", tiny)
+    monkeypatch.setattr(budgets, "QUICK", tiny)
     root = tmp_path / "results"
     quick = ["experiment", "fig6", "--quick", "--results", str(root)]
     assert main([*quick, "--plan", "--only", "^TRAINING CEPG office"]) == 0  # case ignored
@@ -1005,8 +1022,8 @@ def test_only_runs_the_jobs_whose_labels_match(tmp_path, monkeypatch, capsys):
     assert [line.split(None, 2)[2] for line in listed[1:]] == ["training CEPG office N=2, 256 episodes"]
 
     trained: list[str] = []
-    train = experiments._train_cepg
-    monkeypatch.setattr(experiments, "_train_cepg", lambda *a, **k: trained.append(a[0]) or train(*a, **k))
+    train = teams.train_cepg
+    monkeypatch.setattr(teams, "train_cepg", lambda *a, **k: trained.append(a[0]) or train(*a, **k))
     assert main([*quick, "--only", "^training cepg office"]) == 3
     out = capsys.readouterr()
     assert "outside --only" in out.out and "3 jobs of fig6 left that --only" in out.err
@@ -1025,22 +1042,24 @@ def test_fig5_pairs_each_beta_with_pg_of_the_same_training_seed(tmp_path):
     import numpy as np
     from scipy.stats import t as student_t
 
-    from shared.tools import experiments as ex
+    from shared.tools.experiments import QUICK
+    from shared.tools.experiments.figures.beta import beta_row
+    from shared.tools.experiments.report.readings import beta_reading
 
     rng = np.random.default_rng(0)
-    b = ex.replace(ex.QUICK, seeds=(0, 1), episodes=400)
+    b = dataclasses.replace(QUICK, seeds=(0, 1), episodes=400)
     pg = {s: rng.integers(5, 40, 400).astype(float) for s in (0, 1)}
     times = {(1.0, s): pg[s] for s in (0, 1)}
     times |= {(0.5, 0): pg[0] - 1, (0.5, 1): pg[1] - 3}
-    row = ex._beta_row("office", 4, 0.5, b, times)
+    row = beta_row("office", 4, 0.5, b, times)
     assert row["training_seeds"] == [0, 1] and row["train_episodes"] == b.train
     assert row["diff_to_pg"] == -2.0 and row["diff_to_pg_per_seed"] == [-1.0, -3.0]
     assert row["diff_to_pg_ci95_seeds"] == round(float(student_t.ppf(0.975, 1) * np.std([-1, -3], ddof=1) / 2**0.5), 3)
     assert 0 < row["diff_to_pg_ci95_episodes"] < 0.1  # the episodes differ by 1 or 3: little spread
     assert row["mean_capture_time"] == round(float(np.concatenate([pg[0] - 1, pg[1] - 3]).mean()), 3)
-    pg_row = ex._beta_row("office", 4, 1.0, b, times)
+    pg_row = beta_row("office", 4, 1.0, b, times)
     assert "diff_to_pg" not in pg_row and pg_row["method"] == "pg"
-    text = "\n".join(ex._beta_reading([row, pg_row]))
+    text = "\n".join(beta_reading([row, pg_row]))
     assert "| 0.5 | -2.00 |" in text and "no beta < 1 captures sooner" in text  # the seeds' CI includes 0
     # the episodes' CI excludes 0: said too, with what it does not show
     assert "Over the pooled episodes (these teams, not the training's variation): beta in [0.5] captures sooner" in text

@@ -12,7 +12,8 @@ from shared.tools.cli_args import CliError, map_names, positive_hours, team_size
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from shared.tools.experiments import budget, plan_lines, run
+    from shared.tools.experiments import plan_lines, run
+    from shared.tools.experiments.budget import budget
 
     t0 = time.perf_counter()
     if args.plan:
@@ -65,7 +66,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from shared.tools.experiments import report
+    from shared.tools.experiments.report import report
 
     out = report(Path(args.results), Path(args.out))
     print(f"wrote {out}")
