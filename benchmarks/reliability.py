@@ -75,7 +75,7 @@ class ServerProc:
         self.starts = 0
 
     def start(self, fsize: int | None = None, timeout: float = 90) -> None:
-        cmd = [sys.executable, "-m", "training_server.server", "--env", "office", "--data-dir", str(self.data)]
+        cmd = [sys.executable, "-m", "training_server", "--env", "office", "--data-dir", str(self.data)]
         cmd += ["--http", f"127.0.0.1:{self.http}", "--zenoh-listen", self.endpoint, "--robots", "3", *self.extra]
         if self.database_url:
             cmd += ["--database-url", self.database_url]

@@ -48,6 +48,7 @@ from shared.core.records import make_record
 from shared.core.snapshot import PolicyAgent, SnapshotData, SnapshotError, read_snapshot
 from shared.core.wire import (
     DEFAULT_FLEET,
+    add_zenoh_arguments,
     agent_key,
     check_id,
     detection_key,
@@ -653,21 +654,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="robot-agent", description="MuRES fleet robot agent")
     p.add_argument("--robot-id", required=True, help="this robot's id (A-Z a-z 0-9 _ . -)")
     p.add_argument("--server", required=True, metavar="URL", help="the training server, e.g. http://10.0.0.2:8000")
-    p.add_argument(
-        "--zenoh-connect",
-        action="append",
-        required=True,
-        metavar="ENDPOINT",
-        help="Zenoh router endpoint, e.g. tcp/10.0.0.2:7447 (repeatable)",
+    add_zenoh_arguments(
+        p, "Zenoh router endpoint, e.g. tcp/10.0.0.2:7447 (repeatable)", connect_required=True, robot=True
     )
-    p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file (TLS, credentials)")
     p.add_argument("--fleet", default=DEFAULT_FLEET)
     p.add_argument("--token-file", help="the agent bearer token for the REST API")
     p.add_argument("--ca-file", metavar="PEM", help="CA certificate to verify an https --server with")
-    p.add_argument("--zenoh-ca", metavar="PEM", help="CA certificate to verify a tls/ Zenoh router with")
-    p.add_argument(
-        "--zenoh-password-file", metavar="F", help="this robot's Zenoh password (training-server robots add)"
-    )
     p.add_argument("--state-dir", help="outbox, journal and policies (default ./mures-agent-<robot_id>)")
     p.add_argument("--backend", default="sim", help="sim (fleet simulator) or MODULE:CLASS (robot_agent/backend.py)")
     p.add_argument(

@@ -21,8 +21,9 @@ from shared.core.models import Sensor
 from shared.core.records import make_record
 from shared.learning.config import default
 from training_server.api import create_app
-from training_server.server import Server, build_parser, check_exposure
-from training_server.server import main as server_main
+from training_server.cli import build_parser, check_exposure
+from training_server.cli import main as server_main
+from training_server.server import Server
 
 OP, AG = "op-token", "agent-token"
 

@@ -373,7 +373,7 @@ def test_agent_rejects_bad_arguments(tmp_path):
         timeout=60,
     )
     assert r.returncode == 2 and "robot id" in r.stderr
-    server = [sys.executable, "-m", "training_server.server"]
+    server = [sys.executable, "-m", "training_server"]
     r = subprocess.run(
         [*server, "--env", "office", "--http", "nowhere", "--data-dir", str(tmp_path)],
         capture_output=True,

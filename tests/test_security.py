@@ -28,7 +28,7 @@ from shared.core.wire import (
     zenoh_config,
 )
 from shared.tools.fleetsim import start_server, wait_until
-from training_server.server import main as server_main
+from training_server.cli import main as server_main
 
 pytestmark = pytest.mark.slow  # starts a training-server process
 

@@ -13,8 +13,8 @@ import pytest
 from sqlalchemy import text
 
 from shared.core.graph import builtin_graph
+from training_server.cli import main as server_main
 from training_server.server import Server
-from training_server.server import main as server_main
 from training_server.store import (
     Store,
     current_revision,

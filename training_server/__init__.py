@@ -7,7 +7,7 @@ import sys
 def main() -> int:
     """The `training-server` entry point: a clear error when the install lacks the server extra."""
     try:
-        from training_server.server import main as server_main
+        from training_server.cli import main as server_main
     except ModuleNotFoundError as exc:
         print(
             f"training-server: error: this install lacks {exc.name!r}: pip install 'mures-fleet[server]'",

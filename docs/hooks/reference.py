@@ -24,8 +24,8 @@ def _help(parser: argparse.ArgumentParser) -> str:
 def command_line() -> str:
     from robot_agent.agent import build_parser as agent_parser
     from shared.tools.cli import build_parser as mures_parser
+    from training_server.cli import build_parser as server_parser
     from training_server.kit import build_parser as kit_parser
-    from training_server.server import build_parser as server_parser
 
     os.environ["COLUMNS"] = "100"  # argparse wraps to the terminal: one width for the page
     out = []

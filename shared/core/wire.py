@@ -27,6 +27,7 @@ Mission-control messages (JSON objects with a ``type``):
 
 from __future__ import annotations
 
+import argparse
 import json
 from typing import Any
 
@@ -162,6 +163,47 @@ def zenoh_config(
     for key, value in (extra or {}).items():
         conf.insert_json5(key, json.dumps(value))
     return conf
+
+
+def add_zenoh_arguments(
+    parser: argparse.ArgumentParser,
+    connect_help: str,
+    connect_required: bool = False,
+    router: bool = False,
+    robot: bool = False,
+) -> None:
+    """The Zenoh flags of the fleet's programs, one spelling for all: --zenoh-connect (repeatable)
+    and --zenoh-config; a ``router`` (the training server) adds --zenoh-listen and its TLS
+    listener's --zenoh-tls-cert/--zenoh-tls-key, a ``robot`` (the agent) what a secured router
+    asks of it, --zenoh-ca and --zenoh-password-file. Their values go to ``zenoh_config``."""
+    if router:
+        parser.add_argument(
+            "--zenoh-listen",
+            action="append",
+            metavar="ENDPOINT",
+            help=f"Zenoh endpoint to listen on as the router (default {DEFAULT_ZENOH_ENDPOINT})",
+        )
+    parser.add_argument(
+        "--zenoh-connect", action="append", required=connect_required, metavar="ENDPOINT", help=connect_help
+    )
+    parser.add_argument(
+        "--zenoh-config",
+        metavar="FILE",
+        help="a full Zenoh config file instead of the flags above (TLS, credentials; its own settings win)",
+    )
+    if router:
+        parser.add_argument(
+            "--zenoh-tls-cert",
+            metavar="PEM",
+            help="be the fleet's secured Zenoh router: TLS with this certificate on the tls/ --zenoh-listen "
+            "endpoints, only robots with credentials (training-server robots add), each limited to its own keys",
+        )
+        parser.add_argument("--zenoh-tls-key", metavar="PEM", help="the private key of --zenoh-tls-cert")
+    if robot:
+        parser.add_argument("--zenoh-ca", metavar="PEM", help="CA certificate to verify a tls/ Zenoh router with")
+        parser.add_argument(
+            "--zenoh-password-file", metavar="F", help="this robot's Zenoh password (training-server robots add)"
+        )
 
 
 def parse_message(payload: bytes) -> dict[str, Any] | None:

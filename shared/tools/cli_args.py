@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from typing import Any
 
 from shared.core.choices import BUILTIN_MAPS, DETECTIONS
 from shared.core.graph import Graph, builtin_graph, load_graph_file
@@ -91,3 +92,16 @@ def world_of(args: argparse.Namespace, detection: str = "node") -> tuple[Graph, 
     if sensor.detection == "custom":
         graph.detection_sets("custom")  # raises a clear error when the graph has no table
     return graph, target, sensor
+
+
+def device_of(name: str) -> Any:
+    """``--device``: a torch.device that exists here, else a CliError saying why."""
+    import torch
+
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise CliError(f"unknown device {name!r} (expected cpu or cuda)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise CliError("--device cuda asked for, but no CUDA device is available")
+    return dev

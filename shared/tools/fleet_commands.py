@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.core.choices import DETECTIONS
+from shared.core.wire import add_zenoh_arguments
 from shared.learning.config import positive_int, whole_number
 from shared.learning.snapshot import load_snapshot
 from shared.tools.cli_args import CliError, add_map_args, add_world_args, eta_arg, world_of
@@ -165,13 +166,7 @@ def add_fleet_commands(sub: Any) -> None:
         "world", help="the simulated world alone (the target, the detections) for agents run by hand with --backend sim"
     )
     add_map_args(p)
-    p.add_argument(
-        "--zenoh-connect",
-        action="append",
-        metavar="ENDPOINT",
-        help="the fleet's router (repeatable; default the server's own, tcp/127.0.0.1:7447)",
-    )
-    p.add_argument("--zenoh-config", metavar="FILE", help="a full Zenoh config file instead (TLS, credentials)")
+    add_zenoh_arguments(p, "the fleet's router (repeatable; default the server's own, tcp/127.0.0.1:7447)")
     p.add_argument("--fleet", default="default", help="fleet name (default 'default')")
     p.add_argument("--eta-fn", type=eta_arg, default=0.0, help="false-negative rate, in [0, 0.5] (default 0)")
     p.add_argument("--eta-fp", type=eta_arg, default=0.0, help="false-positive rate, in [0, 0.5] (default 0)")

@@ -208,7 +208,7 @@ def start_server(
     cmd = [
         sys.executable,
         "-m",
-        "training_server.server",
+        "training_server",
         *graph_args,
         "--data-dir",
         str(data_dir),

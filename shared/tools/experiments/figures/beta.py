@@ -7,7 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from shared.tools.experiments import cells, plots, teams
+import shared.tools.experiments.cells as cells
+import shared.tools.experiments.plots as plots
+import shared.tools.experiments.teams as teams
 from shared.tools.experiments.budget import BETAS, SEED, Budget
 from shared.tools.experiments.context import Context
 from shared.tools.experiments.recording import figure_setup

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from shared.tools.experiments import cells, plots, teams
+import shared.tools.experiments.cells as cells
+import shared.tools.experiments.plots as plots
+import shared.tools.experiments.teams as teams
 from shared.tools.experiments.budget import ETAS
 from shared.tools.experiments.context import Context
 from shared.tools.experiments.recording import figure_setup

@@ -6,9 +6,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import shared.tools.experiments.report.marl as marl
+import shared.tools.experiments.report.methods as methods
+import shared.tools.experiments.report.tables as tables
+import shared.tools.experiments.report.toy as toy
 from shared.core.files import atomic_write
 from shared.tools.experiments.budget import EXPERIMENTS
-from shared.tools.experiments.report import marl, methods, tables, toy
 
 
 def report(root: Path, out: Path) -> Path:

@@ -1,0 +1,266 @@
+"""`mures train`: a team trained in simulation, CE-PG (Algorithm 2) or a MARL baseline, written
+as a policy snapshot; Ctrl-C stops after the current update and still writes it."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from shared.learning import config as train_config
+from shared.learning.config import CHECKPOINT_EVERY_S, positive_int, seconds
+from shared.learning.snapshot import load_snapshot, save_snapshot
+from shared.tools.cli_args import CliError, add_world_args, device_of, world_of
+
+
+class _Progress:
+    """A one-line progress bar on a terminal; a line every 10% otherwise (logs)."""
+
+    def __init__(self, stream: Any = sys.stderr) -> None:
+        self.stream = stream
+        self.tty = stream.isatty()
+        self.next_pct = 10
+
+    def __call__(self, p: dict[str, Any]) -> None:
+        frac = min(1.0, p["episodes"] / p["total"])
+        rate = p["episodes_per_second"]
+        eta = (p["total"] - p["episodes"]) / max(rate, 1e-9)
+        text = (
+            f"{p['episodes']:>9,}/{p['total']:,} episodes  {rate:7.0f} eps/s  "
+            f"capture time {p['mean_capture_time']:6.2f}  "
+            + (f"CE {p['cross_entropy']:.2f}  " if "cross_entropy" in p else "")
+            + f"ETA {max(eta, 0):4.0f} s"
+        )
+        if self.tty:
+            bar = "#" * int(24 * frac)
+            self.stream.write(f"\r[{bar:<24}] {text}")
+            self.stream.flush()
+        elif frac * 100 >= self.next_pct or frac >= 1.0:
+            self.next_pct = int(frac * 10) * 10 + 10
+            print(text, file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _init_distributed(device: torch.device) -> int:
+    """Join the torchrun process group when launched by torchrun; returns this process's rank."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return 0
+    import torch.distributed as dist
+
+    backend = "nccl" if device.type == "cuda" else "gloo"
+    if device.type == "cuda":
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+    dist.init_process_group(backend=backend)
+    return dist.get_rank()
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from shared.learning.train import leave_process_group
+
+    detection = "neighbourhood" if args.variant == "cepg+" else "node"
+    if args.variant == "cepg+" and args.detection == "node":
+        raise CliError("cepg+ trains with a sensing range: use --detection neighbourhood or custom, or leave it out")
+    graph, target, sensor = world_of(args, detection)
+    device = device_of(args.device)
+    out = Path(args.out)
+    if out.exists() and not (out / "policy.json").is_file():
+        raise CliError(f"--out {out} exists and is not a policy snapshot; refusing to replace it")
+    init_model = None
+    if args.model:
+        from shared.core.models import load_model_file
+
+        init_model = load_model_file(graph, args.model)
+    init_policy = load_snapshot(args.init, graph) if args.init else None
+    cfg, hyper = _checked_config(args, device)
+    torch.set_num_threads(args.threads)
+    if hyper is not None and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise CliError(f"{cfg.algorithm} runs in one process; torchrun data parallelism is CE-PG's")
+    rank = _init_distributed(device)
+    if rank == 0:
+        model_text = "true model" if cfg.belief == "true" else "EM-estimated model"
+        what = (
+            f"{cfg.algorithm} on {graph.name} (n={graph.n}), N={args.robots}, {hyper.episodes:,} episodes, "
+            f"{model_text}; hyperparameters {hyper.to_dict()}"
+            if hyper is not None
+            else f"{args.variant} on {graph.name} (n={graph.n}), N={args.robots}, beta={args.beta}, "
+            f"{cfg.episodes:,} episodes, {model_text}"
+        )
+        print(f"training {what}", file=sys.stderr)
+    res = _fit(args, cfg, hyper, (graph, target, sensor), init_model, init_policy, rank == 0 and not args.quiet)
+    if rank == 0:
+        _write_snapshot(args, out, cfg, hyper, graph, target, sensor, res)
+    code = 130 if res.interrupted else 0
+    leave_process_group(code)  # under torchrun: ends this process with ``code``
+    return code
+
+
+def _checked_config(args: argparse.Namespace, device: Any) -> tuple[Any, Any]:
+    """The run's TrainConfig and, for a MARL baseline, its hyperparameters (None for CE-PG), with
+    every flag checked against the algorithm before anything trains."""
+    cfg = train_config.from_flags(args, robots=args.robots, seed=args.seed, device=str(device))
+    marl = cfg.algorithm != "cepg"
+    try:
+        cfg.check()
+        cfg.per_robot(cfg.beta, "--beta")
+        cfg.per_robot(cfg.lr, "--lr")
+        if args.hp and not marl:
+            raise ValueError("--hp sets a MARL baseline's hyperparameters; CE-PG takes its own flags")
+        if marl and args.init:
+            raise ValueError(f"--init warm-starts CE-PG only; {cfg.algorithm} trains from scratch")
+        if args.checkpoint and not marl:
+            raise ValueError("--checkpoint makes a MARL baseline's run resumable; CE-PG runs are not checkpointed")
+        if not marl:
+            return cfg, None
+        from shared.learning.marl import hyperparameters
+
+        lr = None if args.lr is None else cfg.lr[0]
+        return cfg, hyperparameters(cfg.algorithm, args.hp, episodes=args.episodes, envs=args.batch, lr=lr)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
+def _fit(
+    args: argparse.Namespace,
+    cfg: Any,
+    hyper: Any,
+    world: tuple[Any, Any, Any],
+    init_model: Any,
+    init_policy: Any,
+    progress: bool,
+) -> Any:
+    """Train in ``world`` (graph, target, sensor; ``hyper``: a MARL baseline, else CE-PG) until
+    done or a first Ctrl-C; a second Ctrl-C aborts without a snapshot."""
+    from shared.learning.train import train
+
+    graph, target, sensor = world
+    stop = {"requested": False}
+
+    def on_sigint(_sig: int, _frame: Any) -> None:
+        if stop["requested"]:
+            raise KeyboardInterrupt
+        stop["requested"] = True
+        print("\nmures: stopping after the current update (Ctrl-C again to abort without a snapshot)", file=sys.stderr)
+
+    old_handler = signal.signal(signal.SIGINT, on_sigint)
+    bar = _Progress() if progress else None
+    try:
+        if hyper is None:
+            return train(
+                graph,
+                target,
+                sensor,
+                cfg,
+                init_model=init_model,
+                init_policy=init_policy,
+                progress=bar,
+                should_stop=lambda: stop["requested"],
+            )
+        from shared.learning.marl import train_marl
+
+        try:
+            return train_marl(
+                cfg.algorithm,
+                graph,
+                target,
+                sensor,
+                cfg,
+                hyper,
+                init_model=init_model,
+                progress=bar,
+                should_stop=lambda: stop["requested"],
+                checkpoint=args.checkpoint,
+                checkpoint_every=args.checkpoint_every,
+            )
+        except ValueError as exc:  # a checkpoint directory of another run, or not one at all
+            if not args.checkpoint:
+                raise
+            raise CliError(str(exc)) from None
+    finally:
+        signal.signal(signal.SIGINT, old_handler)
+        if bar:
+            bar.close()
+
+
+def _write_snapshot(
+    args: argparse.Namespace, out: Path, cfg: Any, hyper: Any, graph: Any, target: Any, sensor: Any, res: Any
+) -> None:
+    """Save the trained team at ``out`` with its training configuration, and say what was done."""
+    config = {**cfg.to_dict(), "target": target.kind, "map": graph.name}
+    if hyper is not None:
+        config.update(episodes=hyper.episodes, batch=hyper.envs, lr=[hyper.lr], hyperparameters=hyper.to_dict())
+    save_snapshot(
+        out,
+        res.policy,
+        graph,
+        res.model,
+        sensor,
+        args.variant,
+        [] if hyper is not None else cfg.per_robot(cfg.beta, "beta"),
+        config,
+        res.summary,
+        algorithm=cfg.algorithm,
+    )
+    s = res.summary
+    resumed = f" (resumed at {s['resumed'][-1]['episodes']:,})" if s.get("resumed") else ""
+    print(
+        f"{'interrupted: ' if res.interrupted else ''}{s['episodes']:,} episodes{resumed} ({s['env_steps']:,} team "
+        f"steps) in {s['wall_seconds']:.1f} s, {s['episodes_per_second']:.0f} episodes/s; "
+        f"last capture time {s['final_mean_capture_time']:.2f}; wrote {out}"
+    )
+    if args.checkpoint and res.interrupted:
+        print(f"checkpoint in {args.checkpoint}: the same command continues the run from it")
+    elif args.checkpoint:
+        from shared.learning.marl import remove_checkpoint
+
+        remove_checkpoint(args.checkpoint)
+
+
+def add_train_command(sub: Any) -> None:
+    """`mures train` and its parser."""
+    p = sub.add_parser(
+        "train", help="train a team in simulation (CE-PG or a MARL baseline) and write a policy snapshot"
+    )
+    add_world_args(p)
+    p.add_argument("--out", required=True, metavar="DIR", help="snapshot directory to write")
+    train_config.add_flags(p)  # one flag per TrainConfig field, its defaults
+    p.add_argument("--true-model", dest="belief", action="store_const", const="true", help="the same as --belief true")
+    p.add_argument("--model", metavar="model.json", help="Gamma_hat_0 and b0 for the beliefs (default I, uniform)")
+    p.add_argument("--init", metavar="DIR", help="start from this snapshot's weights (CE-PG)")
+    p.add_argument(
+        "--hp",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a MARL baseline's hyperparameter (repeatable; docs/SPEC.md section 11 lists them)",
+    )
+    p.add_argument(
+        "--threads",
+        type=positive_int,
+        default=train_config.TORCH_THREADS,
+        help=f"torch CPU threads (default {train_config.TORCH_THREADS}: a team's tensors are small, more threads "
+        "gain little and lose much on a shared machine; torchrun or `mures experiment --workers` use the other cores)",
+    )
+    p.add_argument(
+        "--checkpoint",
+        metavar="DIR",
+        help="a MARL baseline's run saves its whole state in DIR as it goes and when stopped, and the same command "
+        "continues from it after a kill or Ctrl-C, ending as an uninterrupted run would; DIR is removed when done",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=seconds,
+        default=CHECKPOINT_EVERY_S,
+        metavar="SECONDS",
+        help=f"seconds of training between checkpoints (default {CHECKPOINT_EVERY_S:.0f})",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=cmd_train)
