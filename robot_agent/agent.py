@@ -455,63 +455,17 @@ class Agent:
         )
 
     def run_mission(self, msg: dict[str, Any], backend: RobotBackend) -> None:
-        assert self.policies is not None and self.graph is not None
-        graph = self.graph
-        mid = msg["mission_id"]
-        robots = msg.get("robots") or [self.robot_id]
-        index = robots.index(self.robot_id)
-        if msg.get("policy_version") is not None and msg["policy_version"] != self.policies.version:
-            self.sync_policy(f"before mission {mid}", version=int(msg["policy_version"]))  # still between missions
-        snap = self.policies.snapshot
-        assert snap is not None, "run() waits for a policy before taking missions"
-        agent = PolicyAgent(snap, graph, index, seed=mission_seed(msg.get("seed", 0), index))
-        max_steps = int(msg.get("max_steps") or 3 * graph.n)
-        auto_capture = msg.get("capture", "auto") != "confirm"
-        header = {
-            "mission_id": mid,
-            "policy_version": self.policies.version,
-            "sensor": snap.sensor.to_json(),
-            "seed": msg.get("seed"),
-            "index": index,
-        }
+        """Fly one mission (Algorithm 1, this robot's part) from its start message to its end, then
+        leave its episode record in the outbox."""
+        agent, header, max_steps, auto_capture = self._begin_mission(msg)
+        mid = header["mission_id"]
         steps: list[dict[str, int]] = []
-        end: dict[str, Any] | None = None
         decide_us: list[float] = []
+        end: dict[str, Any] | None = None
         self.in_mission = True
-        log.info("mission %s: robot %d of %d, policy version %s", mid, index + 1, len(robots), self.policies.version)
         self.journal.begin(header)
         try:
-            node = int(backend.begin(msg))
-            t = 0
-            while True:
-                z = int(backend.detect())  # z_t at p_t
-                t0 = time.perf_counter()
-                p = graph.index[node]
-                if t == 0:
-                    agent.reset(p, z)  # b_0 ∝ Lambda(p_0, z_0) b0
-                else:
-                    agent.observe(p, z)  # Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}
-                steps.append({"t": t, "node": node, "z": z})
-                self.journal.step(t, node, z)
-                if z:  # the server decides whether this detection ends the mission (docs/SPEC.md section 6)
-                    self.report_detection(mid, t, node)
-                # under "auto" the server's verdict comes at once: wait for it before moving on (a robot
-                # that has found the target stays with it); under "confirm" the search goes on meanwhile
-                wait = z and (auto_capture or t >= max_steps)
-                end = self._control_for(mid, wait=VERDICT_WAIT_S if wait else 0.0)
-                if end is not None or t >= max_steps or self.stop.is_set():
-                    break
-                goal = int(graph.labels[agent.act(p)])  # a_t ~ pi_i(. | onehot(p_t), b_t), Algorithm 1
-                decide_us.append((time.perf_counter() - t0) * 1e6)
-                self.telemetry(
-                    {"state": "mission", "mission_id": mid, "t": t, "node": node, "z": z, "goal": goal},
-                    force=t == 0,
-                    belief=agent.belief,
-                )
-                node = int(backend.move(goal))
-                if node not in graph.index:
-                    raise BackendError(f"backend reports node {node}, which is not on the map")
-                t += 1
+            end = self._search(backend, msg, agent, mid, max_steps, auto_capture, steps, decide_us)
         except MissionOver:
             end = self._control_for(mid, wait=END_WAIT_S)
         except BackendError as exc:
@@ -528,27 +482,99 @@ class Agent:
             log.error("mission %s: no step was recorded, so no record is sent", mid)
             self.journal.finish()
             return
+        self._finish_mission(header, steps, end, decide_us)
+
+    def _begin_mission(self, msg: dict[str, Any]) -> tuple[PolicyAgent, dict[str, Any], int, bool]:
+        """This robot's PolicyAgent for the mission (the policy version it names, fetched first if
+        need be), the record's header, the step limit, and whether detections capture at once."""
+        assert self.policies is not None and self.graph is not None
+        mid = msg["mission_id"]
+        robots = msg.get("robots") or [self.robot_id]
+        index = robots.index(self.robot_id)
+        if msg.get("policy_version") is not None and msg["policy_version"] != self.policies.version:
+            self.sync_policy(f"before mission {mid}", version=int(msg["policy_version"]))  # still between missions
+        snap = self.policies.snapshot
+        assert snap is not None, "run() waits for a policy before taking missions"
+        agent = PolicyAgent(snap, self.graph, index, seed=mission_seed(msg.get("seed", 0), index))
+        header = {
+            "mission_id": mid,
+            "policy_version": self.policies.version,
+            "sensor": snap.sensor.to_json(),
+            "seed": msg.get("seed"),
+            "index": index,
+        }
+        log.info("mission %s: robot %d of %d, policy version %s", mid, index + 1, len(robots), self.policies.version)
+        return agent, header, int(msg.get("max_steps") or 3 * self.graph.n), msg.get("capture", "auto") != "confirm"
+
+    def _search(
+        self,
+        backend: RobotBackend,
+        msg: dict[str, Any],
+        agent: PolicyAgent,
+        mid: str,
+        max_steps: int,
+        auto_capture: bool,
+        steps: list[dict[str, int]],
+        decide_us: list[float],
+    ) -> dict[str, Any] | None:
+        """From the mission's start (``msg``): sense, update the belief, decide and move until the
+        mission ends (the end message, or None at the step limit or on stop); each step is
+        appended to ``steps`` as it is taken."""
+        assert self.graph is not None
+        graph = self.graph
+        node = int(backend.begin(msg))
+        t = 0
+        while True:
+            z = int(backend.detect())  # z_t at p_t
+            t0 = time.perf_counter()
+            p = graph.index[node]
+            if t == 0:
+                agent.reset(p, z)  # b_0 ∝ Lambda(p_0, z_0) b0
+            else:
+                agent.observe(p, z)  # Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}
+            steps.append({"t": t, "node": node, "z": z})
+            self.journal.step(t, node, z)
+            if z:  # the server decides whether this detection ends the mission (docs/SPEC.md section 6)
+                self.report_detection(mid, t, node)
+            # under "auto" the server's verdict comes at once: wait for it before moving on (a robot
+            # that has found the target stays with it); under "confirm" the search goes on meanwhile
+            wait = z and (auto_capture or t >= max_steps)
+            end = self._control_for(mid, wait=VERDICT_WAIT_S if wait else 0.0)
+            if end is not None or t >= max_steps or self.stop.is_set():
+                return end
+            goal = int(graph.labels[agent.act(p)])  # a_t ~ pi_i(. | onehot(p_t), b_t), Algorithm 1
+            decide_us.append((time.perf_counter() - t0) * 1e6)
+            self.telemetry(
+                {"state": "mission", "mission_id": mid, "t": t, "node": node, "z": z, "goal": goal},
+                force=t == 0,
+                belief=agent.belief,
+            )
+            node = int(backend.move(goal))
+            if node not in graph.index:
+                raise BackendError(f"backend reports node {node}, which is not on the map")
+            t += 1
+
+    def _finish_mission(
+        self, header: dict[str, Any], steps: list[dict[str, int]], end: dict[str, Any] | None, decide_us: list[float]
+    ) -> None:
+        """The mission's episode record into the outbox (durable before it is sent), and what it took."""
         rec = self._record(header, steps, end)
-        self.outbox.put(rec)  # durable before it is sent
+        self.outbox.put(rec)
         self.journal.finish()
         self.flush_now.set()
         med = float(np.median(decide_us)) if decide_us else float("nan")
         out = rec["outcome"]
         log.info(
             "mission %s over after %d steps: %s; decision step median %.1f us",
-            mid,
+            header["mission_id"],
             len(rec["steps"]) - 1,
             f"captured at t={out['capture_time']} by {out['captured_by']}"
             if out["captured"]
             else (end or {}).get("type", "not captured"),
             med,
         )
-        atomic_write(
-            self.state / "last_mission.json",
-            json.dumps(
-                {"mission_id": mid, "decide_us_median": med, "decisions": len(decide_us), "steps": len(rec["steps"])}
-            ).encode(),
-        )
+        summary = {"mission_id": header["mission_id"], "decide_us_median": med, "decisions": len(decide_us)}
+        atomic_write(self.state / "last_mission.json", json.dumps({**summary, "steps": len(rec["steps"])}).encode())
 
     def _control_for(self, mid: str, wait: float = 0.0) -> dict[str, Any] | None:
         """The end message (captured/stop) of mission ``mid`` if one has arrived. A start for this

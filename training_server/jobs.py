@@ -152,175 +152,214 @@ class _Cancelled(Exception):
 
 
 def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
-    import torch
+    """A training run, in the training process: EM on the fleet's records, CE-PG in simulation
+    under the estimated model, the evaluation gate; the new snapshot written to job["staging"]."""
+    return _TrainingRun(job, events, cancel).run()
 
-    from shared.core.graph import graph_from_dict
-    from shared.core.models import uniform_walk
-    from shared.engine.estimate import collect_missions, em
-    from shared.engine.evaluate import evaluate
-    from shared.learning.config import TrainConfig
-    from shared.learning.snapshot import PolicySearcher, load_snapshot, save_snapshot
-    from shared.learning.train import train
-    from training_server.store import read_episode_records
 
-    p = TrainingParams.model_validate(job["params"])
-    if p.threads:
-        torch.set_num_threads(p.threads)
-    graph = graph_from_dict(job["graph"], "server map")
-    current = load_snapshot(job["current_path"], graph)
-    sensor = current.sensor
-    t0 = time.perf_counter()
+class _TrainingRun:
+    """One training run's steps, each telling the server its progress (``say``) and stopping at
+    the next check once the run is cancelled."""
 
-    def say(phase: str, **kw: Any) -> None:
-        events.put({"type": "progress", "phase": phase, "elapsed_s": round(time.perf_counter() - t0, 2), **kw})
+    def __init__(self, job: dict[str, Any], events: Any, cancel: Any) -> None:
+        import torch
 
-    # 1. EM on the fleet's own records (robots' positions and observations only): one model from
-    # the missions kept for fitting, one from those held out for the gate
-    say("em", message="reading episode records")
-    rows = read_episode_records(job["db"], job["fleet"], p.max_records)
-    data = collect_missions(((i, json.loads(r)) for i, r in enumerate(rows)), graph, fleet=job["fleet"])
-    if len(data.length) == 0:
-        raise ValueError("no usable missions: fly some missions before training")
-    if data.impossible:
-        say(
-            "em",
-            message=f"set aside {len(data.impossible)} missions no path of the target explains: "
-            + ", ".join(data.impossible[:20])
-            + (" ..." if len(data.impossible) > 20 else ""),
+        from shared.core.graph import graph_from_dict
+        from shared.learning.snapshot import load_snapshot
+
+        self.job, self.events, self.cancel = job, events, cancel
+        self.p = TrainingParams.model_validate(job["params"])
+        if self.p.threads:
+            torch.set_num_threads(self.p.threads)
+        self.graph = graph_from_dict(job["graph"], "server map")
+        self.current = load_snapshot(job["current_path"], self.graph)
+        self.sensor = self.current.sensor
+        self.t0 = time.perf_counter()
+
+    def say(self, phase: str, **kw: Any) -> None:
+        elapsed = round(time.perf_counter() - self.t0, 2)
+        self.events.put({"type": "progress", "phase": phase, "elapsed_s": elapsed, **kw})
+
+    def run(self) -> dict[str, Any]:
+        data, fit, held = self.missions()
+        model, gate_model, em_info = self.estimate_models(data, fit, held)
+        if self.cancel.is_set():
+            raise _Cancelled
+        cfg, res = self.train_policy(model)
+        figures = self.gate(res.policy, model, gate_model, len(held.length))
+        passed = figures["new"]["mean_capture_time"] <= figures["current"]["mean_capture_time"]
+        self.write_snapshot(cfg, res, model)
+        train_keys = ("episodes", "env_steps", "wall_seconds", "episodes_per_second")
+        return {
+            "metrics": {
+                "em": em_info,
+                "train": {k: res.summary[k] for k in train_keys},
+                "gate": {
+                    **figures,
+                    "passed": passed,
+                    "enforced": self.p.gate,
+                    "model": f"EM on {len(held.length)} held-out missions" if len(held.length) else "the uniform walk",
+                },
+                "wall_seconds": round(time.perf_counter() - self.t0, 2),
+            },
+            "passed": passed or not self.p.gate,
+        }
+
+    def missions(self) -> tuple[Any, Any, Any]:
+        """The fleet's missions (robots' positions and observations only), and their split into
+        those EM fits and those held out for the gate."""
+        from shared.engine.estimate import collect_missions
+        from training_server.store import read_episode_records
+
+        self.say("em", message="reading episode records")
+        rows = read_episode_records(self.job["db"], self.job["fleet"], self.p.max_records)
+        data = collect_missions(((i, json.loads(r)) for i, r in enumerate(rows)), self.graph, fleet=self.job["fleet"])
+        if len(data.length) == 0:
+            raise ValueError("no usable missions: fly some missions before training")
+        if data.impossible:
+            self.say(
+                "em",
+                message=f"set aside {len(data.impossible)} missions no path of the target explains: "
+                + ", ".join(data.impossible[:20])
+                + (" ..." if len(data.impossible) > 20 else ""),
+            )
+        fit, held = split_missions(data, self.p.holdout, self.p.seed)
+        self.say(
+            "em", message=f"EM on {len(fit.length)} missions ({fit.used_records} records); {len(held.length)} held out"
         )
-    fit, held = split_missions(data, p.holdout, p.seed)
-    say("em", message=f"EM on {len(fit.length)} missions ({fit.used_records} records); {len(held.length)} held out")
-    last_em = [0.0]  # the first pass of each fit is reported at once, then one every 0.25 s
+        return data, fit, held
 
-    def estimate(missions: Any, which: str) -> Any:
+    def estimate_models(self, data: Any, fit: Any, held: Any) -> tuple[Any, Any, dict[str, Any]]:
+        """Step 1: EM's model from the missions fitted, the gate's from those held out (one mission
+        cannot be split: the gate's model is then the prior alone, the uniform walk), and what
+        the run's metrics record of them."""
+        from shared.core.models import uniform_walk
+
+        est = self._em(fit, "on the missions fitted")
+        gate_est = self._em(held, "on the missions held out") if len(held.length) else None
+        gate_model = gate_est.model if gate_est is not None else uniform_walk(self.graph)
+        em_info = {
+            "missions": len(fit.length),
+            "held_out": len(held.length),
+            "records": fit.used_records,
+            "iterations": est.iterations,
+            "converged": est.converged,
+            "gate_model_converged": gate_est.converged if gate_est is not None else None,
+            "skipped": dict(data.skipped),
+            "impossible_missions": data.impossible[:100],
+            "prior": {"pseudo_count": self.p.em_pseudo_count, "b0_pseudo_count": self.p.em_b0_pseudo_count},
+        }
+        return est.model, gate_model, em_info
+
+    def _em(self, missions: Any, which: str) -> Any:
+        from shared.core.models import uniform_walk
+        from shared.engine.estimate import em
+
+        last = [0.0]  # the first pass of each fit is reported at once, then one every 0.25 s
+
         def em_progress(iteration: int, loglik: float) -> None:
-            if iteration == 1 or time.perf_counter() - last_em[0] >= 0.25:
-                last_em[0] = time.perf_counter()
-                say(
-                    "em",
-                    iteration=iteration,
-                    max_iter=p.em_max_iter,
-                    message=f"EM pass {iteration} {which} (log-likelihood {loglik:.1f})",
-                )
-            if cancel.is_set():
+            if iteration == 1 or time.perf_counter() - last[0] >= 0.25:
+                last[0] = time.perf_counter()
+                message = f"EM pass {iteration} {which} (log-likelihood {loglik:.1f})"
+                self.say("em", iteration=iteration, max_iter=self.p.em_max_iter, message=message)
+            if self.cancel.is_set():
                 raise _Cancelled
 
         return em(
-            graph,
+            self.graph,
             missions,
-            init=uniform_walk(graph),
-            max_iter=p.em_max_iter,
+            init=uniform_walk(self.graph),
+            max_iter=self.p.em_max_iter,
             tol=1e-5,
             progress=em_progress,
-            pseudo_count=p.em_pseudo_count,
-            b0_pseudo_count=p.em_b0_pseudo_count,
+            pseudo_count=self.p.em_pseudo_count,
+            b0_pseudo_count=self.p.em_b0_pseudo_count,
         )
 
-    est = estimate(fit, "on the missions fitted")
-    model = est.model
-    # one mission cannot be split: the gate's model is then the prior alone, the uniform walk
-    gate_est = estimate(held, "on the missions held out") if len(held.length) else None
-    gate_model = gate_est.model if gate_est is not None else uniform_walk(graph)
-    em_info = {
-        "missions": len(fit.length),
-        "held_out": len(held.length),
-        "records": fit.used_records,
-        "iterations": est.iterations,
-        "converged": est.converged,
-        "gate_model_converged": gate_est.converged if gate_est is not None else None,
-        "skipped": dict(data.skipped),
-        "impossible_missions": data.impossible[:100],
-        "prior": {"pseudo_count": p.em_pseudo_count, "b0_pseudo_count": p.em_b0_pseudo_count},
-    }
-    if cancel.is_set():
-        raise _Cancelled
+    def train_policy(self, model: Any) -> tuple[Any, Any]:
+        """Step 2: CE-PG in simulation under the estimated model, from the current policy."""
+        from shared.learning.config import TrainConfig
+        from shared.learning.train import train
 
-    # 2. CE-PG in simulation under the estimated model, from the current policy
-    cfg = TrainConfig(  # the other fields keep TrainConfig's defaults
-        robots=current.robots,
-        episodes=p.episodes,
-        beta=[p.beta],
-        lr=[p.lr],
-        variant=current.variant,
-        belief="true",
-        seed=p.seed,
-        hidden=current.policy.H,
-    )
-    planned = -(-p.episodes // cfg.batch) * cfg.batch  # whole batches
-    say(
-        "train",
-        episodes=0,
-        total=planned,
-        message=f"training {planned:,} episodes"
-        + (f" ({p.episodes:,} asked, rounded up to whole batches of {cfg.batch})" if planned != p.episodes else ""),
-    )
-    last = [0.0]
+        p, current = self.p, self.current
+        cfg = TrainConfig(  # the other fields keep TrainConfig's defaults
+            robots=current.robots,
+            episodes=p.episodes,
+            beta=[p.beta],
+            lr=[p.lr],
+            variant=current.variant,
+            belief="true",
+            seed=p.seed,
+            hidden=current.policy.H,
+        )
+        planned = -(-p.episodes // cfg.batch) * cfg.batch  # whole batches
+        rounded = (
+            f" ({p.episodes:,} asked, rounded up to whole batches of {cfg.batch})" if planned != p.episodes else ""
+        )
+        self.say("train", episodes=0, total=planned, message=f"training {planned:,} episodes{rounded}")
+        last = [0.0]
 
-    def on_progress(point: dict[str, Any]) -> None:
-        now = time.perf_counter()
-        if now - last[0] >= 0.5 or point["episodes"] >= point["total"]:
-            last[0] = now
-            say(
-                "train",
-                episodes=point["episodes"],
-                total=point["total"],
-                mean_capture_time=round(float(point.get("mean_capture_time", float("nan"))), 3),
-            )
+        def on_progress(point: dict[str, Any]) -> None:
+            now = time.perf_counter()
+            if now - last[0] >= 0.5 or point["episodes"] >= point["total"]:
+                last[0] = now
+                self.say(
+                    "train",
+                    episodes=point["episodes"],
+                    total=point["total"],
+                    mean_capture_time=round(float(point.get("mean_capture_time", float("nan"))), 3),
+                )
 
-    res = train(graph, model, sensor, cfg, init_policy=current, progress=on_progress, should_stop=cancel.is_set)
-    if res.interrupted:
-        raise _Cancelled
+        res = train(
+            self.graph,
+            model,
+            self.sensor,
+            cfg,
+            init_policy=current,
+            progress=on_progress,
+            should_stop=self.cancel.is_set,
+        )
+        if res.interrupted:
+            raise _Cancelled
+        return cfg, res
 
-    # 3. the evaluation gate: both policies on the same seeds under the held-out missions' model,
-    # which the new policy was not trained on (a model fitted on few missions flatters the policy
-    # trained on it; the prior keeps the held-out one cautious)
-    say(
-        "gate",
-        message=f"evaluating new and current policy on {p.gate_episodes} episodes under "
-        + (f"the model of {len(held.length)} held-out missions" if len(held.length) else "the uniform walk"),
-    )
-    from shared.learning.snapshot import Snapshot
+    def gate(self, policy: Any, model: Any, gate_model: Any, held: int) -> dict[str, dict[str, Any]]:
+        """Step 3, the evaluation gate: the new and the current policy on the same seeds under the
+        held-out missions' model, which the new policy was not trained on (a model fitted on few
+        missions flatters the policy trained on it; the prior keeps the held-out one cautious)."""
+        from shared.engine.evaluate import evaluate
+        from shared.learning.snapshot import PolicySearcher, Snapshot
 
-    new = Snapshot(
-        meta={"variant": current.variant, "robots": current.robots}, policy=res.policy, model=model, sensor=sensor
-    )
-    figures = {}
-    for name, snap in (("current", current), ("new", new)):
+        p, current, graph, sensor = self.p, self.current, self.graph, self.sensor
+        under = f"the model of {held} held-out missions" if held else "the uniform walk"
+        self.say("gate", message=f"evaluating new and current policy on {p.gate_episodes} episodes under {under}")
+        new = Snapshot(
+            meta={"variant": current.variant, "robots": current.robots}, policy=policy, model=model, sensor=sensor
+        )
+        figures = {}
+        for name, snap in (("current", current), ("new", new)):
 
-        def team(seed: int, snap: Snapshot = snap) -> PolicySearcher:
-            return PolicySearcher(snap, graph, sensor, current.robots, seed=seed)
+            def team(seed: int, snap: Snapshot = snap) -> PolicySearcher:
+                return PolicySearcher(snap, graph, sensor, current.robots, seed=seed)
 
-        r = evaluate(
-            graph,
-            gate_model,
-            sensor,
-            current.robots,
-            team,
-            episodes=p.gate_episodes,
-            seed=p.seed + 1,
-        ).summary()
-        figures[name] = {k: r[k] for k in ("mean_capture_time", "ci95", "censored_fraction", "episodes")}
-    passed = figures["new"]["mean_capture_time"] <= figures["current"]["mean_capture_time"]
-    out = Path(job["staging"])
-    shutil.rmtree(out, ignore_errors=True)
-    config = {**cfg.to_dict(), "target": "em-estimate", "map": graph.name, "parent_version": job["parent"]}
-    save_snapshot(
-        out, res.policy, graph, model, sensor, current.variant, cfg.per_robot(cfg.beta, "beta"), config, res.summary
-    )
-    return {
-        "metrics": {
-            "em": em_info,
-            "train": {k: res.summary[k] for k in ("episodes", "env_steps", "wall_seconds", "episodes_per_second")},
-            "gate": {
-                **figures,
-                "passed": passed,
-                "enforced": p.gate,
-                "model": f"EM on {len(held.length)} held-out missions" if len(held.length) else "the uniform walk",
-            },
-            "wall_seconds": round(time.perf_counter() - t0, 2),
-        },
-        "passed": passed or not p.gate,
-    }
+            r = evaluate(graph, gate_model, sensor, current.robots, team, episodes=p.gate_episodes, seed=p.seed + 1)
+            summary = r.summary()
+            figures[name] = {k: summary[k] for k in ("mean_capture_time", "ci95", "censored_fraction", "episodes")}
+        return figures
+
+    def write_snapshot(self, cfg: Any, res: Any, model: Any) -> None:
+        from shared.learning.snapshot import save_snapshot
+
+        out = Path(self.job["staging"])
+        shutil.rmtree(out, ignore_errors=True)
+        config = {
+            **cfg.to_dict(),
+            "target": "em-estimate",
+            "map": self.graph.name,
+            "parent_version": self.job["parent"],
+        }
+        beta = cfg.per_robot(cfg.beta, "beta")
+        save_snapshot(out, res.policy, self.graph, model, self.sensor, self.current.variant, beta, config, res.summary)
 
 
 def split_missions(data: Any, holdout: float, seed: int) -> tuple[Any, Any]:

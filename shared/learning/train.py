@@ -107,34 +107,19 @@ def train(
     cfg.check()
     rank, world = _world()
     device = torch.device(cfg.device)
-    N, n = cfg.robots, graph.n
     beta = torch.tensor(cfg.per_robot(cfg.beta, "beta"), device=device)
     lrs = torch.tensor(cfg.per_robot(cfg.lr, "lr"), device=device)
-    lr_scale = (lrs / lrs.max()).view(N, 1, 1)
-    per_robot_lr = bool((lr_scale != 1).any())  # robots with a smaller rate than the largest
     collective = cfg.variant == "c-cepg"
-
-    torch.manual_seed(cfg.seed)  # identical initial weights on every process
-    policy = TeamPolicy(n, N, torch.as_tensor(graph.adjacency()), hidden=cfg.hidden).to(device)
-    if init_policy is not None:
-        if init_policy.robots != N or init_policy.policy.H != policy.H:
-            raise ValueError(
-                f"warm start: snapshot has {init_policy.robots} robots and {init_policy.policy.H} hidden units, "
-                f"this run {N} and {policy.H}"
-            )
-        policy.load_state_dict(init_policy.policy.state_dict())
+    policy = _initial_policy(graph, cfg, init_policy, device)
     opt = torch.optim.Adam(policy.parameters(), lr=float(lrs.max()))
-    lr_max = float(lrs.max())
-
     model = target if cfg.belief == "true" else (init_model or identity_model(graph))
     belief = BatchedBelief(graph, model, sensor, device)
-    local_batch = math.ceil(cfg.batch / world)
     sim = SearchSim(
         graph,
         target,
         sensor,
-        N,
-        local_batch,
+        cfg.robots,
+        math.ceil(cfg.batch / world),
         seed=cfg.seed * 7_919 + rank,
         device=device,
         auto_reset=False,
@@ -144,67 +129,30 @@ def train(
     gen = torch.Generator(device=device)
     gen.manual_seed(cfg.seed * 104_729 + rank)
 
-    curve: list[dict[str, Any]] = []
+    curve = _LearningCurve(every=max(1, cfg.episodes // 200))
     em_log: list[dict[str, Any]] = []
     episodes = env_steps = updates = 0
     next_em = cfg.em_first if cfg.belief == "em" else math.inf
     t0 = time.perf_counter()
     interrupted = False
-    window: list[tuple[float, float, float, float]] = []  # per update: episodes, sum ct, sum censored, ce
-    curve_every = max(1, cfg.episodes // 200)
-    next_curve = curve_every
     while episodes < cfg.episodes:
-        ro = rollout(sim, policy, belief, collective, gen)
-        terms = cepg_loss(policy, ro, beta, cfg.eps, cfg.ce_fraction, gen, cfg.j_unit, cfg.ce_states)
-        opt.zero_grad(set_to_none=False)
-        (terms.loss / world).backward()
-        stats = torch.tensor(
-            [
-                float(ro.length.numel()),
-                float(ro.capture_time.sum()),
-                float(ro.censored.sum()),
-                float(ro.length.sum()),
-                float(terms.ce.mean()),
-            ],
-            dtype=torch.float64,
-        )
-        if world > 1:
-            for p in policy.parameters():
-                dist.all_reduce(p.grad)
-            dist.all_reduce(stats)
-            stats[4] /= world
-        if per_robot_lr:
-            before = [p.detach().clone() for p in policy.parameters()]
-        for group in opt.param_groups:  # linear decay: a steadier final policy
-            group["lr"] = lr_max * (1.0 - (1.0 - cfg.lr_final) * min(1.0, episodes / cfg.episodes))
-        opt.step()
-        if per_robot_lr:  # per-robot learning rates (module docstring)
-            with torch.no_grad():
-                for p, p0 in zip(policy.parameters(), before, strict=True):
-                    scale = lr_scale.view(N, *([1] * (p.dim() - 1)))
-                    p.copy_(p0 + scale * (p - p0))
+        ro = rollout(sim, policy, belief, collective, gen)  # B episodes with the current policies
+        terms = cepg_loss(policy, ro, beta, cfg.eps, cfg.ce_fraction, gen, cfg.j_unit, cfg.ce_states)  # Eq. 9-13
+        # linear decay of the learning rate over the run: a steadier final policy
+        lr = float(lrs.max()) * (1.0 - (1.0 - cfg.lr_final) * min(1.0, episodes / cfg.episodes))
+        stats = _update(policy, opt, terms, ro, lrs, lr, world)
         updates += 1
         n_eps, ct_sum, cens_sum, steps, ce = (float(x) for x in stats)
         episodes += int(n_eps)
         env_steps += int(steps)
-        window.append((n_eps, ct_sum, cens_sum, ce))
-        if episodes >= next_em:
+        curve.add(n_eps, ct_sum, cens_sum, ce)
+        if episodes >= next_em:  # Algorithm 2's model update, by EM on the team's own missions
             em_log.append(em_update(graph, target, sensor, cfg, policy, belief, episodes, rank, world, device))
             model = belief_model(graph, belief, em_log[-1].get("kind", "em"))
             next_em = episodes + cfg.em_every
         stop = bool(should_stop and should_stop())
-        if episodes >= next_curve or episodes >= cfg.episodes or stop:
-            w_eps = sum(w[0] for w in window)
-            point = {
-                "episodes": episodes,
-                "mean_capture_time": sum(w[1] for w in window) / w_eps,
-                "censored_fraction": sum(w[2] for w in window) / w_eps,
-                "cross_entropy": sum(w[3] for w in window) / len(window),
-                "wall_seconds": round(time.perf_counter() - t0, 3),
-            }
-            curve.append(point)
-            window.clear()
-            next_curve = episodes + curve_every
+        if curve.due(episodes) or episodes >= cfg.episodes or stop:
+            point = curve.point(episodes, time.perf_counter() - t0)
             if progress:
                 elapsed = time.perf_counter() - t0
                 progress(
@@ -220,14 +168,8 @@ def train(
             interrupted = episodes < cfg.episodes
             break
     wall = time.perf_counter() - t0
-    if world > 1:  # the replicas must agree exactly
-        d = _params_digest(policy)
-        ref = d.clone()
-        dist.broadcast(ref, 0)
-        same = torch.tensor([float(torch.equal(d, ref))], dtype=torch.float64)
-        dist.all_reduce(same, op=dist.ReduceOp.MIN)
-        if same.item() != 1.0:
-            raise RuntimeError("data-parallel replicas diverged: weights differ between processes")
+    if world > 1:
+        _check_replicas_agree(policy)
     summary = {
         "episodes": episodes,
         "env_steps": env_steps,
@@ -237,12 +179,107 @@ def train(
         "env_steps_per_second": round(env_steps / max(wall, 1e-9), 1),
         "processes": world,
         "interrupted": interrupted,
-        "final_mean_capture_time": curve[-1]["mean_capture_time"] if curve else None,
+        "final_mean_capture_time": curve.points[-1]["mean_capture_time"] if curve.points else None,
         "belief_model": model.kind,
         "em_updates": em_log,
-        "learning_curve": curve,
+        "learning_curve": curve.points,
     }
     return TrainResult(policy=policy, model=model, summary=summary, interrupted=interrupted)
+
+
+def _initial_policy(graph: Graph, cfg: TrainConfig, init_policy: Snapshot | None, device: torch.device) -> TeamPolicy:
+    """The team's networks, seeded (identical initial weights on every process) or warm-started
+    from ``init_policy``'s weights."""
+    torch.manual_seed(cfg.seed)
+    policy = TeamPolicy(graph.n, cfg.robots, torch.as_tensor(graph.adjacency()), hidden=cfg.hidden).to(device)
+    if init_policy is not None:
+        if init_policy.robots != cfg.robots or init_policy.policy.H != policy.H:
+            raise ValueError(
+                f"warm start: snapshot has {init_policy.robots} robots and {init_policy.policy.H} hidden units, "
+                f"this run {cfg.robots} and {policy.H}"
+            )
+        policy.load_state_dict(init_policy.policy.state_dict())
+    return policy
+
+
+def _update(
+    policy: TeamPolicy, opt: torch.optim.Optimizer, terms: Any, ro: Any, lrs: torch.Tensor, lr: float, world: int
+) -> torch.Tensor:
+    """One Adam step on the CE-PG loss at learning rate ``lr`` (summed over the W processes'
+    gradients), each robot's change scaled by alpha_i / max(alpha) (Eq. 13, module docstring).
+    Returns the batch's (episodes, sum of capture times, censored, team steps, mean cross-entropy),
+    float64, summed over the processes (the cross-entropy averaged)."""
+    opt.zero_grad(set_to_none=False)
+    (terms.loss / world).backward()
+    stats = torch.tensor(
+        [
+            float(ro.length.numel()),
+            float(ro.capture_time.sum()),
+            float(ro.censored.sum()),
+            float(ro.length.sum()),
+            float(terms.ce.mean()),
+        ],
+        dtype=torch.float64,
+    )
+    if world > 1:
+        for p in policy.parameters():
+            dist.all_reduce(p.grad)
+        dist.all_reduce(stats)
+        stats[4] /= world
+    lr_scale = (lrs / lrs.max()).view(-1, 1, 1)  # (N, 1, 1)
+    per_robot_lr = bool((lr_scale != 1).any())  # robots with a smaller rate than the largest
+    if per_robot_lr:
+        before = [p.detach().clone() for p in policy.parameters()]
+    for group in opt.param_groups:
+        group["lr"] = lr
+    opt.step()
+    if per_robot_lr:
+        with torch.no_grad():
+            for p, p0 in zip(policy.parameters(), before, strict=True):
+                scale = lr_scale.view(-1, *([1] * (p.dim() - 1)))
+                p.copy_(p0 + scale * (p - p0))
+    return stats
+
+
+class _LearningCurve:
+    """The training episodes' capture time, censored fraction and cross-entropy, one point per
+    ``every`` episodes (at most 200 a run), each averaged over the updates since the last point."""
+
+    def __init__(self, every: int) -> None:
+        self.every, self.next = every, every
+        self.points: list[dict[str, Any]] = []
+        self.window: list[tuple[float, float, float, float]] = []  # per update: episodes, sum ct, censored, ce
+
+    def add(self, episodes: float, capture_time_sum: float, censored: float, ce: float) -> None:
+        self.window.append((episodes, capture_time_sum, censored, ce))
+
+    def due(self, episodes: int) -> bool:
+        return episodes >= self.next
+
+    def point(self, episodes: int, wall_seconds: float) -> dict[str, Any]:
+        w_eps = sum(w[0] for w in self.window)
+        point = {
+            "episodes": episodes,
+            "mean_capture_time": sum(w[1] for w in self.window) / w_eps,
+            "censored_fraction": sum(w[2] for w in self.window) / w_eps,
+            "cross_entropy": sum(w[3] for w in self.window) / len(self.window),
+            "wall_seconds": round(wall_seconds, 3),
+        }
+        self.points.append(point)
+        self.window.clear()
+        self.next = episodes + self.every
+        return point
+
+
+def _check_replicas_agree(policy: TeamPolicy) -> None:
+    """Data-parallel replicas must end with the same weights: a RuntimeError when they do not."""
+    d = _params_digest(policy)
+    ref = d.clone()
+    dist.broadcast(ref, 0)
+    same = torch.tensor([float(torch.equal(d, ref))], dtype=torch.float64)
+    dist.all_reduce(same, op=dist.ReduceOp.MIN)
+    if same.item() != 1.0:
+        raise RuntimeError("data-parallel replicas diverged: weights differ between processes")
 
 
 def belief_model(graph: Graph, belief: BatchedBelief, kind: str) -> TargetModel:

@@ -18,6 +18,7 @@ import tempfile
 import threading
 import time
 import urllib.error
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -370,59 +371,21 @@ def run_fleet_sim(
     try:
         say(f"fleet-sim: {robots} agents online after {time.perf_counter() - t0:.1f} s; flying {missions} missions")
         for k in range(missions):
-            m = fleet.fly(ids, seed=seed * 100_003 + k)
-            out = m["outcome"] or {}
-            ct = out.get("capture_time")
-            max_steps = m["params"]["max_steps"]
-            results.append(
-                {
-                    "mission_id": m["id"],
-                    "captured": ct is not None,
-                    "capture_time": ct if ct is not None else max_steps,
-                    "policy_version": (out.get("policy_versions") or [m["policy_version"]])[0],
-                }
-            )
+            results.append(_mission_result(fleet.fly(ids, seed=seed * 100_003 + k)))
             if on_trial is not None:
-                trial = fleet.api.get(f"/api/v1/policies/{on_trial}")["meta"].get("canary") or {}
-                if trial.get("state") not in (None, "flying"):
-                    trials.append({"version": on_trial, **trial})
-                    say(
-                        f"fleet-sim: version {on_trial} {trial['state']} after its trial"
-                        + (
-                            f": {trial['canary_mean']:.2f} vs {trial['baseline_mean']:.2f} steps for version "
-                            f"{trial['baseline']} over {trial['pairs']} pairs of missions"
-                            if "canary_mean" in trial
-                            else ""
-                        )
-                    )
+                trial = _trial_decided(fleet, on_trial, say)
+                if trial is not None:
+                    trials.append(trial)
                     on_trial = None
             if (k + 1) % max(1, missions // 10) == 0 or k + 1 == missions:
-                done = [r["capture_time"] for r in results]
-                mean, half = mean_ci95(done)
+                mean, half = mean_ci95([r["capture_time"] for r in results])
                 say(f"fleet-sim: {k + 1}/{missions} missions, mean capture time {mean:.2f} ± {half:.2f}")
             if retrain_every and (k + 1) % retrain_every == 0 and k + 1 < missions:
                 say(f"fleet-sim: retraining over HTTP after {k + 1} missions ({json.dumps(retrain_params)})")
-                run = fleet.api.post("/api/v1/training-runs", {**retrain_params, "seed": seed + k})
-                last = [""]
-
-                def finished(run_id: str = run["id"], last: list[str] = last) -> dict[str, Any] | None:
-                    r = fleet.api.get(f"/api/v1/training-runs/{run_id}")
-                    prog = r.get("progress") or {}
-                    line = f"{prog.get('phase', '')} {prog.get('episodes', '')}/{prog.get('total', '')}"
-                    if line != last[0] and prog.get("phase") in ("em", "gate", "train"):
-                        last[0] = line
-                        if prog.get("phase") != "train" or prog.get("episodes", 0) >= prog.get("total", 1):
-                            say(f"fleet-sim:   {prog.get('phase')}: {prog.get('message') or line}")
-                    return r if r["status"] in ("succeeded", "failed", "cancelled") else None
-
-                r = wait_until(finished, 3600, f"training run {run['id']}", every=0.25)
-                runs.append({k2: r[k2] for k2 in ("id", "status", "version", "error", "metrics")})
-                say(
-                    f"fleet-sim: run {r['id']} {r['status']}"
-                    + (f": version {r['version']}" if r["version"] else f" ({r['error']})")
-                )
-                if r["status"] == "succeeded" and (r.get("progress") or {}).get("phase") == "canary":
-                    on_trial = r["version"]
+                run = _retrain(fleet, {**retrain_params, "seed": seed + k}, say)
+                runs.append({key: run[key] for key in ("id", "status", "version", "error", "metrics")})
+                if run["status"] == "succeeded" and (run.get("progress") or {}).get("phase") == "canary":
+                    on_trial = run["version"]
                     trial = fleet.api.get(f"/api/v1/policies/{on_trial}")["meta"].get("canary") or {}
                     say(
                         f"fleet-sim: version {on_trial} on trial: it flies every other mission beside version "
@@ -435,18 +398,7 @@ def run_fleet_sim(
         fleet.close()
         if tmp is not None:
             tmp.cleanup()
-    ct_all = [r["capture_time"] for r in results]
-    mean, half = mean_ci95(ct_all)
-    by_version: dict[str, Any] = {}
-    for v in sorted({r["policy_version"] for r in results}):
-        x = [r["capture_time"] for r in results if r["policy_version"] == v]
-        mv, hv = mean_ci95(x)
-        by_version[str(v)] = {
-            "missions": len(x),
-            "mean_capture_time": mv,
-            "ci95_halfwidth": hv,
-            "censored_fraction": float(np.mean([not r["captured"] for r in results if r["policy_version"] == v])),
-        }
+    mean, half = mean_ci95([r["capture_time"] for r in results])
     step_ms = np.asarray(fleet.world.step_seconds) * 1e3 if fleet.world else np.zeros(0)
     return {
         "missions": len(results),
@@ -459,10 +411,76 @@ def run_fleet_sim(
         "episodes_stored": stats["stored"],
         "episodes_rejected": stats["rejected"],
         "policy_versions_used": sorted({r["policy_version"] for r in results}),
-        "by_policy_version": by_version,
+        "by_policy_version": _by_version(results),
         "training_runs": runs,
         "trials": trials,
         "lockstep_step_ms_median": float(np.median(step_ms)) if len(step_ms) else None,
         "wall_seconds": round(time.perf_counter() - t0, 2),
         "results": results,
     }
+
+
+def _mission_result(m: dict[str, Any]) -> dict[str, Any]:
+    """A flown mission's line in the summary: a censored mission counts its step limit."""
+    out = m["outcome"] or {}
+    ct = out.get("capture_time")
+    return {
+        "mission_id": m["id"],
+        "captured": ct is not None,
+        "capture_time": ct if ct is not None else m["params"]["max_steps"],
+        "policy_version": (out.get("policy_versions") or [m["policy_version"]])[0],
+    }
+
+
+def _trial_decided(fleet: Fleet, version: int, say: Callable[[str], None]) -> dict[str, Any] | None:
+    """Version ``version``'s trial beside the current version once the server has decided it
+    (kept or rolled back), else None."""
+    trial = fleet.api.get(f"/api/v1/policies/{version}")["meta"].get("canary") or {}
+    if trial.get("state") in (None, "flying"):
+        return None
+    evidence = (
+        f": {trial['canary_mean']:.2f} vs {trial['baseline_mean']:.2f} steps for version "
+        f"{trial['baseline']} over {trial['pairs']} pairs of missions"
+        if "canary_mean" in trial
+        else ""
+    )
+    say(f"fleet-sim: version {version} {trial['state']} after its trial{evidence}")
+    return {"version": version, **trial}
+
+
+def _retrain(fleet: Fleet, params: dict[str, Any], say: Callable[[str], None]) -> dict[str, Any]:
+    """A training run over HTTP, as an operator starts one, followed to its end (an hour at most)."""
+    run = fleet.api.post("/api/v1/training-runs", params)
+    last = [""]
+
+    def finished() -> dict[str, Any] | None:
+        r = fleet.api.get(f"/api/v1/training-runs/{run['id']}")
+        prog = r.get("progress") or {}
+        line = f"{prog.get('phase', '')} {prog.get('episodes', '')}/{prog.get('total', '')}"
+        if line != last[0] and prog.get("phase") in ("em", "gate", "train"):
+            last[0] = line
+            if prog.get("phase") != "train" or prog.get("episodes", 0) >= prog.get("total", 1):
+                say(f"fleet-sim:   {prog.get('phase')}: {prog.get('message') or line}")
+        return r if r["status"] in ("succeeded", "failed", "cancelled") else None
+
+    r = wait_until(finished, 3600, f"training run {run['id']}", every=0.25)
+    say(
+        f"fleet-sim: run {r['id']} {r['status']}"
+        + (f": version {r['version']}" if r["version"] else f" ({r['error']})")
+    )
+    return r
+
+
+def _by_version(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """The missions' capture times per policy version that flew them."""
+    by_version: dict[str, Any] = {}
+    for v in sorted({r["policy_version"] for r in results}):
+        x = [r["capture_time"] for r in results if r["policy_version"] == v]
+        mv, hv = mean_ci95(x)
+        by_version[str(v)] = {
+            "missions": len(x),
+            "mean_capture_time": mv,
+            "ci95_halfwidth": hv,
+            "censored_fraction": float(np.mean([not r["captured"] for r in results if r["policy_version"] == v])),
+        }
+    return by_version
