@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from shared.core.belief import BeliefFilter
+from shared.core.belief_filter import BeliefFilter
 from shared.core.graph import builtin_graph, grid_graph
 from shared.core.models import Sensor, uniform_walk
 

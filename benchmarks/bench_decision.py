@@ -16,9 +16,9 @@ import torch
 
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
-from shared.core.snapshot import PolicyAgent, read_snapshot
+from shared.core.snapshot_format import PolicyAgent, read_snapshot
 from shared.learning.policy import TeamPolicy
-from shared.learning.snapshot import Snapshot
+from shared.learning.team_snapshot import Snapshot
 
 
 def main() -> None:

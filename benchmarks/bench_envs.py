@@ -35,7 +35,7 @@ import torch
 
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
-from shared.engine.belief import BatchedBelief, BeliefTracker
+from shared.engine.batched_belief import BatchedBelief, BeliefTracker
 from shared.engine.memory import keep_freed_memory
 from shared.engine.searchers import RandomSearcher
 from shared.engine.sim import SearchSim

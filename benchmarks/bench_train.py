@@ -18,7 +18,7 @@ from shared.core.graph import builtin_graph, load_graph_file
 from shared.core.models import Sensor, uniform_walk
 from shared.engine.evaluate import evaluate
 from shared.learning.config import TrainConfig
-from shared.learning.snapshot import PolicySearcher, load_snapshot, save_snapshot
+from shared.learning.team_snapshot import PolicySearcher, load_snapshot, save_snapshot
 from shared.learning.train import train
 from shared.registry import make_searcher
 

@@ -23,7 +23,7 @@ from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
 from shared.engine.evaluate import evaluate
 from shared.learning.config import TrainConfig
-from shared.learning.snapshot import PolicySearcher, Snapshot
+from shared.learning.team_snapshot import PolicySearcher, Snapshot
 from shared.learning.train import train
 
 T95 = {1: 12.71, 2: 4.30, 3: 3.18, 4: 2.78, 5: 2.57, 6: 2.45, 7: 2.36, 8: 2.31, 9: 2.26}

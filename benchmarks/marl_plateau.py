@@ -44,9 +44,9 @@ import torch
 
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
-from shared.core.snapshot import read_meta
+from shared.core.snapshot_format import read_meta
 from shared.engine.evaluate import evaluate, mean_ci95
-from shared.learning.snapshot import PolicySearcher, load_snapshot
+from shared.learning.team_snapshot import PolicySearcher, load_snapshot
 
 
 def _curve_mean(curve: list[dict], lo: float, hi: float) -> float | None:

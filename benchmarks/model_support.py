@@ -21,7 +21,7 @@ import time
 import numpy as np
 import torch
 
-from shared.core.belief import BeliefFilter
+from shared.core.belief_filter import BeliefFilter
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, TargetModel, uniform_walk
 from shared.engine.estimate import collect_missions, em, mean_row_tv

@@ -10,7 +10,7 @@ cached teams there are and the geometric mean, least and greatest of their measu
 their estimate (the snapshot's training summary's wall_seconds against `_train_cost` of the team's map,
 robots, algorithm, episodes and eta_fn).
 
-The parts (README, "The paper's protocol: what is recorded"): fig11 on MUSEUM (OFFICE's is
+The parts (docs/protocol.md, "What is recorded"): fig11 on MUSEUM (OFFICE's is
 recorded), fig13 on both maps and fig7 at N = 1, 2, 3, 5 on MUSEUM. Every part at the full
 budget; `--fraction F` prices fig7's N = 1, 2, 3, 5 at F times it (`--train-fraction`).
 """
@@ -20,7 +20,7 @@ from collections import defaultdict
 from pathlib import Path
 from statistics import geometric_mean
 
-from shared.core.snapshot import META, read_meta
+from shared.core.snapshot_format import META, read_meta
 from shared.tools.experiments.budget import budget
 from shared.tools.experiments.cells import cell_job
 from shared.tools.experiments.costs import MAP_COST, train_cost

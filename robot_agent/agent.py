@@ -1,4 +1,4 @@
-"""`robot-agent`: one robot's agent process (README "The fleet").
+"""`robot-agent`: one robot's agent process (docs/operating.md).
 
     robot-agent --robot-id ID --server URL --zenoh-connect ENDPOINT [--fleet NAME]
                 [--token-file F] [--state-dir DIR] [--backend sim|MODULE:CLASS] [--no-telemetry]
@@ -45,7 +45,7 @@ from shared.core.graph import Graph, graph_from_dict
 from shared.core.http import ApiClient, ApiError
 from shared.core.models import Sensor
 from shared.core.records import make_record
-from shared.core.snapshot import PolicyAgent, SnapshotData, SnapshotError, read_snapshot
+from shared.core.snapshot_format import PolicyAgent, SnapshotData, SnapshotError, read_snapshot
 from shared.core.wire import (
     DEFAULT_FLEET,
     add_zenoh_arguments,

@@ -48,7 +48,7 @@ def searcher_factory(
     runs the searcher's own checks (the oracle's N <= 2, fhpe's node detection) once, before any
     simulation; raises ValueError (SnapshotError for a bad snapshot) with the reason."""
     if name.startswith("policy:"):
-        from shared.learning.snapshot import PolicySearcher, load_snapshot
+        from shared.learning.team_snapshot import PolicySearcher, load_snapshot
 
         snap = load_snapshot(name.removeprefix("policy:"), graph, device=device)
         team = snap.team_note(n_robots)

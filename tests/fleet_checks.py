@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from robot_agent.agent import mission_seed
-from shared.core.snapshot import PolicyAgent, read_snapshot
+from shared.core.snapshot_format import PolicyAgent, read_snapshot
 
 
 def snapshot_dir(fleet, version):

@@ -17,9 +17,9 @@ from robot_agent.backend import BackendError, load_backend
 from robot_agent.examples.nav_goal import NavGoalBackend
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, identity_model
-from shared.core.snapshot import PolicyAgent, SnapshotError, read_snapshot
+from shared.core.snapshot_format import PolicyAgent, SnapshotError, read_snapshot
 from shared.learning.policy import TeamPolicy
-from shared.learning.snapshot import convert_snapshot, load_snapshot, save_snapshot
+from shared.learning.team_snapshot import convert_snapshot, load_snapshot, save_snapshot
 from shared.tools.cli import main as cli_main
 
 

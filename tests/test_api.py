@@ -522,8 +522,8 @@ def test_a_mission_exported_as_mcap_reads_back(api):
 
     from mcap.reader import make_reader
 
-    from shared.core.belief import BeliefFilter
-    from shared.core.snapshot import read_snapshot
+    from shared.core.belief_filter import BeliefFilter
+    from shared.core.snapshot_format import read_snapshot
 
     srv, c = api
     srv.bus.online = {"r1": 1.0, "r2": 2.0}

@@ -135,9 +135,9 @@ def test_the_core_install_runs_an_agent_decision_without_torch(tmp_path):
 
     from shared.core.graph import builtin_graph
     from shared.core.models import Sensor, identity_model
-    from shared.core.snapshot import PolicyAgent, read_snapshot
+    from shared.core.snapshot_format import PolicyAgent, read_snapshot
     from shared.learning.policy import TeamPolicy
-    from shared.learning.snapshot import save_snapshot
+    from shared.learning.team_snapshot import save_snapshot
 
     venv = tmp_path / "core"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
@@ -156,7 +156,7 @@ def test_the_core_install_runs_an_agent_decision_without_torch(tmp_path):
     code = (
         "import sys\n"
         "from shared.core.graph import builtin_graph\n"
-        "from shared.core.snapshot import PolicyAgent, read_snapshot\n"
+        "from shared.core.snapshot_format import PolicyAgent, read_snapshot\n"
         "g = builtin_graph('office'); a = PolicyAgent(read_snapshot(sys.argv[1], g), g, 1, seed=7)\n"
         "p = g.start; a.reset(p, 0); moves = []\n"
         "for t in range(30):\n"

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from shared.core.belief import BeliefFilter
+from shared.core.belief_filter import BeliefFilter
 from shared.core.graph import grid_graph
 from shared.core.models import Sensor, from_matrix, lazy_walk
-from shared.engine.belief import BatchedBelief
+from shared.engine.batched_belief import BatchedBelief
 
 
 def random_model(graph, rng):

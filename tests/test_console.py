@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from test_api import AG, OP, api, auth  # noqa: F401 - api: the fixture (the in-process API)
 
-from shared.core.belief import BeliefFilter
+from shared.core.belief_filter import BeliefFilter
 from shared.core.graph import builtin_graph, graph_from_dict
 from shared.core.models import Sensor, uniform_walk
 from shared.core.records import make_record
-from shared.core.snapshot import read_snapshot
+from shared.core.snapshot_format import read_snapshot
 from shared.engine.evaluate import mean_ci95
 from training_server.api.policies import stationary
 from training_server.console import PAGES

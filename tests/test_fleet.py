@@ -23,7 +23,7 @@ from shared.core.models import Sensor, uniform_walk
 from shared.core.records import make_record
 from shared.core.wire import send_episode, zenoh_config
 from shared.engine.evaluate import evaluate, mean_ci95, means_differ
-from shared.learning.snapshot import PolicySearcher, load_snapshot
+from shared.learning.team_snapshot import PolicySearcher, load_snapshot
 from shared.tools.fleetsim import agent_rss_mb, launch, start_server, wait_until
 
 pytestmark = pytest.mark.slow  # every test here starts server and agent processes

@@ -13,14 +13,14 @@ import torch
 
 from shared.core.graph import builtin_graph, grid_graph
 from shared.core.models import Sensor, lazy_walk, uniform_walk
-from shared.core.snapshot import PolicyAgent, read_snapshot
+from shared.core.snapshot_format import PolicyAgent, read_snapshot
 from shared.engine.evaluate import evaluate
 from shared.engine.searchers import RandomSearcher
 from shared.learning.config import TrainConfig
 from shared.learning.marl import MARL_ALGORITHMS, hyperparameters, train_marl
 from shared.learning.marl.common import robot_mlps
 from shared.learning.marl.offpolicy import OffPolicyHyper, TargetActorCritic
-from shared.learning.snapshot import PolicySearcher, Snapshot
+from shared.learning.team_snapshot import PolicySearcher, Snapshot
 from shared.tools.cli import main
 
 # A corridor of 6 rooms, both robots start in room 0, the target sits still in a uniformly drawn
@@ -155,7 +155,7 @@ def test_cli_trains_a_baseline_into_a_snapshot_robots_can_fly(tmp_path, capsys):
     # the robot agent's numpy decision step runs it, with the moves the trained actor prefers
     from shared.core.graph import builtin_graph
     from shared.learning.marl.common import TeamActor
-    from shared.learning.snapshot import load_snapshot
+    from shared.learning.team_snapshot import load_snapshot
 
     g = builtin_graph("office")
     actor = TeamActor(load_snapshot(out, g).policy, g)
@@ -198,7 +198,7 @@ def test_a_fleet_flies_a_mappo_team_as_it_flies_cepg(tmp_path):
     from shared.core.graph import builtin_graph
     from shared.core.models import uniform_walk
     from shared.engine.evaluate import mean_ci95, means_differ
-    from shared.learning.snapshot import load_snapshot
+    from shared.learning.team_snapshot import load_snapshot
     from shared.tools.fleetsim import launch
 
     team = tmp_path / "mappo-team"

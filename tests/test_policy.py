@@ -6,7 +6,7 @@ import torch
 
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
-from shared.engine.belief import BatchedBelief
+from shared.engine.batched_belief import BatchedBelief
 from shared.engine.sim import SearchSim
 from shared.learning.cepg import cepg_loss, rollout
 from shared.learning.policy import TeamPolicy

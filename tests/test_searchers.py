@@ -1,7 +1,7 @@
 import numpy as np
 import torch
 
-from shared.core.belief import BeliefFilter
+from shared.core.belief_filter import BeliefFilter
 from shared.core.graph import builtin_graph, graph_from_dict
 from shared.core.models import Sensor, uniform_walk
 from shared.engine.searchers import GreedySearcher, RandomSearcher

@@ -15,11 +15,11 @@ import torch
 
 from shared.core.graph import builtin_graph, load_graph_file
 from shared.core.models import Sensor, uniform_walk
-from shared.core.snapshot import PolicyAgent, SnapshotError, read_snapshot
+from shared.core.snapshot_format import PolicyAgent, SnapshotError, read_snapshot
 from shared.engine.evaluate import evaluate
 from shared.engine.searchers import RandomSearcher
 from shared.learning.config import TrainConfig
-from shared.learning.snapshot import PolicySearcher, load_snapshot, save_snapshot
+from shared.learning.team_snapshot import PolicySearcher, load_snapshot, save_snapshot
 from shared.learning.train import train
 from shared.tools.toy import toy_fig4
 
@@ -134,7 +134,7 @@ def test_training_learns_and_estimates_the_model(trained_run):
 
     tv_identity = mean_row_tv(identity_model(g), m)
     assert em_info["mean_row_tv_to_true"] < tv_identity - 0.1 and snap_model.kind == "em"
-    from shared.learning.snapshot import Snapshot
+    from shared.learning.team_snapshot import Snapshot
 
     snap = Snapshot(meta={"variant": "cepg", "robots": 2}, policy=res.policy, model=res.model, sensor=s)
     learned = evaluate(g, m, s, 2, lambda sd: PolicySearcher(snap, g, s, 2, seed=sd), episodes=1000, seed=5)
@@ -196,7 +196,7 @@ def test_snapshot_round_trip_and_checks(trained_run, tmp_path):
 def test_numpy_agent_matches_the_batched_policy(trained_run):
     """The robot agent's numpy decision step computes the same distribution as the trainer's."""
     g, m, s, res = trained_run
-    from shared.learning.snapshot import Snapshot
+    from shared.learning.team_snapshot import Snapshot
 
     snap = Snapshot(meta={"variant": "cepg", "robots": 2}, policy=res.policy, model=res.model, sensor=s)
     agent = PolicyAgent(snap.to_data(), g, robot=1, greedy_actions=True)
@@ -354,7 +354,7 @@ def test_two_process_data_parallel_training_ends_with_identical_weights(tmp_path
 
 @pytest.mark.slow
 def test_mures_train_under_torchrun_writes_one_snapshot_from_two_processes(tmp_path):
-    """The README's scale-out command: two gloo processes train one team, rank 0 writes it, and
+    """The scale-out command of docs/cli.md: two gloo processes train one team, rank 0 writes it, and
     both leave the process group cleanly (exit 0)."""
     out = tmp_path / "team"
     launch = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]

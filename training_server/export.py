@@ -6,7 +6,7 @@ Topics (JSON messages, each with a JSON Schema):
   /robots/<id>/state        per step t: node, z (the robot's observation), x and y when known
   /robots/<id>/belief       per step t: the robot's own belief b_t over the map's nodes (in the map's
                             node order), recomputed from its own record alone with the belief model
-                            and sensor of the policy version it flew (Eq. 1, shared.core.belief)
+                            and sensor of the policy version it flew (Eq. 1, shared.core.belief_filter)
   /mission/outcome          once, after the last step: status, captured, capture_time, captured_by
 Records carry steps, not clock times: a step t is stamped mission start + t seconds.
 """
@@ -17,9 +17,9 @@ import io
 import json
 from typing import Any
 
-from shared.core.belief import BeliefFilter
+from shared.core.belief_filter import BeliefFilter
 from shared.core.models import Sensor
-from shared.core.snapshot import SnapshotError, read_snapshot
+from shared.core.snapshot_format import SnapshotError, read_snapshot
 
 STEP_NS = 1_000_000_000  # one step shown as one second
 

@@ -165,7 +165,7 @@ class _TrainingRun:
         import torch
 
         from shared.core.graph import graph_from_dict
-        from shared.learning.snapshot import load_snapshot
+        from shared.learning.team_snapshot import load_snapshot
 
         self.job, self.events, self.cancel = job, events, cancel
         self.p = TrainingParams.model_validate(job["params"])
@@ -328,7 +328,7 @@ class _TrainingRun:
         held-out missions' model, which the new policy was not trained on (a model fitted on few
         missions flatters the policy trained on it; the prior keeps the held-out one cautious)."""
         from shared.engine.evaluate import evaluate
-        from shared.learning.snapshot import PolicySearcher, Snapshot
+        from shared.learning.team_snapshot import PolicySearcher, Snapshot
 
         p, current, graph, sensor = self.p, self.current, self.graph, self.sensor
         under = f"the model of {held} held-out missions" if held else "the uniform walk"
@@ -348,7 +348,7 @@ class _TrainingRun:
         return figures
 
     def write_snapshot(self, cfg: Any, res: Any, model: Any) -> None:
-        from shared.learning.snapshot import save_snapshot
+        from shared.learning.team_snapshot import save_snapshot
 
         out = Path(self.job["staging"])
         shutil.rmtree(out, ignore_errors=True)

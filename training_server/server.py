@@ -18,7 +18,7 @@ from typing import Any
 
 import training_server.credentials as credentials
 from shared.core.graph import Graph, GraphError
-from shared.core.snapshot import WEIGHTS, SnapshotData, read_meta, read_snapshot
+from shared.core.snapshot_format import WEIGHTS, SnapshotData, read_meta, read_snapshot
 from training_server.security import (
     MAX_FAILURES,
     AuditLog,
@@ -441,7 +441,7 @@ class Server:
     def _numpy_snapshot(self, path: Path) -> SnapshotData:
         """Read (and check) a snapshot, converting an older torch-format one in place first."""
         if read_meta(path)["weights"].get("file") != WEIGHTS:
-            from shared.learning.snapshot import convert_snapshot
+            from shared.learning.team_snapshot import convert_snapshot
 
             convert_snapshot(path)
         return read_snapshot(path, self.graph)
@@ -469,7 +469,7 @@ class Server:
     def ensure_initial_policy(self, robots: int, init_policy: str | None, sensor: Any, seed: int) -> None:
         if self.store.get_setting("current_version") is not None:
             return
-        from shared.learning.snapshot import load_snapshot, save_snapshot
+        from shared.learning.team_snapshot import load_snapshot, save_snapshot
 
         staging = self.data_dir / "staging" / "initial"
         if init_policy:

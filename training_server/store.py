@@ -2,7 +2,7 @@
 data directory by default, or PostgreSQL (``training-server --database-url
 postgresql+psycopg://USER@HOST:PORT/DB``).
 
-Tables (training_server/schema.py): episodes (one row per (fleet, robot, mission), the record
+Tables (training_server/tables.py): episodes (one row per (fleet, robot, mission), the record
 reduced to the contract; ``set_aside`` says why the fleet's model cannot explain it, and such a
 record is kept but never estimated from), rejections (counts by reason), missions, detections
 (robots' z = 1 reports and the decisions on them), policies (immutable versions;
@@ -40,7 +40,7 @@ from sqlalchemy.exc import (
 from sqlalchemy.pool import StaticPool
 
 from shared.core.records import SET_ASIDE_REASONS
-from training_server.schema import detections, episodes, missions, policies, rejections, settings, training_runs
+from training_server.tables import detections, episodes, missions, policies, rejections, settings, training_runs
 
 log = logging.getLogger("mures.server.store")
 
@@ -163,11 +163,13 @@ def _storable(*texts: str | None) -> bool:
     return not any(t is not None and "\x00" in t for t in texts)
 
 
-def _j(x: Any) -> str | None:
+def _to_json(x: Any) -> str | None:
+    """A JSON value as the text column stores it (None stays NULL)."""
     return None if x is None else json.dumps(x, separators=(",", ":"))
 
 
-def _unj(s: str | None) -> Any:
+def _from_json(s: str | None) -> Any:
+    """A text column's JSON value (NULL is None)."""
     return None if s is None else json.loads(s)
 
 
@@ -382,8 +384,8 @@ class Store:
                     id=mission_id,
                     fleet=fleet,
                     created=time.time(),
-                    robots=_j(robots),
-                    params=_j(params),
+                    robots=_to_json(robots),
+                    params=_to_json(params),
                     status="running",
                     policy_version=pv,
                     deadline=deadline,
@@ -400,7 +402,7 @@ class Store:
             ended = conn.execute(
                 update(missions)
                 .where(m.id == mission_id, m.status == "running")
-                .values(event=_j(event), status=status, ended=now)
+                .values(event=_to_json(event), status=status, ended=now)
                 .returning(m.id)
             ).first()
             if ended is not None:
@@ -471,7 +473,7 @@ class Store:
     def _mission(self, row: Any) -> dict[str, Any]:
         d = dict(zip((*self._MISSION_KEYS, "deadline"), row, strict=True))
         for k in ("robots", "params", "event"):
-            d[k] = _unj(d[k])
+            d[k] = _from_json(d[k])
         return d
 
     def _mission_query(self) -> Any:
@@ -532,7 +534,7 @@ class Store:
                 .group_by(e.mission_id)
             ).all()
             info = {
-                mid: (status, _unj(params), _unj(ev))
+                mid: (status, _from_json(params), _from_json(ev))
                 for mid, status, params, ev in conn.execute(
                     select(m.id, m.status, m.params, m.event).where(m.fleet == fleet)
                 ).all()
@@ -579,16 +581,16 @@ class Store:
                 recs = conn.execute(
                     select(e.robot_id, e.captured, e.capture_time).where(e.fleet == fleet, e.mission_id == mid)
                 ).all()
-                if not set(_unj(robots)) <= {r for r, _c, _t in recs}:
+                if not set(_from_json(robots)) <= {r for r, _c, _t in recs}:
                     continue
-                p, caps = _unj(params), [t for _r, c, t in recs if c and t is not None]
+                p, caps = _from_json(params), [t for _r, c, t in recs if c and t is not None]
                 out.append(
                     {
                         "mission_id": mid,
                         "arm": p["canary"]["arm"],
                         "pair": p["canary"]["pair"],
                         "max_steps": p.get("max_steps"),
-                        "stop_reason": (_unj(ev) or {}).get("reason"),
+                        "stop_reason": (_from_json(ev) or {}).get("reason"),
                         "captured": bool(caps),
                         "capture_time": min(caps) if caps else None,
                     }
@@ -627,7 +629,7 @@ class Store:
                     bytes=size,
                     parent=parent,
                     run_id=run_id,
-                    meta=_j(meta),
+                    meta=_to_json(meta),
                 )
             )
 
@@ -637,7 +639,9 @@ class Store:
         with self._tx() as conn:
             meta = conn.execute(select(p.meta).where(p.version == version)).scalar_one()
             meta = {**json.loads(meta), "weights_sha256": weights_sha256}
-            conn.execute(update(policies).where(p.version == version).values(sha256=sha256, bytes=size, meta=_j(meta)))
+            conn.execute(
+                update(policies).where(p.version == version).values(sha256=sha256, bytes=size, meta=_to_json(meta))
+            )
 
     def update_policy_meta(self, version: int, extra: dict[str, Any]) -> None:
         """Add (or replace) top-level entries of a version's meta (e.g. its canary's evidence)."""
@@ -646,7 +650,7 @@ class Store:
             meta = conn.execute(select(p.meta).where(p.version == version)).scalar_one_or_none()
             if meta is not None:
                 conn.execute(
-                    update(policies).where(p.version == version).values(meta=_j({**json.loads(meta), **extra}))
+                    update(policies).where(p.version == version).values(meta=_to_json({**json.loads(meta), **extra}))
                 )
 
     _POLICY_KEYS = ("version", "created", "sha256", "bytes", "parent", "run_id", "meta")
@@ -683,11 +687,11 @@ class Store:
     def add_run(self, run_id: str, params: dict[str, Any]) -> None:
         with self._tx() as conn:
             conn.execute(
-                training_runs.insert().values(id=run_id, created=time.time(), status="queued", params=_j(params))
+                training_runs.insert().values(id=run_id, created=time.time(), status="queued", params=_to_json(params))
             )
 
     def update_run(self, run_id: str, **fields: Any) -> None:
-        values = {k: (_j(v) if k in ("progress", "metrics") else v) for k, v in fields.items()}
+        values = {k: (_to_json(v) if k in ("progress", "metrics") else v) for k, v in fields.items()}
         with self._tx() as conn:
             conn.execute(update(training_runs).where(training_runs.c.id == run_id).values(**values))
 
@@ -731,7 +735,7 @@ class Store:
         for row in rows:
             d = dict(zip((*self._RUN_KEYS, "cancel_requested"), row, strict=True))
             for k in ("params", "progress", "metrics"):
-                d[k] = _unj(d[k])
+                d[k] = _from_json(d[k])
             out.append(d)
         return out
 

@@ -6,7 +6,7 @@ free, but trimming the heap's top gives the memory back again), so a loop that m
 few MiB every step, as a batched environment does with its observations (B N 2n floats: 2 MiB at
 B = 1024 on OFFICE), takes fresh pages from the kernel every step and faults each one in.
 ``keep_freed_memory`` raises both thresholds so such blocks come from the heap and are reused:
-measured with ``benchmarks/bench_envs.py`` (README, "The environment interfaces"). The process
+measured with ``benchmarks/bench_envs.py`` (docs/marl.md). The process
 then keeps up to ``trim_mib`` of freed memory for reuse instead of returning it to the system.
 """
 

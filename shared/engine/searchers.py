@@ -13,7 +13,7 @@ import torch
 
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
-from shared.engine.belief import BatchedBelief, BeliefTracker
+from shared.engine.batched_belief import BatchedBelief, BeliefTracker
 from shared.engine.sim import Obs
 
 

@@ -32,7 +32,7 @@ import torch
 
 from shared.core.graph import Graph, builtin_graph, load_graph_file
 from shared.core.models import Sensor, TargetModel, identity_model, load_model_file, parse_target
-from shared.engine.belief import BatchedBelief
+from shared.engine.batched_belief import BatchedBelief
 from shared.engine.sim import SearchSim
 
 BELIEF_MODELS = ("true", "identity")  # or a model.json path / a TargetModel

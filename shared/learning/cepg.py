@@ -27,7 +27,7 @@ at the same step of the same episode, stands on the same node with the same beli
 difference PG - CE-PG, mean and t-based 95% CI over the 6 seeds): ``"all"`` -0.88 +- 0.63 steps
 (beta = 0.5 loses to PG in every seed: pushing robot i away from robot j's choice at every state
 also pushes it off good moves both should make), ``"shared"`` -0.16 +- 0.39 (not separated from PG).
-Neither beats PG there (README, "CE-PG: choices and what we measured").
+Neither beats PG there (docs/cepg.md).
 
 Shapes: S decisions in a rollout (episode-major), N robots, n nodes, B episodes.
 """
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import torch
 
-from shared.engine.belief import BatchedBelief
+from shared.engine.batched_belief import BatchedBelief
 from shared.engine.sim import SearchSim
 from shared.learning.policy import TeamPolicy, sample
 

@@ -2,7 +2,7 @@
 
 Every field of ``TrainConfig`` is a `mures train` flag (``add_flags`` builds them from the fields:
 name, default, type, choices and help), the retraining API's parameters take their defaults from
-it (training_server/api/schemas.py), and a snapshot stores it whole (policy.json "training").
+it (training_server/api/models.py), and a snapshot stores it whole (policy.json "training").
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from shared.core.choices import ALGORITHMS, BELIEFS, CE_STATES, VARIANTS
 
 # torch threads of a training process (`mures train --threads`, the server's training runs): a
 # team's tensors are small. 30,208 episodes of CE-PG on OFFICE, N = 3 (B = 256): 23.5 s on one
-# thread, 23.0 s on two, this 2-core machine quiet; beside one other busy process 45 s on one and
+# thread, 23.0 s on two, a quiet 2-core x86 VM; beside one other busy process 45 s on one and
 # 139 s on two (each small operation waits at its end for the thread that lost the core)
 TORCH_THREADS = 1
 # a resumable MARL run's checkpoint interval, seconds of training (`mures train --checkpoint-every`,

@@ -33,14 +33,14 @@ import torch.distributed as dist
 
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel, from_matrix, identity_model
-from shared.engine.belief import BatchedBelief
+from shared.engine.batched_belief import BatchedBelief
 from shared.engine.estimate import collect_missions, em, mean_row_tv
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.sim import SearchSim
 from shared.learning.cepg import cepg_loss, rollout
 from shared.learning.config import TrainConfig
 from shared.learning.policy import TeamPolicy
-from shared.learning.snapshot import PolicySearcher, Snapshot
+from shared.learning.team_snapshot import PolicySearcher, Snapshot
 
 
 @dataclass

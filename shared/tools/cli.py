@@ -23,7 +23,7 @@ import numpy as np
 
 from shared.core.graph import GraphError
 from shared.core.models import ModelError
-from shared.core.snapshot import SnapshotError
+from shared.core.snapshot_format import SnapshotError
 from shared.engine.estimate import EMWorkerError
 from shared.tools.cli_args import CliError, add_map_args, graph_of
 from shared.tools.estimate_command import add_estimate_command
@@ -35,7 +35,7 @@ from shared.tools.train_command import add_train_command
 
 # ---------------------------------------------------------------------- snapshot convert
 def cmd_snapshot_convert(args: argparse.Namespace) -> int:
-    from shared.learning.snapshot import convert_snapshot
+    from shared.learning.team_snapshot import convert_snapshot
 
     for d in args.dirs:
         done = convert_snapshot(d)

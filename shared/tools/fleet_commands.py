@@ -12,7 +12,7 @@ from typing import Any
 from shared.core.choices import DETECTIONS
 from shared.core.wire import add_zenoh_arguments
 from shared.learning.config import positive_int, whole_number
-from shared.learning.snapshot import load_snapshot
+from shared.learning.team_snapshot import load_snapshot
 from shared.tools.cli_args import CliError, add_map_args, add_world_args, eta_arg, world_of
 
 

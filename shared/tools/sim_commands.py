@@ -15,7 +15,7 @@ import torch
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
-from shared.core.snapshot import SnapshotError
+from shared.core.snapshot_format import SnapshotError
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
 from shared.learning.config import positive_int

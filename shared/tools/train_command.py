@@ -14,7 +14,7 @@ import torch
 
 from shared.learning import config as train_config
 from shared.learning.config import CHECKPOINT_EVERY_S, positive_int, seconds
-from shared.learning.snapshot import load_snapshot, save_snapshot
+from shared.learning.team_snapshot import load_snapshot, save_snapshot
 from shared.tools.cli_args import CliError, add_world_args, device_of, world_of
 
 

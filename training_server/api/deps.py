@@ -14,7 +14,7 @@ from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 import training_server.credentials as credentials
-from training_server.api.schemas import Error
+from training_server.api.models import Error
 
 ROLE_AGENT, ROLE_OPERATOR = 1, 2
 

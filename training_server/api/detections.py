@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, HTTPException, Path, Query, Request
 
 from training_server.api.deps import READ, WRITE, Srv, errors
-from training_server.api.schemas import MAX_ID, Detection, DetectionList
+from training_server.api.models import MAX_ID, Detection, DetectionList
 
 router = APIRouter(prefix="/detections", tags=["detections"])
 

@@ -8,7 +8,7 @@ from fastapi import APIRouter, HTTPException, Query, Request
 
 from shared.core.records import ID_RE
 from training_server.api.deps import READ, Srv, errors, robot_scope
-from training_server.api.schemas import MAX_ID, EpisodePage, EpisodeRecord, EpisodeStats, EpisodeSummary
+from training_server.api.models import MAX_ID, EpisodePage, EpisodeRecord, EpisodeStats, EpisodeSummary
 
 router = APIRouter(prefix="/episodes", tags=["episodes"], dependencies=READ)
 

@@ -9,7 +9,7 @@ from typing import Any
 from fastapi import APIRouter
 
 from training_server.api.deps import READ, Srv, errors
-from training_server.api.schemas import Agent, FleetOut
+from training_server.api.models import Agent, FleetOut
 
 router = APIRouter(tags=["fleet"], dependencies=READ, responses=errors(401))
 

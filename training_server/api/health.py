@@ -8,7 +8,7 @@ from fastapi import APIRouter
 
 import shared
 from training_server.api.deps import Srv
-from training_server.api.schemas import Health
+from training_server.api.models import Health
 
 router = APIRouter(tags=["health"])
 

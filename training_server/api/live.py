@@ -26,7 +26,7 @@ from starlette.concurrency import run_in_threadpool
 
 from shared.core.records import ID_RE
 from training_server.api.deps import READ, Srv, errors
-from training_server.api.schemas import AlertList, WhoAmI
+from training_server.api.models import AlertList, WhoAmI
 from training_server.console.hub import FLEET_EVERY, STATUS_EVERY, Hub
 
 router = APIRouter(tags=["live"], dependencies=READ)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from training_server.api.deps import READ, Srv, errors
-from training_server.api.schemas import MapLayout, MapOut
+from training_server.api.models import MapLayout, MapOut
 
 router = APIRouter(tags=["map"], dependencies=READ, responses=errors(401))
 

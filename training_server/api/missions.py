@@ -10,7 +10,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 
 from training_server.api.deps import READ, WRITE, Srv, errors, fleet_scope
-from training_server.api.schemas import (
+from training_server.api.models import (
     MAX_ID,
     Mission,
     MissionList,

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Header, HTTPException, Path, Response
 from fastapi.responses import FileResponse
 
 from training_server.api.deps import READ, WRITE, Srv, errors
-from training_server.api.schemas import (
+from training_server.api.models import (
     MAX_ID,
     PerformanceOut,
     PolicyList,
@@ -100,7 +100,7 @@ def get_policy(version: Version, srv: Srv) -> PolicyVersion:
 def target_model(version: Version, srv: Srv) -> TargetModelOut:
     """The version's estimated target model: Gamma_hat per node over its closed neighbourhood, b0,
     and Gamma_hat's stationary distribution (where the target tends to be)."""
-    from shared.core.snapshot import SnapshotError, read_snapshot
+    from shared.core.snapshot_format import SnapshotError, read_snapshot
 
     if srv.store.policy(version) is None:
         raise HTTPException(404, f"no policy version {version}")

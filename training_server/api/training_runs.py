@@ -8,7 +8,7 @@ import uuid
 from fastapi import APIRouter, HTTPException, Response
 
 from training_server.api.deps import READ, WRITE, Srv, errors
-from training_server.api.schemas import TrainingRun, TrainingRunList
+from training_server.api.models import TrainingRun, TrainingRunList
 from training_server.jobs import TrainingParams
 
 router = APIRouter(prefix="/training-runs", tags=["training-runs"])

@@ -6,7 +6,7 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import create_engine
 
-from training_server.schema import metadata
+from training_server.tables import metadata
 
 config = context.config
 target_metadata = metadata

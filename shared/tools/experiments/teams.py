@@ -118,7 +118,7 @@ def train_cepg(
 
     from shared.core.graph import builtin_graph
     from shared.core.models import uniform_walk
-    from shared.learning.snapshot import save_snapshot
+    from shared.learning.team_snapshot import save_snapshot
     from shared.learning.train import train
 
     g = builtin_graph(env)
@@ -219,7 +219,7 @@ def train_marl(
     from shared.core.graph import builtin_graph
     from shared.core.models import uniform_walk
     from shared.learning.marl import remove_checkpoint, train_marl
-    from shared.learning.snapshot import save_snapshot
+    from shared.learning.team_snapshot import save_snapshot
 
     cfg, hyper, rel, config = marl_config(env, robots, algorithm, episodes, seed, eta_fn, eta_fp, overrides)
     g = builtin_graph(env)
@@ -270,7 +270,7 @@ def learned_team(ctx: Context, env: str, robots: int, method: str, eta_fn: float
 
 def training_summary(ctx: Context | None, path: Path) -> dict[str, Any]:
     """A cached team's training summary (a stand-in while ``ctx`` is planned)."""
-    from shared.core.snapshot import read_meta
+    from shared.core.snapshot_format import read_meta
 
     if ctx is not None and ctx.planned:
         return {"episodes": 0, "wall_seconds": 0.0, "episodes_per_second": 0.0, "learning_curve": []}
@@ -294,21 +294,21 @@ class Team:
     def _loaded(self) -> Any:
         if self._snap is None:
             from shared.core.graph import builtin_graph
-            from shared.learning.snapshot import load_snapshot
+            from shared.learning.team_snapshot import load_snapshot
 
             self._snap = load_snapshot(self.path, builtin_graph(self.env))
         return self._snap
 
     def __call__(self, seed: int) -> Any:
         from shared.core.graph import builtin_graph
-        from shared.learning.snapshot import PolicySearcher
+        from shared.learning.team_snapshot import PolicySearcher
 
         return PolicySearcher(self._loaded(), builtin_graph(self.env), self.sensor, self.robots, seed=seed)
 
     def trained(self) -> dict[str, Any]:
         """The episodes the team was trained for (as run: a budget is rounded up to whole batches)
         and its training seed, from the snapshot itself."""
-        from shared.core.snapshot import read_meta
+        from shared.core.snapshot_format import read_meta
 
         meta = read_meta(self.path)
         return {
@@ -317,6 +317,6 @@ class Team:
         }
 
     def describe(self) -> dict[str, Any]:
-        from shared.core.snapshot import read_meta
+        from shared.core.snapshot_format import read_meta
 
         return {"team": self.path.name, "weights": read_meta(self.path)["weights"]["sha256"]}

@@ -16,7 +16,7 @@ D(p) = V and z = 0 with eta_fn = 0) from the uniform belief. ``BeliefFilter.rest
 Two implementations that must agree (tests/test_belief.py checks them against each other and
 against brute-force Bayes):
 - ``BeliefFilter`` (here): one robot, numpy float64, O(n + m) per step; what a robot agent runs.
-- ``BatchedBelief`` (shared/engine/belief.py): beliefs of shape (..., n) in torch; what the
+- ``BatchedBelief`` (shared/engine/batched_belief.py): beliefs of shape (..., n) in torch; what the
   simulator, the evaluator and the trainer run.
 """
 

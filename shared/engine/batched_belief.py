@@ -2,7 +2,7 @@
 
 Beliefs are row vectors of shape (..., n) (B episodes, N robots, n nodes); the prediction
 Gamma_hat^T b is ``b @ Gamma``. The same algebra as the agent's numpy ``BeliefFilter``
-(shared/core/belief.py), with the same vanishing-mass rule; tests/test_belief.py checks that the
+(shared/core/belief_filter.py), with the same vanishing-mass rule; tests/test_belief.py checks that the
 two agree with each other and with brute-force Bayes.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from shared.core.belief import TINY
+from shared.core.belief_filter import TINY
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
 

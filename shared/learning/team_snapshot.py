@@ -1,7 +1,7 @@
 """Policy snapshots on the torch side: what training writes and what evaluation runs.
 
 The format, its checks and the numpy decision step that robot agents run are in
-shared/core/snapshot.py (docs/SPEC.md section 8); here a snapshot's weights become a
+shared/core/snapshot_format.py (docs/SPEC.md section 8); here a snapshot's weights become a
 ``TeamPolicy`` (and back), and a team becomes a batched searcher for the evaluator. Snapshots of
 the older torch format (``weights.pt``) are read here, and ``convert_snapshot`` rewrites them.
 """
@@ -22,7 +22,7 @@ import torch
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
-from shared.core.snapshot import (
+from shared.core.snapshot_format import (
     LEGACY_WEIGHTS,
     META,
     PARAMS,
@@ -37,7 +37,7 @@ from shared.core.snapshot import (
     sha256_hex,
     write_snapshot,
 )
-from shared.engine.belief import BatchedBelief, BeliefTracker
+from shared.engine.batched_belief import BatchedBelief, BeliefTracker
 from shared.engine.sim import Obs
 from shared.learning.policy import TeamPolicy, sample
 
@@ -80,7 +80,7 @@ def save_snapshot(
     summary: dict[str, Any],
     algorithm: str = "cepg",
 ) -> Path:
-    """Write ``policy`` as a snapshot directory (shared/core/snapshot.py ``write_snapshot``); the
+    """Write ``policy`` as a snapshot directory (shared/core/snapshot_format.py ``write_snapshot``); the
     summary gains ``trained_with`` (``provenance``) unless it has one."""
     summary = {**summary, "trained_with": summary.get("trained_with") or provenance()}
     return write_snapshot(path, graph, policy_weights(policy), model, sensor, variant, beta, config, summary, algorithm)

@@ -18,7 +18,7 @@ goes to a temporary directory beside the target, renamed into place, so a reader
 half-way) never sees a half-written snapshot.
 
 Snapshots written before this format hold ``weights.pt`` (torch's format). ``read_snapshot``
-takes a ``legacy`` reader for those (shared/learning/snapshot.py passes torch's); without one it
+takes a ``legacy`` reader for those (shared/learning/team_snapshot.py passes torch's); without one it
 says how to convert the snapshot.
 
 Running a team of k robots on a snapshot trained for N: robot i runs network i for k <= N (the
@@ -41,7 +41,7 @@ import numpy as np
 from safetensors.numpy import load as load_safetensors
 from safetensors.numpy import save as save_safetensors
 
-from shared.core.belief import BeliefFilter
+from shared.core.belief_filter import BeliefFilter
 from shared.core.choices import ALGORITHMS, VARIANTS
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
@@ -73,7 +73,7 @@ def sha256_hex(data: bytes) -> str:
 
 @dataclass
 class TeamInfo:
-    """What every view of a snapshot holds (numpy here, torch in shared/learning/snapshot.py): its
+    """What every view of a snapshot holds (numpy here, torch in shared/learning/team_snapshot.py): its
     metadata, the robots' belief model (Gamma_hat, b0) and their sensor."""
 
     meta: dict[str, Any]
