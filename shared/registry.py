@@ -5,6 +5,7 @@ packages, so none of them imports another's searchers."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import torch
 
@@ -43,18 +44,25 @@ def searcher_factory(
     n_robots: int,
     device: torch.device | str = "cpu",
     note: Callable[[str], None] | None = None,
+    team: TeamFlight | None = None,
 ) -> Callable[[int], Searcher]:
     """seed -> searcher, for the evaluator. Checks the name, loads a ``policy:DIR`` snapshot and
     runs the searcher's own checks (the oracle's N <= 2, fhpe's node detection) once, before any
-    simulation; raises ValueError (SnapshotError for a bad snapshot) with the reason."""
+    simulation; raises ValueError (SnapshotError for a bad snapshot) with the reason. With ``team``,
+    a ``policy:DIR`` is flown as robot agents fly it in a team (``LinkedTeamSearcher``: the agents'
+    own decision code, over a simulated network)."""
+    if name.startswith("policy:") and team is not None:
+        return _team_factory(name.removeprefix("policy:"), graph, n_robots, team, note)
     if name.startswith("policy:"):
         from shared.learning.team_snapshot import PolicySearcher, load_snapshot
 
         snap = load_snapshot(name.removeprefix("policy:"), graph, device=device)
-        team = snap.team_note(n_robots)
-        if team and note:
-            note(team)
+        team_note = snap.team_note(n_robots)
+        if team_note and note:
+            note(team_note)
         return lambda seed: PolicySearcher(snap, graph, sensor, n_robots, seed=seed, device=device)
+    if team is not None:
+        raise ValueError(f"team flight (--team-searcher, --link-loss, --link-delay) flies a policy:DIR, not {name!r}")
 
     def make(seed: int) -> Searcher:
         return make_searcher(name, graph, model, sensor, seed=seed, device=device, n_robots=n_robots)
@@ -65,4 +73,54 @@ def searcher_factory(
         make(0)
     except ValueError as exc:
         raise ValueError(f"{name}: {exc}") from None
+    return make
+
+
+@dataclass(frozen=True)
+class TeamFlight:
+    """How `mures evaluate` flies a snapshot as a team of agents (shared/engine/linked_team.py):
+    its team searcher (None: the snapshot's own, see ``team_searcher_of``; "none": each robot on
+    its own policy), each observation message's loss probability and delay in steps, and the
+    incomplete steps before a robot falls back to its own policy, the model the team plans on.
+    ``steps`` counts the robot-steps
+    flown on the team's plan ("team") and on a robot's own policy ("own") over the evaluation."""
+
+    searcher: str | None = None
+    link_loss: float = 0.0
+    link_delay: int = 0
+    fallback_after: int = 1
+    model: TargetModel | None = None  # the team's model (None: the snapshot's)
+    steps: dict[str, int] = field(default_factory=lambda: {"team": 0, "own": 0})
+
+
+def _team_factory(
+    path: str, graph: Graph, n_robots: int, team: TeamFlight, note: Callable[[str], None] | None
+) -> Callable[[int], Searcher]:
+    from shared.core.snapshot_format import read_snapshot
+    from shared.core.team import team_searcher_of
+    from shared.engine.linked_team import LinkedTeamSearcher
+    from shared.learning.team_snapshot import torch_weights
+
+    snap = read_snapshot(path, graph, legacy=torch_weights)
+    searcher = team_searcher_of(snap) if team.searcher is None else team.searcher
+    searcher = None if searcher == "none" else searcher
+    team_note = snap.team_note(n_robots)
+    if team_note and note:
+        note(team_note)
+    LinkedTeamSearcher(snap, graph, n_robots, 0, searcher, team.link_loss, team.link_delay, team.fallback_after)
+
+    def make(seed: int) -> Searcher:
+        return LinkedTeamSearcher(
+            snap,
+            graph,
+            n_robots,
+            seed,
+            searcher,
+            team.link_loss,
+            team.link_delay,
+            team.fallback_after,
+            counter=team.steps,
+            team_model=team.model,
+        )
+
     return make

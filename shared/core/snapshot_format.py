@@ -258,14 +258,23 @@ class PolicyAgent:
     filter (Eq. 1) and its own network, nothing from other robots. ``reset(p0, z0)`` at a mission's
     start, ``observe(p, z)`` for each later observation, then ``act(p)`` -> next node row.
 
-    C-CE-PG needs the other robots' observations, so it is refused here.
+    C-CE-PG needs the other robots' observations: it is refused here unless ``team`` (a
+    ``TeamAgent`` gives it the collective belief, shared/core/team.py).
     """
 
     def __init__(
-        self, snap: SnapshotData, graph: Graph, robot: int, seed: int = 0, greedy_actions: bool = False
+        self,
+        snap: SnapshotData,
+        graph: Graph,
+        robot: int,
+        seed: int = 0,
+        greedy_actions: bool = False,
+        team: bool = False,
     ) -> None:
-        if snap.variant == "c-cepg":
-            raise SnapshotError("a c-cepg policy needs every robot's observations; a lone agent cannot run it")
+        if snap.variant == "c-cepg" and not team:
+            raise SnapshotError(
+                "a c-cepg policy needs every robot's observations: fly it in a team (shared.core.team.TeamAgent)"
+            )
         k = snap.network_for(robot)
         W = {name: np.asarray(w[k], dtype=np.float64) for name, w in snap.weights.items()}
         self.w_pos, self.w_bel, self.b1 = W["w_pos"], W["w_bel"], W["b1"]  # (n, H), (n, H), (H,)
@@ -284,11 +293,13 @@ class PolicyAgent:
         """Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}."""
         self.belief = self.filter.update(p, z)
 
-    def act(self, p: int) -> int:
-        """Next node row from N[p] for the current belief: a ~ pi_i(. | onehot(p), b) (Algorithm 1, line 3)."""
-        assert self.belief is not None, "reset() first"
+    def act(self, p: int, belief: np.ndarray | None = None) -> int:
+        """Next node row from N[p] for the robot's own belief (or ``belief``, a team's collective
+        one): a ~ pi_i(. | onehot(p), b) (Algorithm 1, line 3)."""
+        b = self.belief if belief is None else belief
+        assert b is not None, "reset() first"
         nbrs = self.graph.closed(p)
-        h = np.maximum(self.w_pos[p] + self.belief @ self.w_bel + self.b1, 0.0)
+        h = np.maximum(self.w_pos[p] + b @ self.w_bel + self.b1, 0.0)
         logits = h @ self.w2[:, nbrs] + self.b2[nbrs]
         if self.greedy_actions:
             return int(nbrs[int(np.argmax(logits))])

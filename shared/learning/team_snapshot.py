@@ -60,7 +60,7 @@ def policy_weights(policy: TeamPolicy) -> Weights:
     return {k: v.detach().cpu().to(torch.float32).numpy() for k, v in policy.named_parameters()}
 
 
-def _torch_weights(raw: bytes) -> Weights:
+def torch_weights(raw: bytes) -> Weights:
     """Read the older ``weights.pt`` (a plain dict of tensors) without executing code."""
     state = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
     if not isinstance(state, dict):
@@ -116,7 +116,7 @@ def _processor_name() -> str:
 
 def load_snapshot(path: str | Path, graph: Graph, device: torch.device | str = "cpu") -> Snapshot:
     """Load and check a snapshot for ``graph`` (either weights format) as a TeamPolicy."""
-    data = read_snapshot(path, graph, legacy=_torch_weights)
+    data = read_snapshot(path, graph, legacy=torch_weights)
     policy = TeamPolicy(graph.n, data.robots, torch.as_tensor(graph.adjacency()), hidden=int(data.meta["hidden"]))
     with torch.no_grad():
         for k, p in policy.named_parameters():
@@ -139,7 +139,7 @@ def convert_snapshot(path: str | Path) -> bool:
     if name == WEIGHTS:
         return False
     try:
-        weights = _torch_weights(raw)
+        weights = torch_weights(raw)
     except SnapshotError:
         raise
     except Exception as exc:

@@ -1,6 +1,7 @@
 """The methods the paper compares CE-PG with (section V), as batched searchers for the evaluator.
 
-This module holds what they share (the collective belief with the true model, walks, the discount);
+This module holds what they share (the collective belief with the true model; FHPE-SA's walks and the
+discount are in shared/core/fhpe_sa.py, which a robot agent runs too);
 each planner has its own module: fhpe.py (fhpe, fhpe-sa), milp.py (milp, d-milp), oracle.py.
 
 All planners here are *centralised and fully informed*, as in the paper: they get the true target
@@ -39,8 +40,6 @@ from shared.core.models import Sensor, TargetModel
 from shared.engine.batched_belief import BatchedBelief, BeliefTracker
 from shared.engine.sim import Obs
 
-GAMMA = 0.97  # discount of the planners' objective (paper Table II)
-
 
 class Planner:
     """Collective belief with the true model; ``plan(b, pos, active)`` -> next rows, per episode."""
@@ -73,15 +72,3 @@ class Planner:
 
     def plan(self, b: np.ndarray, pos: np.ndarray, active: np.ndarray) -> np.ndarray:
         raise NotImplementedError
-
-
-def walks(graph: Graph, start: int, h: int) -> np.ndarray:
-    """All walks of h moves from ``start`` (stays allowed): (K, h) rows after each move."""
-    paths = np.array([[start]], dtype=np.int64)
-    for _ in range(h):
-        last = paths[:, -1]
-        deg = graph.deg_closed[last]
-        rep = np.repeat(np.arange(len(paths)), deg)
-        nxt = np.concatenate([graph.closed(int(p)) for p in last])
-        paths = np.concatenate([paths[rep], nxt[:, None]], axis=1)
-    return paths[:, 1:]

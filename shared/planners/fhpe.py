@@ -8,51 +8,24 @@ import math
 
 import numpy as np
 
+from shared.core.fhpe_sa import GAMMA, FhpeSAPlanner, walks
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
-from shared.planners.base import GAMMA, Planner, walks
+from shared.planners.base import Planner
 
 
 class FhpeSA(Planner):
-    """`fhpe-sa`: sequential allocation of h-step paths (module docstring)."""
+    """`fhpe-sa`: sequential allocation of h-step paths (shared/core/fhpe_sa.py, which a robot
+    agent runs too), on the collective belief with the true model."""
 
     name = "fhpe-sa"
 
     def __init__(self, graph: Graph, model: TargetModel, sensor: Sensor, seed: int = 0, horizon: int = 5) -> None:
         super().__init__(graph, model, sensor, seed)
-        self.h = horizon
-        self._walks: dict[int, np.ndarray] = {}
-        self.disc = GAMMA ** np.arange(1, horizon + 1)
-
-    def _paths(self, p: int) -> np.ndarray:
-        if p not in self._walks:
-            self._walks[p] = walks(self.graph, p, self.h)
-        return self._walks[p]
+        self.core = FhpeSAPlanner(graph, model, sensor, horizon, propagate=lambda U: U @ self.G)
 
     def plan(self, b: np.ndarray, pos: np.ndarray, active: np.ndarray) -> np.ndarray:
-        h, hit = self.h, self.hit
-        survive_fixed = np.ones((h, self.n))  # 1 - hit * [v detected by the robots already planned]
-        out = pos.copy()
-        g1 = b @ self.gamma_dense  # Gamma^T b
-        for i in np.nonzero(active)[0]:
-            P = self._paths(int(pos[i]))  # (K, h)
-            U = np.broadcast_to(g1, (len(P), self.n)).copy()
-            val = np.zeros(len(P))
-            for k in range(h):
-                if k:
-                    U = np.asarray(U @ self.G)  # propagate the uncaptured mass: U Gamma
-                cap = U @ (1.0 - survive_fixed[k])
-                U *= survive_fixed[k]
-                D = self.det[P[:, k]]
-                cap += hit * (U * D).sum(1)
-                U *= 1.0 - hit * D
-                val += self.disc[k] * cap
-            best = np.flatnonzero(val >= val.max() - 1e-12)
-            j = int(self.rng.choice(best))
-            for k in range(h):
-                survive_fixed[k] *= 1.0 - hit * self.det[P[j, k]]
-            out[i] = P[j, 0]
-        return out
+        return self.core.plan(b, pos, active, self.rng)
 
 
 class Fhpe(Planner):

@@ -12,9 +12,10 @@ from collections.abc import Iterator
 import numpy as np
 import scipy.sparse as sp
 
+from shared.core.fhpe_sa import GAMMA
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
-from shared.planners.base import GAMMA, Planner
+from shared.planners.base import Planner
 
 _LIBC = ctypes.CDLL(None)
 

@@ -31,6 +31,10 @@ def eta_arg(text: str) -> float:
     return number_where(text, lambda v: 0.0 <= v <= 0.5, "a number in [0, 0.5]")
 
 
+def probability(text: str) -> float:
+    return number_where(text, lambda v: 0.0 <= v <= 1.0, "a probability in [0, 1]")
+
+
 def positive_hours(text: str) -> float:
     """``--hours``: a finite number of hours above 0 (argparse type)."""
     return number_where(text, lambda v: 0.0 < v < float("inf"), "a number of hours above 0")

@@ -14,17 +14,23 @@ import torch
 
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
-from shared.core.models import Sensor, TargetModel
+from shared.core.models import Sensor, TargetModel, load_model_file
 from shared.core.snapshot_format import SnapshotError
+from shared.core.team import FALLBACK_AFTER, TEAM_SEARCHERS
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
-from shared.learning.config import positive_int
-from shared.registry import searcher_factory
-from shared.tools.cli_args import CliError, add_world_args, device_of, world_of
+from shared.learning.config import positive_int, whole_number
+from shared.registry import TeamFlight, searcher_factory
+from shared.tools.cli_args import CliError, add_world_args, device_of, probability, world_of
 
 
 def _searcher_factory(
-    args: argparse.Namespace, graph: Graph, target: TargetModel, sensor: Sensor, device: torch.device
+    args: argparse.Namespace,
+    graph: Graph,
+    target: TargetModel,
+    sensor: Sensor,
+    device: torch.device,
+    team: TeamFlight | None = None,
 ) -> Callable[[int], Searcher]:
     """seed -> searcher for evaluate(); checks the name (and loads a snapshot) once, before any simulation."""
     try:
@@ -36,6 +42,7 @@ def _searcher_factory(
             args.robots,
             device,
             note=lambda text: print(f"mures: note: {text}", file=sys.stderr),
+            team=team,
         )
     except SnapshotError:
         raise
@@ -54,10 +61,25 @@ def _snapshot_detection(args: argparse.Namespace) -> str:
     return "node"
 
 
+def _team_flight(args: argparse.Namespace, graph: Graph) -> TeamFlight | None:
+    """The team flight the flags ask for, or None (the snapshot flown as the batched searcher)."""
+    given = (args.team_searcher, args.link_loss, args.link_delay, args.fallback_after, args.team_model)
+    if all(v is None for v in given):
+        return None
+    return TeamFlight(
+        args.team_searcher,
+        args.link_loss or 0.0,
+        args.link_delay or 0,
+        FALLBACK_AFTER if args.fallback_after is None else args.fallback_after,
+        load_model_file(graph, args.team_model) if args.team_model else None,
+    )
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     graph, target, sensor = world_of(args, _snapshot_detection(args))
     device = device_of(args.device)
-    factory = _searcher_factory(args, graph, target, sensor, device)
+    team = _team_flight(args, graph)
+    factory = _searcher_factory(args, graph, target, sensor, device, team)
     res = evaluate(graph, target, sensor, args.robots, factory, episodes=args.episodes, seed=args.seed, device=device)
     summary: dict[str, Any] = {
         "map": graph.name,
@@ -69,6 +91,17 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         **res.summary(),
         "wall_seconds": round(res.wall_seconds, 3),
     }
+    if team is not None:
+        flown = team.steps["team"] + team.steps["own"]
+        summary["team"] = {
+            "searcher": team.searcher,
+            "link_loss": team.link_loss,
+            "link_delay": team.link_delay,
+            "fallback_after": team.fallback_after,
+            "team_steps": team.steps["team"],
+            "own_steps": team.steps["own"],
+            "coordinated_share": team.steps["team"] / flown if flown else None,
+        }
     if args.json:
         print(json.dumps(summary))
     else:
@@ -80,7 +113,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             f"  median                    {summary['median']:.1f}\n"
             f"  censored_fraction         {summary['censored_fraction']:.4f}  (T_max = {3 * graph.n})\n"
             f"  false_alarms_per_episode  {summary['false_alarms_per_episode']:.3f}\n"
-            f"  wall_seconds              {summary['wall_seconds']:.2f}"
+            + (
+                f"  coordinated robot-steps   {summary['team']['team_steps']:,} of "
+                f"{summary['team']['team_steps'] + summary['team']['own_steps']:,}\n"
+                if team is not None
+                else ""
+            )
+            + f"  wall_seconds              {summary['wall_seconds']:.2f}"
         )
     return 0
 
@@ -118,6 +157,32 @@ def add_sim_commands(sub: Any) -> None:
     )
     p.add_argument("--episodes", type=positive_int, default=1500, help="episodes (default 1500)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    team = p.add_argument_group(
+        "team flight",
+        "fly a policy:DIR as robot agents fly it in a team (their own decision code, shared/core/team.py), "
+        "over a simulated network; any of these flags turns it on",
+    )
+    team.add_argument(
+        "--team-searcher",
+        choices=(*TEAM_SEARCHERS, "none"),
+        help="the team's searcher (default: the snapshot's own; none: each robot on its own policy)",
+    )
+    team.add_argument(
+        "--link-loss", type=probability, metavar="P", help="each observation message is lost with probability P"
+    )
+    team.add_argument("--link-delay", type=whole_number, metavar="K", help="each message arrives K steps late")
+    team.add_argument(
+        "--team-model",
+        metavar="model.json",
+        help="the (Gamma_hat, b0) the team's collective belief and plan use (mures estimate writes one; "
+        "default the snapshot's)",
+    )
+    team.add_argument(
+        "--fallback-after",
+        type=positive_int,
+        metavar="K",
+        help=f"incomplete steps in a row before a robot flies its own policy (default {FALLBACK_AFTER})",
+    )
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("simulate", help="simulate missions and write their episode records (JSON Lines)")

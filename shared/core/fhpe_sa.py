@@ -1,0 +1,91 @@
+"""FHPE-SA's planning step in numpy (the paper's finite-horizon path enumeration with sequential
+allocation, section V): what both the batched planner (shared/planners/fhpe.py) and a robot agent
+flying the team's plan (shared/core/team.py) run. No scipy, no torch.
+
+The objective over a horizon of h moves (paper Table II: h = 5, gamma = 0.97) is the discounted
+probability of capture sum_k gamma^k P(capture at step k), with the target's mass propagated by
+Gamma_hat (``U Gamma``, row vectors) and each detection catching it with probability 1 - eta_fn.
+Robot 1 (in the team's order) picks its best h-step walk, robot 2 its best given robot 1's, and
+so on; the first move of each robot's walk is taken, then the team plans again (receding horizon).
+Ties between equally good walks are broken by the caller's random generator, so that robots
+planning from the same information with generators seeded alike choose the same plan.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+
+GAMMA = 0.97  # discount of the planners' objective (paper Table II)
+HORIZON = 5  # fhpe-sa's h (paper Table II)
+
+
+def walks(graph: Graph, start: int, h: int) -> np.ndarray:
+    """All walks of h moves from ``start`` (stays allowed): (K, h) rows after each move."""
+    paths = np.array([[start]], dtype=np.int64)
+    for _ in range(h):
+        last = paths[:, -1]
+        deg = graph.deg_closed[last]
+        rep = np.repeat(np.arange(len(paths)), deg)
+        nxt = np.concatenate([graph.closed(int(p)) for p in last])
+        paths = np.concatenate([paths[rep], nxt[:, None]], axis=1)
+    return paths[:, 1:]
+
+
+class FhpeSAPlanner:
+    """The team's next moves for a belief ``b`` (n,) and positions ``pos`` (N,) under ``model``:
+    ``plan(b, pos, active, rng)`` -> (N,) node rows (a robot not ``active`` stays where it is).
+
+    ``propagate`` is U -> U Gamma for U (K, n); the default multiplies by the dense Gamma, the
+    batched planner passes its sparse product."""
+
+    def __init__(
+        self,
+        graph: Graph,
+        model: TargetModel,
+        sensor: Sensor,
+        horizon: int = HORIZON,
+        propagate: Callable[[np.ndarray], np.ndarray] | None = None,
+    ) -> None:
+        self.graph, self.n, self.h = graph, graph.n, horizon
+        self.gamma_dense = model.dense()
+        self.propagate = propagate or (lambda U: U @ self.gamma_dense)
+        self.det = graph.detection_matrix(sensor.detection).astype(np.float64)  # det[p, v] = 1 if v in D(p)
+        self.hit = 1.0 - sensor.eta_fn  # P(z = 1 | target in D(p))
+        self.disc = GAMMA ** np.arange(1, horizon + 1)
+        self._walks: dict[int, np.ndarray] = {}
+
+    def paths(self, p: int) -> np.ndarray:
+        """Every h-move walk from node row ``p``, (K, h), computed once per node."""
+        if p not in self._walks:
+            self._walks[p] = walks(self.graph, p, self.h)
+        return self._walks[p]
+
+    def plan(self, b: np.ndarray, pos: np.ndarray, active: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        h, hit = self.h, self.hit
+        survive_fixed = np.ones((h, self.n))  # 1 - hit * [v detected by the robots already planned]
+        out = pos.copy()
+        g1 = b @ self.gamma_dense  # Gamma^T b
+        for i in np.nonzero(active)[0]:
+            P = self.paths(int(pos[i]))  # (K, h)
+            U = np.broadcast_to(g1, (len(P), self.n)).copy()
+            val = np.zeros(len(P))
+            for k in range(h):
+                if k:
+                    U = np.asarray(self.propagate(U))  # propagate the uncaptured mass: U Gamma
+                cap = U @ (1.0 - survive_fixed[k])
+                U *= survive_fixed[k]
+                D = self.det[P[:, k]]
+                cap += hit * (U * D).sum(1)
+                U *= 1.0 - hit * D
+                val += self.disc[k] * cap
+            best = np.flatnonzero(val >= val.max() - 1e-12)
+            j = int(rng.choice(best))
+            for k in range(h):
+                survive_fixed[k] *= 1.0 - hit * self.det[P[j, k]]
+            out[i] = P[j, 0]
+        return out

@@ -1,0 +1,250 @@
+"""Searching as a team (paper Theorem 3, Eq. 6-7) on a network that may lose, delay, repeat or
+reorder messages: what a robot agent runs, in numpy.
+
+Each robot publishes every step's observation (t, node, z) and receives its teammates'. From
+them it keeps the team's collective belief,
+
+    b^c_t ∝ Lambda^c_t Gamma_hat^T b^c_{t-1},   Lambda^c_t = prod_i Lambda(p^i_t, z^i_t)   (Eq. 6-7),
+
+beside its own (Eq. 1, ``PolicyAgent``), and decides with the version's team searcher when the
+collective belief is complete, with its own decentralised policy when it is not:
+
+- ``CollectiveBelief`` holds every observation by (t, robot) and the belief after each step. An
+  observation of an earlier step re-filters from that step on (O(n + m) a step, microseconds for
+  a short replay), so a late observation changes the belief exactly as if it had come on time; a
+  second copy is ignored; a teammate's step that never comes counts as no observation from it.
+- ``TeamAgent`` is one robot's decision: the team's plan when every live teammate's observation
+  of the current step is in (``complete``), its own policy on its own belief otherwise (after
+  ``fallback_after`` incomplete steps in a row; back to the team's plan once complete again). A
+  teammate silent for ``timeout_steps`` steps is dropped from the team's plan, and taken in again
+  when it reports; a robot that hears from no teammate at all flies its own policy.
+
+Team searchers: ``fhpe-sa`` (FHPE-SA on the team's model, every robot computing the whole team's
+plan from its own copy of the same information, ties broken by a generator seeded by the mission
+and the step, so that identical information gives identical plans without negotiation) and
+``c-cepg`` (the version's network on the collective belief). The team's model is the version's
+own unless another is given (``team_model``): planning needs a model good enough to plan with,
+which a fleet's growing record of missions provides.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from shared.core.belief_filter import TINY
+from shared.core.fhpe_sa import HORIZON, FhpeSAPlanner
+from shared.core.graph import Graph
+from shared.core.models import Sensor, TargetModel
+from shared.core.snapshot_format import PolicyAgent, SnapshotData
+
+TEAM_SEARCHERS = ("fhpe-sa", "c-cepg")
+FALLBACK_AFTER = 1  # incomplete steps in a row before a robot flies its own policy
+TIMEOUT_STEPS = 3  # steps without a teammate's observation before it is dropped from the plan
+
+
+def team_searcher_of(snap: SnapshotData) -> str | None:
+    """The team searcher a policy version carries: its ``team_searcher`` (meta), "c-cepg" for a
+    c-cepg snapshot without one, else None (each robot on its own policy, as before teams)."""
+    given = snap.meta.get("team_searcher")
+    if given in TEAM_SEARCHERS:
+        return str(given)
+    return "c-cepg" if snap.variant == "c-cepg" and given is None else None
+
+
+def mission_seed(seed: int, index: int) -> int:
+    """The action-sampling seed of the robot at ``index`` in a mission's robot list."""
+    return (int(seed) * 1_000_003 + 7_919 * (index + 1)) % (2**63)
+
+
+class CollectiveBelief:
+    """The collective belief of the robots ``robots`` (the mission's order), from observations
+    added in any order: ``add(t, robot, p, z)``, then ``belief(t)`` -> b^c_t (n,)."""
+
+    def __init__(self, graph: Graph, model: TargetModel, sensor: Sensor, robots: list[str]) -> None:
+        self.n, self.robots = graph.n, list(robots)
+        self._order = {r: i for i, r in enumerate(self.robots)}
+        self._src, self._dst, self._prob = model.src, model.dst, model.prob
+        self._b0 = model.b0.copy()
+        self._dptr, self._didx = graph.detection_sets(sensor.detection)
+        (self._in0, self._in1), (self._out0, self._out1) = sensor.likelihoods()
+        self.obs: list[dict[str, tuple[int, int]]] = []  # obs[t][robot] = (p, z)
+        self._beliefs: list[np.ndarray] = []  # b^c_0 .. b^c_{k-1}, valid while no earlier step changes
+        self.restarts = 0
+
+    def add(self, t: int, robot: str, p: int, z: int) -> bool:
+        """Fold in robot ``robot``'s observation of step ``t``; False (and nothing changes) for a
+        robot outside the team or a step already reported by it (a second copy)."""
+        if robot not in self._order or t < 0:
+            return False
+        while len(self.obs) <= t:
+            self.obs.append({})
+        if robot in self.obs[t]:
+            return False
+        self.obs[t][robot] = (int(p), int(z))
+        del self._beliefs[t:]  # re-filtered from step t on when next asked
+        return True
+
+    def reported(self, t: int) -> set[str]:
+        """The robots whose observation of step ``t`` is in."""
+        return set(self.obs[t]) if t < len(self.obs) else set()
+
+    def position(self, robot: str, t: int) -> tuple[int, int] | None:
+        """(step, node row) of ``robot``'s latest observation at or before ``t``, or None."""
+        for s in range(min(t, len(self.obs) - 1), -1, -1):
+            if robot in self.obs[s]:
+                return s, self.obs[s][robot][0]
+        return None
+
+    def likelihood(self, t: int) -> np.ndarray:
+        """Lambda^c_t's diagonal (Eq. 7): the product of the reported robots' Lambda(p, z), in the
+        mission's order (the same product whatever order the observations came in)."""
+        lik = np.ones(self.n)
+        got = self.obs[t] if t < len(self.obs) else {}
+        for robot in sorted(got, key=self._order.__getitem__):
+            p, z = got[robot]
+            l_in, l_out = (self._in1, self._out1) if z else (self._in0, self._out0)
+            d = self._didx[self._dptr[p] : self._dptr[p + 1]]
+            inside = lik[d] * l_in
+            lik *= l_out
+            lik[d] = inside
+        return lik
+
+    def belief(self, t: int) -> np.ndarray:
+        """b^c_t (Eq. 6; t = 0: b^c_0 ∝ Lambda^c_0 b0, Theorem 2), re-filtering from the first step
+        an observation changed. A vanished mass restarts from the step's observations alone (then
+        uniform), as ``BatchedBelief.normalise`` does."""
+        for s in range(len(self._beliefs), t + 1):
+            lik = self.likelihood(s)
+            prior = self._b0 if s == 0 else self._predict(self._beliefs[s - 1])
+            x = lik * prior
+            total = x.sum()
+            if total <= TINY:
+                self.restarts += 1
+                x, total = lik.copy(), lik.sum()
+                if total <= TINY:
+                    x, total = np.full(self.n, 1.0 / self.n), 1.0
+            self._beliefs.append(x / total)
+        return self._beliefs[t]
+
+    def _predict(self, b: np.ndarray) -> np.ndarray:
+        """Gamma_hat^T b in O(n + m)."""
+        return np.bincount(self._dst, weights=self._prob * b[self._src], minlength=self.n)
+
+
+class TeamAgent:
+    """Robot ``me`` of the mission's ``robots``: ``observe(robot, t, p, z)`` for its own and its
+    teammates' observations as they come, then ``act(t, p)`` -> (next node row, "team" or "own").
+
+    ``searcher``: "fhpe-sa", "c-cepg" or None (always its own policy, as a lone robot). The own
+    policy is the snapshot's decentralised one; a c-cepg snapshot's network is flown on the
+    robot's own belief when it falls back. The collective belief and the plan use ``team_model``
+    (default the snapshot's model, which its own policy keeps)."""
+
+    def __init__(
+        self,
+        snap: SnapshotData,
+        graph: Graph,
+        robots: list[str],
+        me: str,
+        seed: int,
+        searcher: str | None,
+        fallback_after: int = FALLBACK_AFTER,
+        timeout_steps: int = TIMEOUT_STEPS,
+        own_seed: int | None = None,
+        planner: FhpeSAPlanner | None = None,
+        plan_cache: dict[Any, np.ndarray] | None = None,
+        team_model: TargetModel | None = None,
+    ) -> None:
+        if searcher is not None and searcher not in TEAM_SEARCHERS:
+            raise ValueError(f"team searcher {searcher!r}: expected one of {', '.join(TEAM_SEARCHERS)}")
+        if fallback_after < 1 or timeout_steps < 1:
+            raise ValueError("fallback_after and timeout_steps must be at least 1")
+        self.graph, self.robots, self.me = graph, list(robots), me
+        self.index = self.robots.index(me)
+        self.seed, self.searcher = int(seed), searcher
+        self.fallback_after, self.timeout_steps = fallback_after, timeout_steps
+        self.own = PolicyAgent(snap, graph, self.index, seed=self.seed if own_seed is None else own_seed, team=True)
+        model = team_model or snap.model  # the team's (Gamma_hat, b0); the own policy keeps its own
+        self.collective = CollectiveBelief(graph, model, snap.sensor, self.robots)
+        if searcher == "fhpe-sa" and planner is None:
+            planner = FhpeSAPlanner(graph, model, snap.sensor, HORIZON)
+        self.planner = planner
+        self.plan_cache = plan_cache  # plans by what they are computed from, shared by a simulated team
+        self.incomplete_run = 0  # incomplete steps in a row
+        self.steps = {"team": 0, "own": 0}
+
+    def observe(self, robot: str, t: int, p: int, z: int) -> None:
+        """An observation of step ``t`` (this robot's own, or a teammate's from the network)."""
+        if robot == self.me:
+            self.own.reset(p, z) if t == 0 else self.own.observe(p, z)
+        self.collective.add(t, robot, p, z)
+
+    def live(self, t: int) -> list[str]:
+        """The teammates in the team's plan at step ``t``: this robot, and each other robot that
+        has reported within the last ``timeout_steps`` steps (all of them in the first steps)."""
+        out = []
+        for r in self.robots:
+            last = self.collective.position(r, t)
+            if (
+                r == self.me
+                or (last is None and t < self.timeout_steps)
+                or (last is not None and t - last[0] < self.timeout_steps)
+            ):
+                out.append(r)
+        return out
+
+    def complete(self, t: int) -> bool:
+        """Every live teammate's observation of step ``t`` is in, and some teammate is live: a
+        robot that hears from none of its teammates cannot tell their absence from its own link
+        being down, and searches as a lone robot does (its own policy)."""
+        live = self.live(t)
+        return (len(live) > 1 or len(self.robots) == 1) and set(live) <= self.collective.reported(t)
+
+    def act(self, t: int, p: int) -> tuple[int, str]:
+        """The next node row for this robot at step ``t`` (its own observation of ``t`` given),
+        and whether it follows the team's plan ("team") or its own policy ("own")."""
+        if self.searcher is None:
+            self.steps["own"] += 1
+            return self.own.act(p), "own"
+        if self.complete(t):
+            self.incomplete_run = 0
+        else:
+            self.incomplete_run += 1
+        if self.incomplete_run >= self.fallback_after:
+            self.steps["own"] += 1
+            return self.own.act(p), "own"
+        self.steps["team"] += 1
+        b = self.collective.belief(t)
+        if self.searcher == "c-cepg":
+            return self.own.act(p, belief=b), "team"
+        assert self.planner is not None
+        live = self.live(t)
+        pos = np.array([self._where(r, t, p) for r in self.robots], dtype=np.int64)
+        active = np.array([r in live and pos[i] >= 0 for i, r in enumerate(self.robots)])
+        pos = np.where(pos >= 0, pos, p)
+        return int(self._team_plan(t, b, pos, active)[self.index]), "team"
+
+    def _team_plan(self, t: int, b: np.ndarray, pos: np.ndarray, active: np.ndarray) -> np.ndarray:
+        """FHPE-SA's moves for the whole team; its ties are broken by a generator seeded by the
+        mission and the step, the same on every robot."""
+        assert self.planner is not None
+        key = None
+        if self.plan_cache is not None:
+            key = (t, b.tobytes(), pos.tobytes(), active.tobytes())
+            if key in self.plan_cache:
+                return self.plan_cache[key]
+        plan = self.planner.plan(b, pos, active, np.random.default_rng([self.seed, t]))
+        if key is not None:
+            self.plan_cache[key] = plan
+        return plan
+
+    def _where(self, robot: str, t: int, p: int) -> int:
+        if robot == self.me:
+            return p
+        last = self.collective.position(robot, t)
+        return -1 if last is None else last[1]
+
+    def summary(self) -> dict[str, Any]:
+        return {"team_steps": self.steps["team"], "own_steps": self.steps["own"]}

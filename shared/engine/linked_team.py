@@ -1,0 +1,114 @@
+"""A team of robot agents flown in the batched simulator over a simulated network: what
+`mures evaluate --searcher policy:DIR --team-searcher S --link-loss P --link-delay K` runs.
+
+Each robot of each episode is a ``TeamAgent`` (shared/core/team.py), the decision code a robot
+agent runs. After every step each robot's observation (t, node, z) goes to each teammate as its
+own message: lost with probability ``link_loss``, else delivered ``link_delay`` steps later (0:
+before the teammates decide at that step). A withdrawn robot sends nothing and stays put.
+
+Robots with the same information compute the same plan; the plans are memoised per episode and
+step by what they are computed from, which changes no decision and saves the N - 1 identical
+computations a team makes when its links are up.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from shared.core.fhpe_sa import FhpeSAPlanner
+from shared.core.graph import Graph
+from shared.core.models import TargetModel
+from shared.core.snapshot_format import SnapshotData
+from shared.core.team import FALLBACK_AFTER, TIMEOUT_STEPS, TeamAgent, mission_seed
+from shared.engine.sim import Obs
+
+
+class LinkedTeamSearcher:
+    """The batched searcher of robots flying ``TeamAgent``s of ``snap`` with team searcher
+    ``searcher`` ("fhpe-sa", "c-cepg", or None: each on its own policy) over links that lose a
+    message with probability ``link_loss`` and delay it by ``link_delay`` steps."""
+
+    def __init__(
+        self,
+        snap: SnapshotData,
+        graph: Graph,
+        n_robots: int,
+        seed: int = 0,
+        searcher: str | None = "fhpe-sa",
+        link_loss: float = 0.0,
+        link_delay: int = 0,
+        fallback_after: int = FALLBACK_AFTER,
+        timeout_steps: int = TIMEOUT_STEPS,
+        counter: dict[str, int] | None = None,
+        team_model: TargetModel | None = None,
+    ) -> None:
+        if not 0.0 <= link_loss <= 1.0:
+            raise ValueError(f"link loss {link_loss} is not a probability in [0, 1]")
+        if link_delay < 0:
+            raise ValueError(f"link delay {link_delay} must be 0 or more steps")
+        self.name = f"team:{searcher or 'none'}"
+        self.snap, self.graph, self.N = snap, graph, n_robots
+        self.searcher, self.link_loss, self.link_delay = searcher, link_loss, link_delay
+        self.fallback_after, self.timeout_steps = fallback_after, timeout_steps
+        self.rng = np.random.default_rng(seed)  # the missions' seeds
+        self.link_rng = np.random.default_rng([seed, 1])  # the lost messages
+        self.robots = [f"r{i + 1}" for i in range(n_robots)]
+        self.team_model = team_model
+        model = team_model or snap.model
+        self.planner = FhpeSAPlanner(graph, model, snap.sensor) if searcher == "fhpe-sa" else None
+        self.teams: dict[int, list[TeamAgent]] = {}  # slot -> the episode's robots
+        self.inbox: dict[int, list[tuple[int, int, str, int, int, int]]] = {}  # slot -> (due, to, from, t, p, z)
+        # robot-steps flown on the team's plan and on a robot's own policy, over every episode
+        # (``counter``: shared by the searchers of one evaluation's chunks)
+        self.steps = counter if counter is not None else {"team": 0, "own": 0}
+
+    def _begin(self, slot: int) -> None:
+        mission = int(self.rng.integers(2**31))
+        plans: dict[Any, np.ndarray] = {}
+        team = []
+        for i, r in enumerate(self.robots):
+            agent = TeamAgent(
+                self.snap,
+                self.graph,
+                self.robots,
+                r,
+                seed=mission,
+                searcher=self.searcher,
+                fallback_after=self.fallback_after,
+                timeout_steps=self.timeout_steps,
+                own_seed=mission_seed(mission, i),
+                planner=self.planner,
+                plan_cache=plans,
+                team_model=self.team_model,
+            )
+            team.append(agent)
+        self.teams[slot], self.inbox[slot] = team, []
+
+    def act(self, obs: Obs) -> torch.Tensor:
+        pos, z, t_all = obs.pos.numpy(), obs.z.numpy(), obs.t.numpy()
+        active, new, alive = obs.active.numpy(), obs.new.numpy(), obs.alive.numpy()
+        out = pos.copy()
+        for e in np.nonzero(alive)[0]:
+            if new[e] or e not in self.teams:
+                self._begin(int(e))
+            team, inbox, t = self.teams[e], self.inbox[e], int(t_all[e])
+            for i, agent in enumerate(team):
+                if not active[e, i]:
+                    continue
+                p, zi = int(pos[e, i]), int(z[e, i])
+                agent.observe(agent.me, t, p, zi)
+                for j in range(self.N):
+                    if j != i and self.link_rng.random() >= self.link_loss:
+                        inbox.append((t + self.link_delay, j, agent.me, t, p, zi))
+            due = [m for m in inbox if m[0] <= t]
+            inbox[:] = [m for m in inbox if m[0] > t]
+            for _due, j, sender, s, p, zi in due:
+                team[j].observe(sender, s, p, zi)
+            for i, agent in enumerate(team):
+                if active[e, i]:
+                    out[e, i], mode = agent.act(t, int(pos[e, i]))
+                    self.steps[mode] += 1
+        return torch.as_tensor(out)
