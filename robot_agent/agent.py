@@ -40,12 +40,14 @@ import numpy as np
 import zenoh
 
 from robot_agent.backend import BackendError, MissionOver, RobotBackend, load_backend, resolve_backend
+from robot_agent.teamwork import TEAM_WAIT_S, Teamwork
 from shared.core.files import atomic_write, read_token
 from shared.core.graph import Graph, graph_from_dict
 from shared.core.http import ApiClient, ApiError
 from shared.core.models import Sensor
 from shared.core.records import make_record
 from shared.core.snapshot_format import PolicyAgent, SnapshotData, SnapshotError, read_snapshot
+from shared.core.team import FALLBACK_AFTER, TeamAgent, mission_seed, team_searcher_of
 from shared.core.wire import (
     DEFAULT_FLEET,
     add_zenoh_arguments,
@@ -67,11 +69,6 @@ VERDICT_WAIT_S = 3.0  # after a detection (capture "auto", or on the last step):
 TELEMETRY_HZ = 5  # live state messages a second at most, during a mission
 IDLE_BEAT_S = 5.0  # and one every this many seconds between missions
 TELEMETRY_MAX_NODES = 2048  # the belief rides along on maps up to this size (a few KB a message)
-
-
-def mission_seed(seed: int, index: int) -> int:
-    """The action-sampling seed of the robot at ``index`` in a mission's robot list."""
-    return (int(seed) * 1_000_003 + 7_919 * (index + 1)) % (2**63)
 
 
 class Outbox:
@@ -185,7 +182,7 @@ class PolicyStore:
                 tar.extractall(tmp, filter="data")  # refuses absolute paths, links out, devices
             try:
                 snap = read_snapshot(tmp, self.graph)  # graph_id, node order, shapes, weights sha256
-                PolicyAgent(snap, self.graph, 0)  # a policy this agent can run (not c-cepg)
+                PolicyAgent(snap, self.graph, 0, team=True)  # a policy this agent can run
             except SnapshotError as exc:
                 raise ValueError(str(exc)) from None
             final = self.root / f"v{version}"
@@ -452,6 +449,7 @@ class Agent:
             capture_time=ct,
             captured_by=by,
             policy_version=header.get("policy_version"),
+            coordination=header.get("coordination"),  # decisions on the team's plan and on its own policy
         )
 
     def run_mission(self, msg: dict[str, Any], backend: RobotBackend) -> None:
@@ -464,13 +462,18 @@ class Agent:
         end: dict[str, Any] | None = None
         self.in_mission = True
         self.journal.begin(header)
+        assert self.graph is not None
+        team = Teamwork(
+            self.session, self.fleet, self.graph, mid, agent, wait_s=self.args.team_wait, link_loss=self.args.link_loss
+        )
         try:
-            end = self._search(backend, msg, agent, mid, max_steps, auto_capture, steps, decide_us)
+            end = self._search(backend, msg, agent, team, max_steps, auto_capture, steps, decide_us)
         except MissionOver:
             end = self._control_for(mid, wait=END_WAIT_S)
         except BackendError as exc:
             log.error("mission %s aborted: %s", mid, exc)
         finally:
+            team.close()
             self.in_mission = False
             if steps:
                 self.last_node = steps[-1]["node"]
@@ -482,11 +485,13 @@ class Agent:
             log.error("mission %s: no step was recorded, so no record is sent", mid)
             self.journal.finish()
             return
+        header["coordination"] = {"team_searcher": agent.searcher, **agent.summary()}
         self._finish_mission(header, steps, end, decide_us)
 
-    def _begin_mission(self, msg: dict[str, Any]) -> tuple[PolicyAgent, dict[str, Any], int, bool]:
-        """This robot's PolicyAgent for the mission (the policy version it names, fetched first if
-        need be), the record's header, the step limit, and whether detections capture at once."""
+    def _begin_mission(self, msg: dict[str, Any]) -> tuple[TeamAgent, dict[str, Any], int, bool]:
+        """This robot's TeamAgent for the mission (the policy version it names, fetched first if
+        need be; its team searcher the version's, none for a robot alone), the record's header,
+        the step limit, and whether detections capture at once."""
         assert self.policies is not None and self.graph is not None
         mid = msg["mission_id"]
         robots = msg.get("robots") or [self.robot_id]
@@ -495,7 +500,17 @@ class Agent:
             self.sync_policy(f"before mission {mid}", version=int(msg["policy_version"]))  # still between missions
         snap = self.policies.snapshot
         assert snap is not None, "run() waits for a policy before taking missions"
-        agent = PolicyAgent(snap, self.graph, index, seed=mission_seed(msg.get("seed", 0), index))
+        seed = int(msg.get("seed") or 0)
+        agent = TeamAgent(
+            snap,
+            self.graph,
+            robots,
+            self.robot_id,
+            seed=seed,
+            searcher=team_searcher_of(snap) if len(robots) > 1 else None,
+            fallback_after=self.args.fallback_after,
+            own_seed=mission_seed(seed, index),
+        )
         header = {
             "mission_id": mid,
             "policy_version": self.policies.version,
@@ -510,8 +525,8 @@ class Agent:
         self,
         backend: RobotBackend,
         msg: dict[str, Any],
-        agent: PolicyAgent,
-        mid: str,
+        agent: TeamAgent,
+        team: Teamwork,
         max_steps: int,
         auto_capture: bool,
         steps: list[dict[str, int]],
@@ -521,17 +536,17 @@ class Agent:
         mission ends (the end message, or None at the step limit or on stop); each step is
         appended to ``steps`` as it is taken."""
         assert self.graph is not None
-        graph = self.graph
+        graph, mid = self.graph, team.mission_id
         node = int(backend.begin(msg))
         t = 0
         while True:
             z = int(backend.detect())  # z_t at p_t
             t0 = time.perf_counter()
             p = graph.index[node]
-            if t == 0:
-                agent.reset(p, z)  # b_0 ∝ Lambda(p_0, z_0) b0
-            else:
-                agent.observe(p, z)  # Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}
+            # Eq. 1 (own belief; t = 0: b_0 ∝ Lambda(p_0, z_0) b0) and Eq. 6 (the team's, with the
+            # teammates' observations as they come)
+            agent.observe(self.robot_id, t, p, z)
+            team.publish(t, node, z)
             steps.append({"t": t, "node": node, "z": z})
             self.journal.step(t, node, z)
             if z:  # the server decides whether this detection ends the mission (docs/SPEC.md section 6)
@@ -542,12 +557,16 @@ class Agent:
             end = self._control_for(mid, wait=VERDICT_WAIT_S if wait else 0.0)
             if end is not None or t >= max_steps or self.stop.is_set():
                 return end
-            goal = int(graph.labels[agent.act(p)])  # a_t ~ pi_i(. | onehot(p_t), b_t), Algorithm 1
-            decide_us.append((time.perf_counter() - t0) * 1e6)
+            waited = time.perf_counter()
+            team.gather(t)  # the teammates' step t, waiting a bounded time for what is missing
+            t1 = time.perf_counter()
+            row, mode = agent.act(t, p)  # the team's plan, or a_t ~ pi_i(. | onehot(p_t), b_t) (Algorithm 1)
+            goal = int(graph.labels[row])
+            decide_us.append((waited - t0 + time.perf_counter() - t1) * 1e6)  # the wait for teammates left out
             self.telemetry(
-                {"state": "mission", "mission_id": mid, "t": t, "node": node, "z": z, "goal": goal},
+                {"state": "mission", "mission_id": mid, "t": t, "node": node, "z": z, "goal": goal, "mode": mode},
                 force=t == 0,
-                belief=agent.belief,
+                belief=agent.own.belief,
             )
             node = int(backend.move(goal))
             if node not in graph.index:
@@ -687,6 +706,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--token-file", help="the agent bearer token for the REST API")
     p.add_argument("--ca-file", metavar="PEM", help="CA certificate to verify an https --server with")
     p.add_argument("--state-dir", help="outbox, journal and policies (default ./mures-agent-<robot_id>)")
+    p.add_argument(
+        "--team-wait",
+        type=float,
+        default=TEAM_WAIT_S,
+        metavar="S",
+        help=f"the longest a decision waits for the teammates' observations of its step (default {TEAM_WAIT_S} s)",
+    )
+    p.add_argument(
+        "--fallback-after",
+        type=int,
+        default=FALLBACK_AFTER,
+        metavar="K",
+        help="steps in a row without every live teammate's observation before the robot flies its own policy "
+        f"(default {FALLBACK_AFTER})",
+    )
+    p.add_argument(
+        "--link-loss",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="simulation only: drop each outgoing observation with probability P (default 0)",
+    )
     p.add_argument("--backend", default="sim", help="sim (fleet simulator) or MODULE:CLASS (robot_agent/backend.py)")
     p.add_argument(
         "--telemetry",
@@ -707,6 +748,8 @@ def main(argv: list[str] | None = None) -> int:
         format=f"%(asctime)s %(levelname)s agent[{args.robot_id}]: %(message)s",
     )
     try:
+        if not 0.0 <= args.link_loss <= 1.0 or args.team_wait < 0 or args.fallback_after < 1:
+            raise ValueError("--link-loss takes a probability, --team-wait seconds >= 0, --fallback-after at least 1")
         resolve_backend(args.backend)  # a backend that cannot be loaded stops the agent before it connects
         agent = Agent(args)
     except ValueError as exc:

@@ -113,8 +113,12 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
         ok, reply = send_episode(s, "default", "r1", "impossible-1", json.dumps(impossible).encode())
     assert ok and reply["status"] == "stored" and reply["set_aside"].startswith("impossible: z = 1 at t=0")
     assert fleet.api.get("/api/v1/episodes/stats")["set_aside"] == {"impossible": 1}
-    # canary_pairs 0: made current at once (the canary has a test of its own)
-    run = fleet.api.post("/api/v1/training-runs", {"episodes": 30000, "seed": 1, "canary_pairs": 0})
+    # canary_pairs 0: made current at once (the canary has a test of its own); team_searcher none:
+    # each robot flies its own policy, so that its moves replay from its own record (the team's
+    # flights have tests of their own, tests/test_team_fleet.py)
+    run = fleet.api.post(
+        "/api/v1/training-runs", {"episodes": 30000, "seed": 1, "canary_pairs": 0, "team_searcher": "none"}
+    )
     assert run["status"] == "queued"
     seen_running = wait_until(
         lambda: fleet.api.get(f"/api/v1/training-runs/{run['id']}")["status"] != "queued", 60, "the run to start"
@@ -138,6 +142,7 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
     assert "training 30,208 episodes (30,000 asked, rounded up to whole batches of 256)" in seen
     assert done["metrics"]["train"]["episodes"] == 30_208
     assert done["version"] == 2 and fleet.api.get("/api/v1/policies/current")["version"] == 2
+    assert done["metrics"]["team"] == {"team_searcher": "none", "decided_by": "parameter"}
     em_info = done["metrics"]["em"]  # a quarter of the missions held out of the fit, for the gate
     assert em_info["missions"] + em_info["held_out"] >= 320 and em_info["held_out"] >= 80
     after = _fly_many(fleet, range(1000, 1120))  # the same seeds: the same target paths
@@ -492,7 +497,8 @@ def test_a_worse_version_on_trial_is_rolled_back_by_the_fleets_own_missions(flee
     current = fleet.api.get("/api/v1/policies/current")["version"]
     run = fleet.api.post(
         "/api/v1/training-runs",
-        {"episodes": 512, "lr": 0.5, "gate": False, "canary_pairs": 15, "seed": 5, "gate_episodes": 1},
+        {"episodes": 512, "lr": 0.5, "gate": False, "canary_pairs": 15, "seed": 5, "gate_episodes": 1}
+        | {"team_searcher": "none"},  # the wrecked networks fly, not a team's plan
     )
     done = wait_until(
         lambda: (r := fleet.api.get(f"/api/v1/training-runs/{run['id']}"))["status"] not in ("queued", "running") and r,

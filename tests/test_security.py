@@ -24,6 +24,8 @@ from shared.core.wire import (
     detection_key,
     detection_message,
     mission_key,
+    observation_key,
+    observation_message,
     send_episode,
     zenoh_config,
 )
@@ -141,7 +143,20 @@ def test_secured_router_admits_only_robots_and_only_on_their_own_keys(tmp_path, 
             r1.put(
                 detection_key("default", "r2", "m-sec"), json.dumps(detection_message("m-sec", "r2", 1, 43)).encode()
             )
-            time.sleep(1.5)
+            # teammates hear each other's observations; an observation in another robot's name is refused
+            seen: list[str] = []
+            team_sub = r2.declare_subscriber(
+                observation_key("default", "*", "m-sec"), lambda s: seen.append(str(s.key_expr))
+            )
+            time.sleep(0.5)
+            for robot in ("r2", "r1"):
+                msg = observation_message("m-sec", robot, 0, 43, 0)
+                r1.put(observation_key("default", robot, "m-sec"), json.dumps(msg).encode())
+            wait_until(lambda: seen, 10, "r1's observation at r2")
+            time.sleep(0.5)
+            team_sub.undeclare()
+            assert seen == [observation_key("default", "r1", "m-sec")]
+            time.sleep(1.0)
             assert heard == []
             assert api.get(f"/api/v1/missions/{m['id']}")["status"] == "running" and m["status"] == "running"
             assert api.get("/api/v1/detections")["items"] == []

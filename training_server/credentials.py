@@ -11,8 +11,9 @@ With `--zenoh-tls-cert/--zenoh-tls-key` the server's own session is the fleet's 
 - TLS on its tls/ endpoints;
 - user/password authentication: a session without a valid robot's credentials is refused;
 - access control, deny by default. A robot may declare its own liveliness token, publish its own
-  telemetry and its own detections, query its own episode keys (and receive the replies), subscribe to mission control
-  and receive it. Nothing else: no robot may publish on missions/*, so start, stop and captured
+  telemetry, its own detections and its own observations, query its own episode keys (and receive
+  the replies), subscribe to mission control and to its teammates' observations, and receive
+  them. Nothing else: no robot may publish on missions/*, so start, stop and captured
   come only from the server (its own local session, which the rules do not filter).
 """
 
@@ -27,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.core.files import atomic_write, write_private
-from shared.core.wire import agent_key, detection_key, episode_key, mission_key, telemetry_key
+from shared.core.wire import agent_key, detection_key, episode_key, mission_key, observation_key, telemetry_key
 
 
 def _robots_dir(data_dir: Path) -> Path:
@@ -100,9 +101,24 @@ def access_control(fleet: str, robot_ids: list[str]) -> dict[str, Any]:
             "messages": ["put"],
             "key_exprs": [mission_key(fleet, "*")],
         },
+        {  # every robot hears its teammates' observations (robot r sends only its own: below)
+            "id": "observations-to-robots",
+            "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": ["declare_subscriber"],
+            "key_exprs": [observation_key(fleet, "*", "*")],
+        },
+        {
+            "id": "observations-delivered",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put"],
+            "key_exprs": [observation_key(fleet, "*", "*")],
+        },
     ]
+    shared_rules = ["missions-to-robots", "missions-delivered", "observations-to-robots", "observations-delivered"]
     subjects: list[dict[str, Any]] = [{"id": "robots", "usernames": list(robot_ids) or ["-nobody-"]}]
-    policies: list[dict[str, Any]] = [{"rules": ["missions-to-robots", "missions-delivered"], "subjects": ["robots"]}]
+    policies: list[dict[str, Any]] = [{"rules": shared_rules, "subjects": ["robots"]}]
     for r in robot_ids:
         rules.append(
             {
@@ -114,6 +130,7 @@ def access_control(fleet: str, robot_ids: list[str]) -> dict[str, Any]:
                     agent_key(fleet, r),
                     telemetry_key(fleet, r),
                     detection_key(fleet, r, "*"),
+                    observation_key(fleet, r, "*"),
                     episode_key(fleet, r, "*"),
                 ],
             }

@@ -24,7 +24,7 @@ import threading
 import time
 import traceback
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
@@ -108,6 +108,16 @@ class TrainingParams(BaseModel):
         allow_inf_nan=False,
         description="Dirichlet prior of EM: expected starts added to every node of b0 (no node ruled out)",
     )
+    team_searcher: Literal["auto", "fhpe-sa", "none"] = Field(
+        "auto",
+        description="what the new version's robots fly together when their links allow (shared/core/team.py): "
+        "fhpe-sa (the team's plan on the version's model and the collective belief), none (each robot on its own "
+        "policy), or auto: fhpe-sa if, flown as a team on the gate's episodes, it captures sooner than the new "
+        "policy alone (paired 95% CI below zero), else none",
+    )
+    team_episodes: Annotated[int, Field(ge=1, le=1_000_000), INTEGRAL] = Field(
+        200, description="episodes of that comparison (the gate's first seeds; a team plans at every step)"
+    )
     promote: bool = Field(True, description="make the new version current")
     threads: Annotated[int, Field(ge=0, le=1024), INTEGRAL] = Field(
         train_config.TORCH_THREADS,
@@ -188,12 +198,14 @@ class _TrainingRun:
         cfg, res = self.train_policy(model)
         figures = self.gate(res.policy, model, gate_model, len(held.length))
         passed = figures["new"]["mean_capture_time"] <= figures["current"]["mean_capture_time"]
-        self.write_snapshot(cfg, res, model)
+        team = self.team_decision(res.policy, model, gate_model)
+        self.write_snapshot(cfg, res, model, team["team_searcher"])
         train_keys = ("episodes", "env_steps", "wall_seconds", "episodes_per_second")
         return {
             "metrics": {
                 "em": em_info,
                 "train": {k: res.summary[k] for k in train_keys},
+                "team": team,
                 "gate": {
                     **figures,
                     "passed": passed,
@@ -347,7 +359,46 @@ class _TrainingRun:
             figures[name] = {k: summary[k] for k in ("mean_capture_time", "ci95", "censored_fraction", "episodes")}
         return figures
 
-    def write_snapshot(self, cfg: Any, res: Any, model: Any) -> None:
+    def team_decision(self, policy: Any, model: Any, gate_model: Any) -> dict[str, Any]:
+        """Step 4: whether the new version's robots fly the team's plan (FHPE-SA on the version's
+        model) when their links allow. ``auto`` flies the new policy alone and as a team on the same
+        episodes under the gate's model (links up: with links down a team flies the policy alone
+        anyway) and takes the team only if it captures sooner, its paired 95% CI below zero."""
+        from shared.core.snapshot_format import SnapshotData
+        from shared.engine.evaluate import evaluate, mean_ci95
+        from shared.engine.linked_team import LinkedTeamSearcher
+        from shared.learning.team_snapshot import policy_weights
+
+        p = self.p
+        if p.team_searcher == "none":
+            return {"team_searcher": "none", "decided_by": "parameter"}
+        meta = {"variant": self.current.variant, "robots": self.current.robots}
+        snap = SnapshotData(meta=meta, weights=policy_weights(policy), model=model, sensor=self.sensor)
+        self.say("gate", message=f"flying the new policy alone and as a team on {p.team_episodes} episodes")
+        times = {}
+        for name, searcher in (("alone", None), ("team", "fhpe-sa")):
+
+            def make(seed: int, searcher: str | None = searcher) -> LinkedTeamSearcher:
+                return LinkedTeamSearcher(snap, self.graph, snap.robots, seed, searcher)
+
+            r = evaluate(
+                self.graph, gate_model, self.sensor, snap.robots, make, episodes=p.team_episodes, seed=p.seed + 1
+            )
+            times[name] = np.asarray(r.capture_time, dtype=np.float64)
+        diff, half = mean_ci95(times["team"] - times["alone"])
+        better = diff + half < 0
+        chosen = p.team_searcher if p.team_searcher != "auto" else ("fhpe-sa" if better else "none")
+        return {
+            "team_searcher": chosen,
+            "decided_by": "comparison" if p.team_searcher == "auto" else "parameter",
+            "episodes": p.team_episodes,
+            "alone_mean_capture_time": round(float(times["alone"].mean()), 3),
+            "team_mean_capture_time": round(float(times["team"].mean()), 3),
+            "paired_difference": round(diff, 3),
+            "paired_ci95": round(half, 3),
+        }
+
+    def write_snapshot(self, cfg: Any, res: Any, model: Any, team_searcher: str) -> None:
         from shared.learning.team_snapshot import save_snapshot
 
         out = Path(self.job["staging"])
@@ -359,7 +410,18 @@ class _TrainingRun:
             "parent_version": self.job["parent"],
         }
         beta = cfg.per_robot(cfg.beta, "beta")
-        save_snapshot(out, res.policy, self.graph, model, self.sensor, self.current.variant, beta, config, res.summary)
+        save_snapshot(
+            out,
+            res.policy,
+            self.graph,
+            model,
+            self.sensor,
+            self.current.variant,
+            beta,
+            config,
+            res.summary,
+            team_searcher=team_searcher,
+        )
 
 
 def split_missions(data: Any, holdout: float, seed: int) -> tuple[Any, Any]:

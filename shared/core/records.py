@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.core.choices import DETECTIONS
+from shared.core.choices import DETECTIONS, TEAM_SEARCHERS
 from shared.core.graph import Graph
 from shared.core.models import ModelError, Sensor
 
@@ -55,6 +55,7 @@ class Episode:
     captured: bool
     capture_time: int | None
     captured_by: str | None
+    coordination: dict[str, Any] | None = None  # {"team_searcher", "team_steps", "own_steps"} (optional)
 
 
 def _need(rec: dict[str, Any], key: str, kind: type | tuple[type, ...]) -> Any:
@@ -142,6 +143,7 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
             raise RecordError("outcome", f"outcome.captured_by {_show(by)} is not a robot id")
     else:
         ct, by = None, None
+    coordination = _coordination(rec.get("coordination"), len(steps))
     return Episode(
         fleet=rec_fleet,
         mission_id=mission_id,
@@ -153,7 +155,27 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
         captured=captured,
         capture_time=ct,
         captured_by=by,
+        coordination=coordination,
     )
+
+
+def _coordination(raw: Any, steps: int) -> dict[str, Any] | None:
+    """The optional ``coordination`` of a record: how many of the robot's decisions followed its
+    team's plan and how many its own policy (shared/core/team.py); at most one per step."""
+    if raw is None:
+        return None
+    if not isinstance(raw, dict):
+        raise RecordError("coordination", "coordination must be an object")
+    searcher = raw.get("team_searcher")
+    if searcher is not None and searcher not in TEAM_SEARCHERS:
+        raise RecordError("coordination", f"coordination.team_searcher {_show(searcher)} is not a team searcher")
+    counts = [raw.get("team_steps"), raw.get("own_steps")]
+    if any(not isinstance(c, int) or isinstance(c, bool) or c < 0 for c in counts) or sum(counts) > steps:
+        raise RecordError(
+            "coordination",
+            f"coordination's team_steps and own_steps must be integers >= 0 adding up to at most {steps}",
+        )
+    return {"team_searcher": searcher, "team_steps": counts[0], "own_steps": counts[1]}
 
 
 def make_record(
@@ -169,10 +191,11 @@ def make_record(
     capture_time: int | None,
     captured_by: str | None,
     policy_version: int | None = None,
+    coordination: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Build a record from rows ``nodes`` and observations ``z`` for t = 0..T."""
     labels = graph.labels
-    return {
+    rec = {
         "schema": SCHEMA,
         "fleet": fleet,
         "mission_id": mission_id,
@@ -185,6 +208,9 @@ def make_record(
         ],
         "outcome": {"captured": captured, "capture_time": capture_time, "captured_by": captured_by},
     }
+    if coordination is not None:
+        rec["coordination"] = coordination
+    return rec
 
 
 def emission_likelihoods(ep: Episode, capture_aware: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -262,6 +288,7 @@ def canonical_record(ep: Episode, graph: Graph) -> dict[str, Any]:
         capture_time=ep.capture_time,
         captured_by=ep.captured_by,
         policy_version=ep.policy_version,
+        coordination=ep.coordination,
     )
 
 

@@ -42,7 +42,7 @@ from safetensors.numpy import load as load_safetensors
 from safetensors.numpy import save as save_safetensors
 
 from shared.core.belief_filter import BeliefFilter
-from shared.core.choices import ALGORITHMS, VARIANTS
+from shared.core.choices import ALGORITHMS, TEAM_SEARCHERS, VARIANTS
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
 from shared.core.models import ModelError, Sensor, TargetModel, from_matrix
@@ -119,9 +119,12 @@ def write_snapshot(
     config: dict[str, Any],
     summary: dict[str, Any],
     algorithm: str = "cepg",
+    team_searcher: str | None = None,
 ) -> Path:
     """Write a snapshot directory atomically (an existing one at ``path`` is replaced).
-    ``algorithm`` names the method that trained the team (ALGORITHMS); every one runs the same way."""
+    ``algorithm`` names the method that trained the team (ALGORITHMS); every one runs the same way.
+    ``team_searcher`` ("fhpe-sa", "c-cepg" or "none"; shared/core/team.py) is what its robots fly
+    together when their links allow; without one, a c-cepg team flies c-cepg and the others none."""
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}")
     if algorithm not in ALGORITHMS:
@@ -149,6 +152,10 @@ def write_snapshot(
         "weights": {"file": WEIGHTS, "sha256": sha256_hex(blob), "bytes": len(blob)},
         "summary": summary,
     }
+    if team_searcher is not None:
+        if team_searcher not in (*TEAM_SEARCHERS, "none"):
+            raise ValueError(f"unknown team searcher {team_searcher!r}")
+        meta["team_searcher"] = team_searcher
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
         atomic_write(tmp / WEIGHTS, blob)

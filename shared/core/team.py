@@ -34,12 +34,12 @@ from typing import Any
 import numpy as np
 
 from shared.core.belief_filter import TINY
+from shared.core.choices import TEAM_SEARCHERS
 from shared.core.fhpe_sa import HORIZON, FhpeSAPlanner
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
 from shared.core.snapshot_format import PolicyAgent, SnapshotData
 
-TEAM_SEARCHERS = ("fhpe-sa", "c-cepg")
 FALLBACK_AFTER = 1  # incomplete steps in a row before a robot flies its own policy
 TIMEOUT_STEPS = 3  # steps without a teammate's observation before it is dropped from the plan
 

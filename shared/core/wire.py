@@ -14,6 +14,9 @@ Key expressions, segment by segment (``<fleet>`` defaults to ``default``; ids ma
     mures/<fleet>/sim/<mission_id>/<robot_id>         queryable of the simulated world (fleet-sim)
     mures/<fleet>/detections/<robot_id>/<mission_id>  pub/sub: a robot's z = 1, the moment it reads it
         {"mission_id", "robot_id", "t", "node"}; the server decides whether it ends the mission
+    mures/<fleet>/observations/<robot_id>/<mission_id>  pub/sub: every step's observation for the
+        robot's teammates, {"mission_id", "robot_id", "t", "node", "z"} (best effort: a lost one
+        is no observation, shared/core/team.py)
 
 Mission-control messages (JSON objects with a ``type``):
 
@@ -67,19 +70,51 @@ def detection_message(mission_id: str, robot_id: str, t: int, node: int) -> dict
     return {"mission_id": mission_id, "robot_id": robot_id, "t": int(t), "node": int(node)}
 
 
+def observation_key(fleet: str, robot: str = "*", mission: str = "*") -> str:
+    """A robot's observation of every step of a mission, for its teammates' collective belief."""
+    return f"mures/{fleet}/observations/{robot}/{mission}"
+
+
+def observation_message(mission_id: str, robot_id: str, t: int, node: int, z: int) -> dict[str, Any]:
+    return {"mission_id": mission_id, "robot_id": robot_id, "t": int(t), "node": int(node), "z": int(z)}
+
+
 def parse_detection(key: str, payload: bytes) -> tuple[dict[str, Any] | None, str]:
     """A detection message and "" if it is well formed and matches its key
     (``mures/<fleet>/detections/<robot_id>/<mission_id>``), else None and what is wrong."""
+    msg, why = _step_message(key, payload, "detections", ("t", "node"))
+    return (
+        (None, why)
+        if msg is None
+        else (detection_message(msg["mission_id"], msg["robot_id"], msg["t"], msg["node"]), "")
+    )
+
+
+def parse_observation(key: str, payload: bytes) -> tuple[dict[str, Any] | None, str]:
+    """An observation message and "" if it is well formed (z 0 or 1) and matches its key
+    (``mures/<fleet>/observations/<robot_id>/<mission_id>``), else None and what is wrong."""
+    msg, why = _step_message(key, payload, "observations", ("t", "node", "z"))
+    if msg is None:
+        return None, why
+    if msg["z"] not in (0, 1):
+        return None, "'z' must be 0 or 1"
+    return observation_message(msg["mission_id"], msg["robot_id"], msg["t"], msg["node"], msg["z"]), ""
+
+
+def _step_message(key: str, payload: bytes, kind: str, fields: tuple[str, ...]) -> tuple[dict[str, Any] | None, str]:
+    """A robot's message about one step of a mission on ``mures/<fleet>/<kind>/<robot_id>/<mission_id>``:
+    a JSON object of at most 4 KiB whose ``fields`` are non-negative integers and whose robot and
+    mission are its key's; else None and what is wrong."""
     parts = key.split("/")
-    if len(parts) != 5 or parts[2] != "detections":
-        return None, f"key {key!r} is not mures/<fleet>/detections/<robot_id>/<mission_id>"
+    if len(parts) != 5 or parts[2] != kind:
+        return None, f"key {key!r} is not mures/<fleet>/{kind}/<robot_id>/<mission_id>"
     try:
         msg = json.loads(payload) if len(payload) <= 4096 else None
     except (ValueError, UnicodeDecodeError):
         msg = None
     if not isinstance(msg, dict):
         return None, "the payload is not a JSON object of at most 4 KiB"
-    for field in ("t", "node"):
+    for field in fields:
         v = msg.get(field)
         if not isinstance(v, int) or isinstance(v, bool) or v < 0:
             return None, f"{field!r} must be a non-negative integer"
@@ -88,7 +123,7 @@ def parse_detection(key: str, payload: bytes) -> tuple[dict[str, Any] | None, st
             None,
             f"the message names robot {msg.get('robot_id')!r} mission {msg.get('mission_id')!r}, its key {key!r}",
         )
-    return detection_message(parts[4], parts[3], msg["t"], msg["node"]), ""
+    return msg, ""
 
 
 def truth_key(fleet: str, mission: str = "*") -> str:

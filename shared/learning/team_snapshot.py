@@ -79,11 +79,13 @@ def save_snapshot(
     config: dict[str, Any],
     summary: dict[str, Any],
     algorithm: str = "cepg",
+    team_searcher: str | None = None,
 ) -> Path:
     """Write ``policy`` as a snapshot directory (shared/core/snapshot_format.py ``write_snapshot``); the
     summary gains ``trained_with`` (``provenance``) unless it has one."""
     summary = {**summary, "trained_with": summary.get("trained_with") or provenance()}
-    return write_snapshot(path, graph, policy_weights(policy), model, sensor, variant, beta, config, summary, algorithm)
+    weights = policy_weights(policy)
+    return write_snapshot(path, graph, weights, model, sensor, variant, beta, config, summary, algorithm, team_searcher)
 
 
 def provenance() -> dict[str, Any]:

@@ -13,7 +13,7 @@ from shared.core.choices import DETECTIONS
 from shared.core.wire import add_zenoh_arguments
 from shared.learning.config import positive_int, whole_number
 from shared.learning.team_snapshot import load_snapshot
-from shared.tools.cli_args import CliError, add_map_args, add_world_args, eta_arg, world_of
+from shared.tools.cli_args import CliError, add_map_args, add_world_args, eta_arg, probability, world_of
 
 
 def cmd_fleet_sim(args: argparse.Namespace) -> int:
@@ -54,6 +54,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             agent_token_file=args.agent_token_file,
             step_delay=args.step_delay,
             server_extra=server_extra,
+            agent_extra=["--link-loss", str(args.link_loss)] if args.link_loss else None,
         )
     except (ValueError, TimeoutError, RuntimeError, ApiError) as exc:
         raise CliError(f"fleet-sim: {exc}") from None
@@ -66,7 +67,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
 
 def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
     if args.json:
-        print(json.dumps({k: v for k, v in res.items() if k != "results"}, indent=1))
+        print(json.dumps(res, indent=1))
         return 0
     lo, hi = res["ci95"]
     print(
@@ -154,6 +155,13 @@ def add_fleet_commands(sub: Any) -> None:
     p.add_argument("--retrain-episodes", type=positive_int, default=20_000, help="CE-PG episodes per retrain")
     p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")
     p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step, seconds")
+    p.add_argument(
+        "--link-loss",
+        type=probability,
+        default=0.0,
+        metavar="P",
+        help="each agent drops each of its observations to its teammates with probability P (robot-agent --link-loss)",
+    )
     p.add_argument("--workdir", help="keep the server's data, agents' state and logs here (default: a temp dir)")
     p.add_argument("--server", metavar="URL", help="attach to this running server instead of starting one")
     p.add_argument("--zenoh-connect", metavar="ENDPOINT", help="with --server: the fleet's Zenoh router")

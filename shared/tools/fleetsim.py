@@ -371,7 +371,7 @@ def run_fleet_sim(
     try:
         say(f"fleet-sim: {robots} agents online after {time.perf_counter() - t0:.1f} s; flying {missions} missions")
         for k in range(missions):
-            results.append(_mission_result(fleet.fly(ids, seed=seed * 100_003 + k)))
+            results.append(_mission_result(fleet, fleet.fly(ids, seed=seed * 100_003 + k)))
             if on_trial is not None:
                 trial = _trial_decided(fleet, on_trial, say)
                 if trial is not None:
@@ -411,6 +411,7 @@ def run_fleet_sim(
         "episodes_stored": stats["stored"],
         "episodes_rejected": stats["rejected"],
         "policy_versions_used": sorted({r["policy_version"] for r in results}),
+        "coordinated_share": _share([r["team_steps"] for r in results], [r["own_steps"] for r in results]),
         "by_policy_version": _by_version(results),
         "training_runs": runs,
         "trials": trials,
@@ -420,15 +421,23 @@ def run_fleet_sim(
     }
 
 
-def _mission_result(m: dict[str, Any]) -> dict[str, Any]:
-    """A flown mission's line in the summary: a censored mission counts its step limit."""
+def _mission_result(fleet: Fleet, m: dict[str, Any]) -> dict[str, Any]:
+    """A flown mission's line in the summary: a censored mission counts its step limit; the robots'
+    decisions on their team's plan and on their own policies, from their records."""
     out = m["outcome"] or {}
     ct = out.get("capture_time")
+    team = own = 0
+    for robot in m["robots"]:
+        coordination = fleet.api.get(f"/api/v1/episodes/{robot}/{m['id']}").get("coordination") or {}
+        team += coordination.get("team_steps", 0)
+        own += coordination.get("own_steps", 0)
     return {
         "mission_id": m["id"],
         "captured": ct is not None,
         "capture_time": ct if ct is not None else m["params"]["max_steps"],
         "policy_version": (out.get("policy_versions") or [m["policy_version"]])[0],
+        "team_steps": team,
+        "own_steps": own,
     }
 
 
@@ -471,6 +480,12 @@ def _retrain(fleet: Fleet, params: dict[str, Any], say: Callable[[str], None]) -
     return r
 
 
+def _share(team: list[int], own: list[int]) -> float | None:
+    """The share of robot-steps flown on the team's plan (None when no step is counted)."""
+    total = sum(team) + sum(own)
+    return sum(team) / total if total else None
+
+
 def _by_version(results: list[dict[str, Any]]) -> dict[str, Any]:
     """The missions' capture times per policy version that flew them."""
     by_version: dict[str, Any] = {}
@@ -482,5 +497,9 @@ def _by_version(results: list[dict[str, Any]]) -> dict[str, Any]:
             "mean_capture_time": mv,
             "ci95_halfwidth": hv,
             "censored_fraction": float(np.mean([not r["captured"] for r in results if r["policy_version"] == v])),
+            "coordinated_share": _share(
+                [r["team_steps"] for r in results if r["policy_version"] == v],
+                [r["own_steps"] for r in results if r["policy_version"] == v],
+            ),
         }
     return by_version

@@ -12,11 +12,12 @@ from typing import Any
 
 import torch
 
+from shared.core.choices import TEAM_SEARCHERS
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel, load_model_file
 from shared.core.snapshot_format import SnapshotError
-from shared.core.team import FALLBACK_AFTER, TEAM_SEARCHERS
+from shared.core.team import FALLBACK_AFTER
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
 from shared.learning.config import positive_int, whole_number

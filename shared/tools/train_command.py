@@ -12,6 +12,7 @@ from typing import Any
 
 import torch
 
+from shared.core.choices import TEAM_SEARCHERS
 from shared.learning import config as train_config
 from shared.learning.config import CHECKPOINT_EVERY_S, positive_int, seconds
 from shared.learning.team_snapshot import load_snapshot, save_snapshot
@@ -208,6 +209,7 @@ def _write_snapshot(
         config,
         res.summary,
         algorithm=cfg.algorithm,
+        team_searcher=args.team_searcher,
     )
     s = res.summary
     resumed = f" (resumed at {s['resumed'][-1]['episodes']:,})" if s.get("resumed") else ""
@@ -233,6 +235,12 @@ def add_train_command(sub: Any) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="snapshot directory to write")
     train_config.add_flags(p)  # one flag per TrainConfig field, its defaults
     p.add_argument("--true-model", dest="belief", action="store_const", const="true", help="the same as --belief true")
+    p.add_argument(
+        "--team-searcher",
+        choices=(*TEAM_SEARCHERS, "none"),
+        help="what the snapshot's robots fly together when their links allow (default: c-cepg for a c-cepg team, "
+        "else none; the training server decides for its own versions)",
+    )
     p.add_argument("--model", metavar="model.json", help="Gamma_hat_0 and b0 for the beliefs (default I, uniform)")
     p.add_argument("--init", metavar="DIR", help="start from this snapshot's weights (CE-PG)")
     p.add_argument(

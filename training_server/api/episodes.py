@@ -39,7 +39,12 @@ def episode_stats(srv: Srv) -> EpisodeStats:
     return EpisodeStats(**srv.store.episode_stats(srv.fleet))
 
 
-@router.get("/{robot_id}/{mission_id}", responses=errors(401, 403, 404), response_model_by_alias=True)
+@router.get(
+    "/{robot_id}/{mission_id}",
+    responses=errors(401, 403, 404),
+    response_model_by_alias=True,
+    response_model_exclude_unset=True,  # the record as stored: no coordination where it had none
+)
 def episode(request: Request, robot_id: str, mission_id: str, srv: Srv) -> EpisodeRecord:
     robot_scope(request, robot_id)
     rec = srv.store.get_record(srv.fleet, robot_id, mission_id)

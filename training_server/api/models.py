@@ -247,6 +247,12 @@ class Outcome(BaseModel):
     captured_by: str | None = None
 
 
+class Coordination(BaseModel):
+    team_searcher: str | None = Field(description="the version's team searcher (null: none, the robot searched alone)")
+    team_steps: int = Field(description="decisions on the team's plan (every live teammate's step was in)")
+    own_steps: int = Field(description="decisions on the robot's own policy (a teammate's step missing, or alone)")
+
+
 class EpisodeRecord(BaseModel):
     """The episode record as stored (docs/SPEC.md section 5)."""
 
@@ -259,6 +265,9 @@ class EpisodeRecord(BaseModel):
     sensor: dict[str, Any]
     steps: list[Step]
     outcome: Outcome
+    coordination: Coordination | None = Field(
+        None, description="how the robot searched: steps on its team's plan and on its own policy (agents that team)"
+    )
 
 
 # ---------------------------------------------------------------------- policies

@@ -1,0 +1,133 @@
+"""Robot-agent processes searching as a team over the fleet's Zenoh bus (robot_agent/teamwork.py):
+with links up they fly the team's plan; a teammate killed mid-mission or a robot whose link is cut
+never holds the others up: they fall back, drop the silent one, and finish."""
+
+from __future__ import annotations
+
+import json
+import signal
+
+import pytest
+
+from shared.core.graph import builtin_graph
+from shared.core.models import Sensor, uniform_walk
+from shared.tools.cli import main
+from shared.tools.fleetsim import launch, wait_until
+
+pytestmark = pytest.mark.slow  # a server, the world and three agent processes
+
+ROBOTS = ["r1", "r2", "r3"]
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    team = tmp_path_factory.mktemp("team") / "snapshot"
+    argv = ["train", "--env", "office", "--robots", "3", "--episodes", "256", "--belief", "true", "--quiet"]
+    assert main([*argv, "--team-searcher", "fhpe-sa", "--out", str(team)]) == 0
+    assert json.loads((team / "policy.json").read_text())["team_searcher"] == "fhpe-sa"
+    graph = builtin_graph("office")
+    f = launch(
+        graph,
+        ["--env", "office"],
+        uniform_walk(graph),
+        Sensor(),
+        3,
+        tmp_path_factory.mktemp("fleet"),
+        step_timeout=3.0,
+        server_extra=["--init-policy", str(team)],
+    )
+    yield f
+    f.close()
+
+
+def _records(fleet, mission_id, robots):
+    return {r: fleet.api.get(f"/api/v1/episodes/{r}/{mission_id}") for r in robots}
+
+
+def _long_mission(fleet, seed0):
+    """A mission still running after 4 steps (the world slowed down), and its id."""
+    world = fleet.world.missions
+    for seed in range(seed0, seed0 + 30):
+        mid = fleet.api.post("/api/v1/missions", {"robots": ROBOTS, "seed": seed, "max_steps": 60})["id"]
+        wait_until(lambda mid=mid: mid in world and (world[mid].t >= 4 or world[mid].ended), 30, "4 steps")
+        if not world[mid].ended:
+            return mid
+        wait_until(lambda mid=mid: fleet.api.get(f"/api/v1/missions/{mid}")["status"] == "completed", 30, "mission")
+    raise AssertionError("no mission ran past 4 steps")
+
+
+def test_with_links_up_the_robots_fly_the_teams_plan(fleet):
+    steps = {"team": 0, "own": 0}
+    for seed in range(3):
+        m = fleet.fly(ROBOTS, seed=seed, max_steps=40)
+        for rec in _records(fleet, m["id"], ROBOTS).values():
+            c = rec["coordination"]
+            assert c["team_searcher"] == "fhpe-sa" and c["team_steps"] + c["own_steps"] <= len(rec["steps"])
+            steps["team"] += c["team_steps"]
+            steps["own"] += c["own_steps"]
+    # a teammate's t = 0 can come before a robot has subscribed (its own first step then falls
+    # back); every later step is complete on loopback
+    assert steps["team"] >= 0.8 * (steps["team"] + steps["own"]) > 0
+
+
+def test_a_teammate_killed_mid_mission_holds_nobody_up(fleet):
+    fleet.world.step_delay = 0.05
+    try:
+        mid = _long_mission(fleet, 11)
+        fleet.stop_agent("r2", signal.SIGKILL)
+        # the world withdraws r2 after its step timeout; r1 and r3 fall back, drop r2 and finish
+        wait_until(
+            lambda: set(fleet.api.get(f"/api/v1/missions/{mid}")["episodes_received"]) == {"r1", "r3"},
+            60,
+            "r1 and r3 to report",
+        )
+    finally:
+        fleet.world.step_delay = 0.0
+    for rec in _records(fleet, mid, ["r1", "r3"]).values():
+        c = rec["coordination"]
+        assert c["team_steps"] >= 3 and c["own_steps"] >= 1  # before the kill on the plan, then fell back
+    fleet.start_agent("r2")
+    wait_until(lambda: "r2" in fleet.online(), 60, "r2 back online")
+
+
+def test_a_robot_whose_link_is_cut_holds_nobody_up(fleet):
+    """r1's observations never leave it (robot-agent --link-loss 1): r2 and r3 drop it from their
+    plan and plan for the two of them; the mission ends as any other."""
+    fleet.stop_agent("r1")
+    fleet.start_agent("r1", ["--link-loss", "1"])
+    wait_until(lambda: "r1" in fleet.online(), 60, "r1 back online")
+    try:
+        fleet.world.step_delay = 0.02
+        mid = _long_mission(fleet, 41)
+        wait_until(lambda: fleet.api.get(f"/api/v1/missions/{mid}")["status"] == "completed", 60, "the mission")
+    finally:
+        fleet.world.step_delay = 0.0
+    recs = _records(fleet, mid, ROBOTS)
+    for r in ("r2", "r3"):
+        c = recs[r]["coordination"]
+        assert c["own_steps"] >= 1 and c["team_steps"] >= 1  # waited for r1 until dropping it
+    assert recs["r1"]["coordination"]["team_steps"] + recs["r1"]["coordination"]["own_steps"] >= 4
+
+
+def test_a_retrain_decides_whether_its_version_flies_as_a_team(fleet):
+    """team_searcher auto: the run flies the new policy alone and as a team on the same episodes
+    and records what it chose and why; the version carries the choice, and its robots fly it."""
+    run = fleet.api.post(
+        "/api/v1/training-runs",
+        {"episodes": 512, "seed": 2, "canary_pairs": 0, "min_missions": 3, "gate": False, "team_episodes": 30},
+    )
+    done = wait_until(
+        lambda: (r := fleet.api.get(f"/api/v1/training-runs/{run['id']}"))["status"] not in ("queued", "running") and r,
+        300,
+        "the training run",
+    )
+    assert done["status"] == "succeeded", done
+    team = done["metrics"]["team"]
+    assert team["decided_by"] == "comparison" and team["episodes"] == 30
+    better = team["paired_difference"] + team["paired_ci95"] < 0
+    assert team["team_searcher"] == ("fhpe-sa" if better else "none")
+    snapshot = fleet.workdir / "server" / "policies" / f"v{done['version']}" / "snapshot" / "policy.json"
+    assert json.loads(snapshot.read_text())["team_searcher"] == team["team_searcher"]
+    m = fleet.fly(ROBOTS, seed=7, max_steps=40)
+    flown = {rec["coordination"]["team_searcher"] for rec in _records(fleet, m["id"], ROBOTS).values()}
+    assert flown == {None if team["team_searcher"] == "none" else team["team_searcher"]}
