@@ -86,14 +86,15 @@ def main() -> None:
         return {**row, "capture_times": ct}
 
     def team(label: str, model, searcher="fhpe-sa", loss=0.0, delay=0, **extra) -> dict:
-        counter = {"team": 0, "own": 0}
+        counter = {"team": 0, "partial": 0, "own": 0}
 
         def make(s: int) -> LinkedTeamSearcher:
             return LinkedTeamSearcher(snap, graph, N, s, searcher, loss, delay, counter=counter, team_model=model)
 
         row = fly(label, make, link_loss=loss, link_delay=delay, **extra)
-        flown = counter["team"] + counter["own"]
-        return {**row, "coordinated_share": round(counter["team"] / flown, 4) if flown else None}
+        flown = sum(counter.values())
+        share = {k: round(v / flown, 4) if flown else None for k, v in counter.items()}
+        return {**row, "share_complete": share["team"], "share_partial": share["partial"], "share_own": share["own"]}
 
     rows = [
         fly("fhpe-sa fully informed", lambda s: make_baseline("fhpe-sa", graph, truth, sensor, N, seed=s)),
@@ -129,7 +130,7 @@ def main() -> None:
     }
     out.write_text(json.dumps(record, indent=1) + "\n")
     print(
-        "| searcher | fleet missions | link loss | delay | capture time | vs CE-PG alone | vs FHPE-SA informed | coordinated |"
+        "| searcher | fleet missions | link loss | delay | capture time | vs CE-PG alone | vs FHPE-SA informed | robot-steps complete / partial / own |"
     )
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in record["rows"]:
@@ -138,7 +139,7 @@ def main() -> None:
             f"| {r['mean_capture_time']:.2f} ± {r['ci95_halfwidth']:.2f} "
             f"| {r['diff_to_cepg_alone']:+.2f} ± {r['diff_to_cepg_alone_ci95']:.2f} "
             f"| {r['diff_to_fhpe_sa_informed']:+.2f} ± {r['diff_to_fhpe_sa_informed_ci95']:.2f} "
-            f"| {r.get('coordinated_share', '—')} |"
+            f"| {r.get('share_complete', '—')} / {r.get('share_partial', '—')} / {r.get('share_own', '—')} |"
         )
     print(f"wrote {out}")
 

@@ -719,7 +719,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=FALLBACK_AFTER,
         metavar="K",
         help="steps in a row without every live teammate's observation before the robot flies its own policy "
-        f"(default {FALLBACK_AFTER})",
+        "(default: never while a teammate is heard: the team's plan on what has come)",
     )
     p.add_argument(
         "--link-loss",
@@ -748,7 +748,7 @@ def main(argv: list[str] | None = None) -> int:
         format=f"%(asctime)s %(levelname)s agent[{args.robot_id}]: %(message)s",
     )
     try:
-        if not 0.0 <= args.link_loss <= 1.0 or args.team_wait < 0 or args.fallback_after < 1:
+        if not 0.0 <= args.link_loss <= 1.0 or args.team_wait < 0 or (args.fallback_after or 1) < 1:
             raise ValueError("--link-loss takes a probability, --team-wait seconds >= 0, --fallback-after at least 1")
         resolve_backend(args.backend)  # a backend that cannot be loaded stops the agent before it connects
         agent = Agent(args)

@@ -83,14 +83,15 @@ class TeamFlight:
     its own policy), each observation message's loss probability and delay in steps, and the
     incomplete steps before a robot falls back to its own policy, the model the team plans on.
     ``steps`` counts the robot-steps
-    flown on the team's plan ("team") and on a robot's own policy ("own") over the evaluation."""
+    flown on the team's plan ("team"; "partial" with a teammate's step missing) and on a robot's own
+    policy ("own") over the evaluation."""
 
     searcher: str | None = None
     link_loss: float = 0.0
     link_delay: int = 0
-    fallback_after: int = 1
+    fallback_after: int | None = None
     model: TargetModel | None = None  # the team's model (None: the snapshot's)
-    steps: dict[str, int] = field(default_factory=lambda: {"team": 0, "own": 0})
+    steps: dict[str, int] = field(default_factory=lambda: {"team": 0, "partial": 0, "own": 0})
 
 
 def _team_factory(

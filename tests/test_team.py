@@ -122,22 +122,30 @@ def test_robots_with_the_same_information_choose_the_same_team_plan():
 
 
 def test_a_robot_falls_back_to_its_own_policy_while_its_teammates_are_missing():
-    """Incomplete steps fly the robot's own policy (a lone PolicyAgent's draws); a
+    """With fallback_after 1, incomplete steps fly the robot's own policy (a lone PolicyAgent's draws); a
     teammate silent past the timeout is dropped and the plan goes on without it; one that
     reports again is taken back; a robot that hears from nobody flies alone."""
     graph = builtin_graph("office")
     snap = _snapshot(graph, 3)
     robots = ["r1", "r2", "r3"]
-    me = TeamAgent(snap, graph, robots, "r1", seed=7, searcher="fhpe-sa", own_seed=11, timeout_steps=2)
+    me = TeamAgent(
+        snap, graph, robots, "r1", seed=7, searcher="fhpe-sa", own_seed=11, timeout_steps=2, fallback_after=1
+    )
+    partial = TeamAgent(snap, graph, robots, "r1", seed=7, searcher="fhpe-sa", own_seed=11, timeout_steps=2)
     lone = PolicyAgent(snap, graph, 0, seed=11)
     p = 0
+    modes = []
     for t in range(8):
         me.observe("r1", t, p, 0)
+        partial.observe("r1", t, p, 0)
         lone.reset(p, 0) if t == 0 else lone.observe(p, 0)
         if t not in (1, 2, 3, 6):
             me.observe("r2", t, 5, 0)
+            partial.observe("r2", t, 5, 0)
         if t < 1 or t >= 5:
             me.observe("r3", t, 9, 0)
+            partial.observe("r3", t, 9, 0)
+        modes.append(partial.act(t, p)[1])
         move, mode = me.act(t, p)
         expected = {0: "team", 1: "own", 2: "own", 3: "own", 4: "team", 5: "team", 6: "own", 7: "team"}[t]
         assert mode == expected, (t, mode)
@@ -148,6 +156,9 @@ def test_a_robot_falls_back_to_its_own_policy_while_its_teammates_are_missing():
     # steps 1-3: r2 silent (below the timeout at 1, dropped from 3: yet r3 also silent until 5);
     # step 4: r3 dropped (silent 1-4), r2 back: complete without r3
     assert me.live(4) == ["r1", "r2"] and me.live(5) == ["r1", "r2", "r3"]
+    # by default (no fallback_after) an incomplete step while a teammate is heard plans on what came
+    assert modes == ["team", "partial", "own", "own", "team", "team", "partial", "team"]
+    assert partial.summary() == {"team_steps": 4, "partial_steps": 2, "own_steps": 2}
     alone = TeamAgent(snap, graph, robots, "r1", seed=7, searcher="fhpe-sa", timeout_steps=1)
     alone.observe("r1", 0, 0, 0)
     alone.observe("r1", 1, 0, 0)
@@ -168,7 +179,7 @@ def test_a_c_cepg_snapshot_flies_in_a_team_and_nowhere_else():
 
 
 def _capture_times(snap, graph, searcher, loss, episodes=40, delay=0):
-    counter = {"team": 0, "own": 0}
+    counter = {"team": 0, "partial": 0, "own": 0}
     res = evaluate(
         graph,
         uniform_walk(graph),
@@ -184,7 +195,8 @@ def _capture_times(snap, graph, searcher, loss, episodes=40, delay=0):
 def test_the_team_in_the_simulator_with_links_up_down_and_lossy():
     """All links down: exactly the robots' own policies (every robot-step falls back); links up:
     every robot-step on the team's plan, and sooner than on its own on these episodes; a lossy
-    link lies between in the share of coordinated steps."""
+    link plans on what has come at some steps; a delay of a step plans on the teammates' last
+    positions, and one of the timeout's length hears nobody in time: the own policies again."""
     graph = builtin_graph("office")
     snap = _snapshot(graph, 3)
     own, _ = _capture_times(snap, graph, None, 0.0)
@@ -192,10 +204,12 @@ def test_the_team_in_the_simulator_with_links_up_down_and_lossy():
     up, c_up = _capture_times(snap, graph, "fhpe-sa", 0.0)
     lossy, c_lossy = _capture_times(snap, graph, "fhpe-sa", 0.3)
     assert np.array_equal(down, own) and c_down["team"] == 0
-    assert c_up["own"] == 0 and c_up["team"] > 0
-    assert 0 < c_lossy["team"] < c_lossy["team"] + c_lossy["own"]
+    assert c_up["own"] == c_up["partial"] == 0 and c_up["team"] > 0
+    assert c_lossy["team"] > 0 and c_lossy["partial"] > 0
     assert up.mean() < own.mean()  # random networks against FHPE-SA on the true model
-    delayed, c_delayed = _capture_times(snap, graph, "fhpe-sa", 0.0, delay=1)
-    assert c_delayed["team"] == 0 and np.array_equal(delayed, own)  # never complete in time
+    _delayed, c_delayed = _capture_times(snap, graph, "fhpe-sa", 0.0, delay=1)
+    assert c_delayed["team"] == 0 and c_delayed["partial"] > c_delayed["own"] > 0  # t = 0: nobody heard yet
+    stale, c_stale = _capture_times(snap, graph, "fhpe-sa", 0.0, delay=3)
+    assert c_stale["team"] == c_stale["partial"] == 0 and np.array_equal(stale, own)
     assert mission_seed(5, 0) != mission_seed(5, 1)
     assert len(lossy) == 40

@@ -55,7 +55,7 @@ class Episode:
     captured: bool
     capture_time: int | None
     captured_by: str | None
-    coordination: dict[str, Any] | None = None  # {"team_searcher", "team_steps", "own_steps"} (optional)
+    coordination: dict[str, Any] | None = None  # {"team_searcher", "team_steps", "partial_steps", "own_steps"}
 
 
 def _need(rec: dict[str, Any], key: str, kind: type | tuple[type, ...]) -> Any:
@@ -161,7 +161,8 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
 
 def _coordination(raw: Any, steps: int) -> dict[str, Any] | None:
     """The optional ``coordination`` of a record: how many of the robot's decisions followed its
-    team's plan and how many its own policy (shared/core/team.py); at most one per step."""
+    team's plan with every teammate's step in, how many with one missing, and how many its own
+    policy (shared/core/team.py ``TeamAgent.act``); at most one per step."""
     if raw is None:
         return None
     if not isinstance(raw, dict):
@@ -169,13 +170,13 @@ def _coordination(raw: Any, steps: int) -> dict[str, Any] | None:
     searcher = raw.get("team_searcher")
     if searcher is not None and searcher not in TEAM_SEARCHERS:
         raise RecordError("coordination", f"coordination.team_searcher {_show(searcher)} is not a team searcher")
-    counts = [raw.get("team_steps"), raw.get("own_steps")]
+    counts = [raw.get("team_steps"), raw.get("partial_steps", 0), raw.get("own_steps")]
     if any(not isinstance(c, int) or isinstance(c, bool) or c < 0 for c in counts) or sum(counts) > steps:
         raise RecordError(
             "coordination",
-            f"coordination's team_steps and own_steps must be integers >= 0 adding up to at most {steps}",
+            f"coordination's team_steps, partial_steps and own_steps must be integers >= 0, at most {steps} in all",
         )
-    return {"team_searcher": searcher, "team_steps": counts[0], "own_steps": counts[1]}
+    return {"team_searcher": searcher, "team_steps": counts[0], "partial_steps": counts[1], "own_steps": counts[2]}
 
 
 def make_record(

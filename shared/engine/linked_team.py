@@ -40,7 +40,7 @@ class LinkedTeamSearcher:
         searcher: str | None = "fhpe-sa",
         link_loss: float = 0.0,
         link_delay: int = 0,
-        fallback_after: int = FALLBACK_AFTER,
+        fallback_after: int | None = FALLBACK_AFTER,
         timeout_steps: int = TIMEOUT_STEPS,
         counter: dict[str, int] | None = None,
         team_model: TargetModel | None = None,
@@ -63,7 +63,7 @@ class LinkedTeamSearcher:
         self.inbox: dict[int, list[tuple[int, int, str, int, int, int]]] = {}  # slot -> (due, to, from, t, p, z)
         # robot-steps flown on the team's plan and on a robot's own policy, over every episode
         # (``counter``: shared by the searchers of one evaluation's chunks)
-        self.steps = counter if counter is not None else {"team": 0, "own": 0}
+        self.steps = counter if counter is not None else {"team": 0, "partial": 0, "own": 0}
 
     def _begin(self, slot: int) -> None:
         mission = int(self.rng.integers(2**31))

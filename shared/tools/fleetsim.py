@@ -423,13 +423,13 @@ def run_fleet_sim(
 
 def _mission_result(fleet: Fleet, m: dict[str, Any]) -> dict[str, Any]:
     """A flown mission's line in the summary: a censored mission counts its step limit; the robots'
-    decisions on their team's plan and on their own policies, from their records."""
+    decisions on their team's plan (complete or partial) and on their own policies, from their records."""
     out = m["outcome"] or {}
     ct = out.get("capture_time")
     team = own = 0
     for robot in m["robots"]:
         coordination = fleet.api.get(f"/api/v1/episodes/{robot}/{m['id']}").get("coordination") or {}
-        team += coordination.get("team_steps", 0)
+        team += coordination.get("team_steps", 0) + coordination.get("partial_steps", 0)
         own += coordination.get("own_steps", 0)
     return {
         "mission_id": m["id"],

@@ -17,7 +17,6 @@ from shared.core.files import atomic_write
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel, load_model_file
 from shared.core.snapshot_format import SnapshotError
-from shared.core.team import FALLBACK_AFTER
 from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
 from shared.learning.config import positive_int, whole_number
@@ -71,7 +70,7 @@ def _team_flight(args: argparse.Namespace, graph: Graph) -> TeamFlight | None:
         args.team_searcher,
         args.link_loss or 0.0,
         args.link_delay or 0,
-        FALLBACK_AFTER if args.fallback_after is None else args.fallback_after,
+        args.fallback_after,
         load_model_file(graph, args.team_model) if args.team_model else None,
     )
 
@@ -93,15 +92,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         "wall_seconds": round(res.wall_seconds, 3),
     }
     if team is not None:
-        flown = team.steps["team"] + team.steps["own"]
+        flown = sum(team.steps.values())
         summary["team"] = {
             "searcher": team.searcher,
             "link_loss": team.link_loss,
             "link_delay": team.link_delay,
             "fallback_after": team.fallback_after,
             "team_steps": team.steps["team"],
+            "partial_steps": team.steps["partial"],
             "own_steps": team.steps["own"],
-            "coordinated_share": team.steps["team"] / flown if flown else None,
+            "coordinated_share": (team.steps["team"] + team.steps["partial"]) / flown if flown else None,
         }
     if args.json:
         print(json.dumps(summary))
@@ -115,8 +115,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             f"  censored_fraction         {summary['censored_fraction']:.4f}  (T_max = {3 * graph.n})\n"
             f"  false_alarms_per_episode  {summary['false_alarms_per_episode']:.3f}\n"
             + (
-                f"  coordinated robot-steps   {summary['team']['team_steps']:,} of "
-                f"{summary['team']['team_steps'] + summary['team']['own_steps']:,}\n"
+                f"  robot-steps on the plan   {summary['team']['team_steps']:,} complete, "
+                f"{summary['team']['partial_steps']:,} partial, {summary['team']['own_steps']:,} on their own\n"
                 if team is not None
                 else ""
             )
@@ -182,7 +182,8 @@ def add_sim_commands(sub: Any) -> None:
         "--fallback-after",
         type=positive_int,
         metavar="K",
-        help=f"incomplete steps in a row before a robot flies its own policy (default {FALLBACK_AFTER})",
+        help="incomplete steps in a row before a robot flies its own policy (default: never while a teammate is "
+        "heard: the team's plan on what has come)",
     )
     p.set_defaults(func=cmd_evaluate)
 

@@ -249,8 +249,9 @@ class Outcome(BaseModel):
 
 class Coordination(BaseModel):
     team_searcher: str | None = Field(description="the version's team searcher (null: none, the robot searched alone)")
-    team_steps: int = Field(description="decisions on the team's plan (every live teammate's step was in)")
-    own_steps: int = Field(description="decisions on the robot's own policy (a teammate's step missing, or alone)")
+    team_steps: int = Field(description="decisions on the team's plan, every live teammate's step in")
+    partial_steps: int = Field(0, description="decisions on the team's plan with a teammate's step missing")
+    own_steps: int = Field(description="decisions on the robot's own policy (no teammate heard, or no team searcher)")
 
 
 class EpisodeRecord(BaseModel):
