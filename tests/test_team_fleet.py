@@ -75,6 +75,13 @@ def test_a_teammate_killed_mid_mission_holds_nobody_up(fleet):
     fleet.world.step_delay = 0.05
     try:
         mid = _long_mission(fleet, 11)
+        # the fleet view says how each flying robot decided its last step (its telemetry)
+        modes = wait_until(
+            lambda: [a.get("mode") for a in fleet.api.get("/api/v1/fleet")["agents"] if a.get("mode")],
+            10,
+            "the robots' modes",
+        )
+        assert set(modes) <= {"team", "partial", "own"}
         fleet.stop_agent("r2", signal.SIGKILL)
         # the world withdraws r2 after its step timeout; r1 and r3 fall back, drop r2 and finish
         wait_until(

@@ -130,7 +130,8 @@ class Bus:
         if msg is None or msg.get("state") not in ("mission", "idle", "down"):
             return
         keep = {
-            k: msg.get(k) for k in ("state", "mission_id", "t", "node", "z", "goal", "policy_version", "backend", "ts")
+            k: msg.get(k)
+            for k in ("state", "mission_id", "t", "node", "z", "goal", "mode", "policy_version", "backend", "ts")
         }
         if msg["state"] == "down":  # the agent stopped on an error it cannot retry, and says which
             keep["reason"] = str(msg.get("reason"))[:500]

@@ -39,6 +39,7 @@ def fleet_view(srv: Any) -> FleetOut:
                 node=live.get("node"),
                 policy_version=live.get("policy_version"),
                 z=live.get("z") if same else None,
+                mode=live.get("mode") if same and live.get("mode") in ("team", "partial", "own") else None,
                 backend=live.get("backend"),
                 down_reason=live.get("reason") if live.get("state") == "down" and not a["online"] else None,
             )

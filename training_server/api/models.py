@@ -71,6 +71,11 @@ class Agent(BaseModel):
     node: int | None = Field(description="its last reported node (telemetry)")
     policy_version: int | None = Field(description="the policy version it last reported running (telemetry)")
     z: int | None = Field(None, description="its last observation z_t in that mission (1: it detected the target)")
+    mode: Literal["team", "partial", "own"] | None = Field(
+        None,
+        description="how it decided its last step (telemetry): on the team's plan with every teammate's step in, "
+        "on it with one missing, or on its own policy (docs/coordination.md)",
+    )
     backend: str | None = Field(None, description="its robot backend (sim, or MODULE:CLASS), from its telemetry")
     down_reason: str | None = Field(
         None, description="why its agent stopped, when it stopped on an error it cannot retry (e.g. its backend)"

@@ -431,7 +431,8 @@ pages.fleet = async function (ctx) {
       if (cls !== undefined && cells[i].className !== cls) cells[i].className = cls;
     };
     set(0, a.robot_id);
-    set(1, a.online ? `online · ${a.state}` : a.down_reason ? `down: ${a.down_reason}` : "offline (lost)", `state-${a.online ? "online" : "offline"}`);
+    const mode = a.mode ? ` · ${a.mode === "own" ? "on its own" : a.mode === "partial" ? "team (partial)" : "team"}` : "";
+    set(1, a.online ? `online · ${a.state}${mode}` : a.down_reason ? `down: ${a.down_reason}` : "offline (lost)", `state-${a.online ? "online" : "offline"}`);
     cells[2].dataset.ts = a.last_seen;
     set(2, fmtAgo(a.last_seen));
     if ((cells[3].dataset.mission || "") !== (a.mission_id || "")) {
