@@ -249,14 +249,13 @@ class TeamAgent:
         """FHPE-SA's moves for the whole team; its ties are broken by a generator seeded by the
         mission and the step, the same on every robot."""
         assert self.planner is not None
-        key = None
-        if self.plan_cache is not None:
-            key = (t, b.tobytes(), pos.tobytes(), active.tobytes())
-            if key in self.plan_cache:
-                return self.plan_cache[key]
+        cache = self.plan_cache
+        key = (t, b.tobytes(), pos.tobytes(), active.tobytes())
+        if cache is not None and key in cache:
+            return cache[key]
         plan = self.planner.plan(b, pos, active, np.random.default_rng([self.seed, t]))
-        if key is not None:
-            self.plan_cache[key] = plan
+        if cache is not None:
+            cache[key] = plan
         return plan
 
     def _where(self, robot: str, t: int, p: int) -> int:

@@ -91,9 +91,9 @@ class LinkedTeamSearcher:
         pos, z, t_all = obs.pos.numpy(), obs.z.numpy(), obs.t.numpy()
         active, new, alive = obs.active.numpy(), obs.new.numpy(), obs.alive.numpy()
         out = pos.copy()
-        for e in np.nonzero(alive)[0]:
+        for e in (int(x) for x in np.nonzero(alive)[0]):
             if new[e] or e not in self.teams:
-                self._begin(int(e))
+                self._begin(e)
             team, inbox, t = self.teams[e], self.inbox[e], int(t_all[e])
             for i, agent in enumerate(team):
                 if not active[e, i]:
