@@ -487,11 +487,12 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
             "t": 7,
             "node": 43,
             "z": 1,
+            "mode": "partial",
             "policy_version": 1,
             "backend": "sim",
             "down_reason": None,
         },
-        "r2": {"state": "idle", "node": 12, "policy_version": 1, "z": 1},
+        "r2": {"state": "idle", "node": 12, "policy_version": 1, "z": 1, "mode": "team"},
     }
     f = c.get("/api/v1/fleet", headers=auth(AG)).json()
     by = {a["robot_id"]: a for a in f["agents"]}
@@ -507,11 +508,13 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
         "node": 43,
         "policy_version": 1,
         "z": 1,
+        "mode": "partial",
         "backend": "sim",
         "down_reason": None,
     }
     assert by["r2"]["state"] == "idle" and by["r2"]["node"] == 12 and by["r2"]["mission_id"] is None
     assert by["r2"]["z"] is None and by["r2"]["backend"] is None  # z only within the mission it flies
+    assert by["r2"]["mode"] is None  # and how a step was decided too
     assert by["r3"]["state"] == "offline" and by["r3"]["online"] is False and by["r3"]["since"] is None
 
 

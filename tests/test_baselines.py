@@ -7,10 +7,10 @@ import itertools
 import numpy as np
 import pytest
 
+from shared.core.fhpe_sa import GAMMA, walks
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
 from shared.engine.evaluate import evaluate
-from shared.planners.base import GAMMA, walks
 from shared.planners.fhpe import Fhpe, FhpeSA
 from shared.planners.milp import Milp
 from shared.planners.oracle import OracleSearcher, oracle_expected_time

@@ -63,7 +63,7 @@ def test_with_links_up_the_robots_fly_the_teams_plan(fleet):
         for rec in _records(fleet, m["id"], ROBOTS).values():
             c = rec["coordination"]
             assert c["team_searcher"] == "fhpe-sa"
-            assert c["team_steps"] + c["partial_steps"] + c["own_steps"] <= len(rec["steps"])
+            assert c["team_steps"] + c["partial_steps"] + c["own_steps"] >= len(rec["steps"]) - 1
             steps["team"] += c["team_steps"]
             steps["own"] += c["partial_steps"] + c["own_steps"]
     # a teammate's t = 0 can come before a robot has subscribed (its own first step then falls
@@ -114,7 +114,7 @@ def test_a_robot_whose_link_is_cut_holds_nobody_up(fleet):
     recs = _records(fleet, mid, ROBOTS)
     for r in ("r2", "r3"):
         c = recs[r]["coordination"]
-        assert c["partial_steps"] >= 1 and c["team_steps"] >= 1  # r1 missing, then dropped
+        assert c["own_steps"] >= 1 and c["team_steps"] >= 1  # r1 never heard: alone, then r1 dropped
     assert sum(v for k, v in recs["r1"]["coordination"].items() if k.endswith("_steps")) >= 4
 
 

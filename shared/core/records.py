@@ -143,7 +143,7 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
             raise RecordError("outcome", f"outcome.captured_by {_show(by)} is not a robot id")
     else:
         ct, by = None, None
-    coordination = _coordination(rec.get("coordination"), len(steps))
+    coordination = _coordination(rec.get("coordination"))
     return Episode(
         fleet=rec_fleet,
         mission_id=mission_id,
@@ -159,10 +159,11 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
     )
 
 
-def _coordination(raw: Any, steps: int) -> dict[str, Any] | None:
+def _coordination(raw: Any) -> dict[str, Any] | None:
     """The optional ``coordination`` of a record: how many of the robot's decisions followed its
     team's plan with every teammate's step in, how many with one missing, and how many its own
-    policy (shared/core/team.py ``TeamAgent.act``); at most one per step."""
+    policy (shared/core/team.py ``TeamAgent.act``). One a step, but a record cut at a capture the
+    robot learned of after it went on searching holds fewer steps than it decided."""
     if raw is None:
         return None
     if not isinstance(raw, dict):
@@ -171,10 +172,10 @@ def _coordination(raw: Any, steps: int) -> dict[str, Any] | None:
     if searcher is not None and searcher not in TEAM_SEARCHERS:
         raise RecordError("coordination", f"coordination.team_searcher {_show(searcher)} is not a team searcher")
     counts = [raw.get("team_steps"), raw.get("partial_steps", 0), raw.get("own_steps")]
-    if any(not isinstance(c, int) or isinstance(c, bool) or c < 0 for c in counts) or sum(counts) > steps:
+    if any(not isinstance(c, int) or isinstance(c, bool) or c < 0 for c in counts) or sum(counts) > MAX_STEPS:
         raise RecordError(
             "coordination",
-            f"coordination's team_steps, partial_steps and own_steps must be integers >= 0, at most {steps} in all",
+            f"coordination's team_steps, partial_steps and own_steps must be integers >= 0, at most {MAX_STEPS} in all",
         )
     return {"team_searcher": searcher, "team_steps": counts[0], "partial_steps": counts[1], "own_steps": counts[2]}
 
