@@ -109,6 +109,13 @@ class Teamwork:
         self.agent.observe(msg["robot_id"], msg["t"], row, msg["z"])
 
     def close(self) -> None:
+        if self.dropped or self.ignored:
+            log.info(
+                "mission %s: %d observations dropped at the drop point, %d messages ignored",
+                self.mission_id,
+                self.dropped,
+                self.ignored,
+            )
         if self._sub is not None:
             self._sub.undeclare()
             self._sub = None

@@ -108,7 +108,6 @@ def _team_factory(
     team_note = snap.team_note(n_robots)
     if team_note and note:
         note(team_note)
-    LinkedTeamSearcher(snap, graph, n_robots, 0, searcher, team.link_loss, team.link_delay, team.fallback_after)
 
     def make(seed: int) -> Searcher:
         return LinkedTeamSearcher(
@@ -124,4 +123,5 @@ def _team_factory(
             team_model=team.model,
         )
 
+    make(0)  # its checks (the link's loss and delay), once, before any simulation
     return make

@@ -26,14 +26,22 @@ HORIZON = 5  # fhpe-sa's h (paper Table II)
 
 def walks(graph: Graph, start: int, h: int) -> np.ndarray:
     """All walks of h moves from ``start`` (stays allowed): (K, h) rows after each move."""
+    return walk_tree(graph, start, h)[0]
+
+
+def walk_tree(graph: Graph, start: int, h: int) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """The walks of ``walks`` and the tree of their prefixes: per move k, each prefix's parent
+    among the prefixes of k - 1 moves and its node (the last prefixes are the walks, in order)."""
     paths = np.array([[start]], dtype=np.int64)
+    levels = []
     for _ in range(h):
         last = paths[:, -1]
         deg = graph.deg_closed[last]
         rep = np.repeat(np.arange(len(paths)), deg)
         nxt = np.concatenate([graph.closed(int(p)) for p in last])
+        levels.append((rep, nxt))
         paths = np.concatenate([paths[rep], nxt[:, None]], axis=1)
-    return paths[:, 1:]
+    return paths[:, 1:], levels
 
 
 class FhpeSAPlanner:
@@ -60,18 +68,9 @@ class FhpeSAPlanner:
         self._walks: dict[int, tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]] = {}
 
     def paths(self, p: int) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-        """Every h-move walk from node row ``p``, (K, h) in ``walks``' order, and the tree of their
-        prefixes: per move k, each prefix's parent among the prefixes of k - 1 moves and its node
-        (computed once per node)."""
+        """``walk_tree`` from node row ``p``, computed once per node."""
         if p not in self._walks:
-            levels, parents = [], np.array([p], dtype=np.int64)
-            for _ in range(self.h):
-                deg = self.graph.deg_closed[parents]
-                rep = np.repeat(np.arange(len(parents)), deg)
-                nodes = np.concatenate([self.graph.closed(int(q)) for q in parents])
-                levels.append((rep, nodes))
-                parents = nodes
-            self._walks[p] = (walks(self.graph, p, self.h), levels)
+            self._walks[p] = walk_tree(self.graph, p, self.h)
         return self._walks[p]
 
     def plan(self, b: np.ndarray, pos: np.ndarray, active: np.ndarray, rng: np.random.Generator) -> np.ndarray:
