@@ -47,7 +47,7 @@ from shared.core.http import ApiClient, ApiError
 from shared.core.models import Sensor
 from shared.core.records import make_record
 from shared.core.snapshot_format import PolicyAgent, SnapshotData, SnapshotError, read_snapshot
-from shared.core.team import FALLBACK_AFTER, TeamAgent, mission_seed, team_searcher_of
+from shared.core.team import FALLBACK_AFTER, LinkHistory, TeamAgent, mission_seed, team_searcher_of
 from shared.core.wire import (
     DEFAULT_FLEET,
     add_zenoh_arguments,
@@ -224,6 +224,7 @@ class Agent:
         self.telemetry_pub: Any = None
         self.last_telemetry = 0.0
         self.last_node: int | None = None
+        self.links = LinkHistory()  # what the links delivered over this agent's missions
 
     # ------------------------------------------------------------------ HTTP
     def _refused(self, exc: ApiError) -> None:
@@ -486,6 +487,7 @@ class Agent:
             self.journal.finish()
             return
         header["coordination"] = {"team_searcher": agent.searcher, **agent.summary()}
+        self.links.fold(*agent.link_counts())
         self._finish_mission(header, steps, end, decide_us)
 
     def _begin_mission(self, msg: dict[str, Any]) -> tuple[TeamAgent, dict[str, Any], int, bool]:
@@ -510,6 +512,7 @@ class Agent:
             searcher=team_searcher_of(snap) if len(robots) > 1 else None,
             fallback_after=self.args.fallback_after,
             own_seed=mission_seed(seed, index),
+            link_history=self.links,
         )
         header = {
             "mission_id": mid,

@@ -11,7 +11,7 @@ import torch
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, lazy_walk, uniform_walk
 from shared.core.snapshot_format import PolicyAgent, SnapshotData, SnapshotError
-from shared.core.team import CollectiveBelief, TeamAgent, mission_seed, team_searcher_of
+from shared.core.team import CollectiveBelief, LinkHistory, TeamAgent, mission_seed, team_searcher_of
 from shared.engine.batched_belief import BatchedBelief, BeliefTracker
 from shared.engine.evaluate import evaluate
 from shared.engine.linked_team import LinkedTeamSearcher
@@ -128,10 +128,22 @@ def test_a_robot_falls_back_to_its_own_policy_while_its_teammates_are_missing():
     graph = builtin_graph("office")
     snap = _snapshot(graph, 3)
     robots = ["r1", "r2", "r3"]
+    steps_only = {"link_quality_min": 0.0}  # the step rule alone (the link's quality: the next test)
     me = TeamAgent(
-        snap, graph, robots, "r1", seed=7, searcher="fhpe-sa", own_seed=11, timeout_steps=2, fallback_after=1
+        snap,
+        graph,
+        robots,
+        "r1",
+        seed=7,
+        searcher="fhpe-sa",
+        own_seed=11,
+        timeout_steps=2,
+        fallback_after=1,
+        **steps_only,
     )
-    partial = TeamAgent(snap, graph, robots, "r1", seed=7, searcher="fhpe-sa", own_seed=11, timeout_steps=2)
+    partial = TeamAgent(
+        snap, graph, robots, "r1", seed=7, searcher="fhpe-sa", own_seed=11, timeout_steps=2, **steps_only
+    )
     lone = PolicyAgent(snap, graph, 0, seed=11)
     p = 0
     modes = []
@@ -158,11 +170,46 @@ def test_a_robot_falls_back_to_its_own_policy_while_its_teammates_are_missing():
     assert me.live(4) == ["r1", "r2"] and me.live(5) == ["r1", "r2", "r3"]
     # by default (no fallback_after) an incomplete step while a teammate is heard plans on what came
     assert modes == ["team", "partial", "own", "own", "team", "team", "partial", "team"]
-    assert partial.summary() == {"team_steps": 4, "partial_steps": 2, "own_steps": 2}
+    # r2 heard at 0, 4, 5, 7 (sent 0-7), r3 at 0, 5, 6, 7 (sent 0-7)
+    assert partial.summary() == {
+        "team_steps": 4,
+        "partial_steps": 2,
+        "own_steps": 2,
+        "observations_heard": 8,
+        "observations_sent": 16,
+    }
     alone = TeamAgent(snap, graph, robots, "r1", seed=7, searcher="fhpe-sa", timeout_steps=1)
     alone.observe("r1", 0, 0, 0)
     alone.observe("r1", 1, 0, 0)
     assert alone.act(1, 0)[1] == "own"  # nobody heard at all: not a team of one
+
+
+def test_a_robot_whose_links_deliver_too_little_flies_its_own_policy_throughout():
+    """The link's quality counts this mission's messages and the earlier missions' (LinkHistory):
+    a robot whose earlier missions heard half of what was sent flies its own policy even on a
+    complete step, one with a good history plans with its team; a teammate's silence after its
+    last step heard (a withdrawn robot) is not counted as loss."""
+    graph = builtin_graph("office")
+    snap = _snapshot(graph, 2)
+    robots = ["r1", "r2"]
+    poor, good = LinkHistory(), LinkHistory()
+    poor.fold(heard=30, sent=60)
+    good.fold(heard=58, sent=60)
+    good.fold(heard=60, sent=60)
+    assert good.sent == pytest.approx(0.9 * 60 + 60) and good.heard == pytest.approx(0.9 * 58 + 60)
+    for history, expected in ((poor, "own"), (good, "team")):
+        agent = TeamAgent(snap, graph, robots, "r1", seed=3, searcher="fhpe-sa", link_history=history)
+        for t in range(3):
+            agent.observe("r1", t, 0, 0)
+            agent.observe("r2", t, 4, 0)
+            assert agent.act(t, 0)[1] == expected
+    # r2 reports steps 0-2 and falls silent: its steps 3-9 are not counted as sent
+    agent = TeamAgent(snap, graph, robots, "r1", seed=3, searcher="fhpe-sa")
+    for t in range(10):
+        agent.observe("r1", t, 0, 0)
+        if t < 3:
+            agent.observe("r2", t, 4, 0)
+    assert agent.link_counts() == (3, 3) and agent.link_quality() == 1.0
 
 
 def test_a_c_cepg_snapshot_flies_in_a_team_and_nowhere_else():

@@ -161,6 +161,26 @@ class _Cancelled(Exception):
     pass
 
 
+def measured_links(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """The fleet's network as its robots measured it, from the ``coordination`` of the records
+    of robots that flew with a team searcher: the share of the teammates' observations lost
+    (null: none flew with one), and the share of their robot-steps flown on the team's plan."""
+    flown = heard = sent = coordinated = decided = 0
+    for rec in records:
+        c = rec.get("coordination") if isinstance(rec, dict) else None
+        if not isinstance(c, dict) or c.get("team_searcher") is None:
+            continue
+        team, own = (c.get("team_steps") or 0) + (c.get("partial_steps") or 0), c.get("own_steps") or 0
+        flown, coordinated, decided = flown + 1, coordinated + team, decided + team + own
+        heard += c.get("observations_heard") or 0
+        sent += c.get("observations_sent") or 0
+    return {
+        "records": flown,
+        "link_loss": round(1.0 - heard / sent, 4) if sent else None,
+        "coordinated_share": round(coordinated / decided, 4) if decided else None,
+    }
+
+
 def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
     """A training run, in the training process: EM on the fleet's records, CE-PG in simulation
     under the estimated model, the evaluation gate; the new snapshot written to job["staging"]."""
@@ -225,7 +245,9 @@ class _TrainingRun:
 
         self.say("em", message="reading episode records")
         rows = read_episode_records(self.job["db"], self.job["fleet"], self.p.max_records)
-        data = collect_missions(((i, json.loads(r)) for i, r in enumerate(rows)), self.graph, fleet=self.job["fleet"])
+        records = [json.loads(r) for r in rows]
+        self.links = measured_links(records)
+        data = collect_missions(enumerate(records), self.graph, fleet=self.job["fleet"])
         if len(data.length) == 0:
             raise ValueError("no usable missions: fly some missions before training")
         if data.impossible:
@@ -362,8 +384,9 @@ class _TrainingRun:
     def team_decision(self, policy: Any, model: Any, gate_model: Any) -> dict[str, Any]:
         """Step 4: whether the new version's robots fly the team's plan (FHPE-SA on the version's
         model) when their links allow. ``auto`` flies the new policy alone and as a team on the same
-        episodes under the gate's model (links up: with links down a team flies the policy alone
-        anyway) and takes the team only if it captures sooner, its paired 95% CI below zero."""
+        episodes under the gate's model, over links that lose what the fleet's own links lost
+        (``measured_links``; links up when no robot has flown with a team searcher yet), and takes
+        the team only if it captures sooner, its paired 95% CI below zero."""
         from shared.core.snapshot_format import SnapshotData
         from shared.engine.evaluate import evaluate, mean_ci95
         from shared.engine.linked_team import LinkedTeamSearcher
@@ -371,15 +394,20 @@ class _TrainingRun:
 
         p = self.p
         if p.team_searcher == "none":
-            return {"team_searcher": "none", "decided_by": "parameter"}
+            return {"team_searcher": "none", "decided_by": "parameter", "links": self.links}
         meta = {"variant": self.current.variant, "robots": self.current.robots}
         snap = SnapshotData(meta=meta, weights=policy_weights(policy), model=model, sensor=self.sensor)
-        self.say("gate", message=f"flying the new policy alone and as a team on {p.team_episodes} episodes")
+        loss = self.links["link_loss"] or 0.0
+        self.say(
+            "gate",
+            message=f"flying the new policy alone and as a team on {p.team_episodes} episodes, "
+            f"links losing {loss:.0%} of the messages",
+        )
         times = {}
         for name, searcher in (("alone", None), ("team", "fhpe-sa")):
 
             def make(seed: int, searcher: str | None = searcher) -> LinkedTeamSearcher:
-                return LinkedTeamSearcher(snap, self.graph, snap.robots, seed, searcher)
+                return LinkedTeamSearcher(snap, self.graph, snap.robots, seed, searcher, link_loss=loss)
 
             r = evaluate(
                 self.graph, gate_model, self.sensor, snap.robots, make, episodes=p.team_episodes, seed=p.seed + 1
@@ -392,6 +420,7 @@ class _TrainingRun:
             "team_searcher": chosen,
             "decided_by": "comparison" if p.team_searcher == "auto" else "parameter",
             "episodes": p.team_episodes,
+            "links": self.links,
             "alone_mean_capture_time": round(float(times["alone"].mean()), 3),
             "team_mean_capture_time": round(float(times["team"].mean()), 3),
             "paired_difference": round(diff, 3),

@@ -55,7 +55,8 @@ class Episode:
     captured: bool
     capture_time: int | None
     captured_by: str | None
-    coordination: dict[str, Any] | None = None  # {"team_searcher", "team_steps", "partial_steps", "own_steps"}
+    # {"team_searcher", "team_steps", "partial_steps", "own_steps"[, "observations_heard", "observations_sent"]}
+    coordination: dict[str, Any] | None = None
 
 
 def _need(rec: dict[str, Any], key: str, kind: type | tuple[type, ...]) -> Any:
@@ -177,7 +178,17 @@ def _coordination(raw: Any) -> dict[str, Any] | None:
             "coordination",
             f"coordination's team_steps, partial_steps and own_steps must be integers >= 0, at most {MAX_STEPS} in all",
         )
-    return {"team_searcher": searcher, "team_steps": counts[0], "partial_steps": counts[1], "own_steps": counts[2]}
+    out = {"team_searcher": searcher, "team_steps": counts[0], "partial_steps": counts[1], "own_steps": counts[2]}
+    heard, sent = raw.get("observations_heard"), raw.get("observations_sent")
+    if heard is not None or sent is not None:  # what the robot's links delivered (records since teams)
+        counted = [c for c in (heard, sent) if isinstance(c, int) and not isinstance(c, bool) and c >= 0]
+        if len(counted) < 2 or counted[0] > counted[1]:
+            raise RecordError(
+                "coordination",
+                "coordination's observations_heard and observations_sent must be integers >= 0, heard at most sent",
+            )
+        out["observations_heard"], out["observations_sent"] = heard, sent
+    return out
 
 
 def make_record(

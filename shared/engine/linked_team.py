@@ -4,7 +4,9 @@
 Each robot of each episode is a ``TeamAgent`` (shared/core/team.py), the decision code a robot
 agent runs. After every step each robot's observation (t, node, z) goes to each teammate as its
 own message: lost with probability ``link_loss``, else delivered ``link_delay`` steps later (0:
-before the teammates decide at that step). A withdrawn robot sends nothing and stays put.
+before the teammates decide at that step). A withdrawn robot sends nothing and stays put. Each
+robot starts with what the same link delivered over its earlier missions (``HISTORY_SENT``
+messages), as a robot agent that has flown on that network has measured it.
 
 Robots with the same information compute the same plan; the plans are memoised per episode and
 step by what they are computed from, which changes no decision and saves the N - 1 identical
@@ -22,8 +24,19 @@ from shared.core.fhpe_sa import FhpeSAPlanner
 from shared.core.graph import Graph
 from shared.core.models import TargetModel
 from shared.core.snapshot_format import SnapshotData
-from shared.core.team import FALLBACK_AFTER, TIMEOUT_STEPS, TeamAgent, mission_seed
+from shared.core.team import (
+    FALLBACK_AFTER,
+    LINK_QUALITY_MIN,
+    TIMEOUT_STEPS,
+    LinkHistory,
+    TeamAgent,
+    mission_seed,
+)
 from shared.engine.sim import Obs
+
+# the teammates' observations a robot has heard of over its earlier missions when an evaluation
+# starts: its steady state with LINK_MEMORY = 0.9 and 60 a mission (3 teammates, 20 steps)
+HISTORY_SENT = 600
 
 
 class LinkedTeamSearcher:
@@ -44,6 +57,8 @@ class LinkedTeamSearcher:
         timeout_steps: int = TIMEOUT_STEPS,
         counter: dict[str, int] | None = None,
         team_model: TargetModel | None = None,
+        link_quality_min: float = LINK_QUALITY_MIN,
+        history_sent: int = HISTORY_SENT,
     ) -> None:
         if not 0.0 <= link_loss <= 1.0:
             raise ValueError(f"link loss {link_loss} is not a probability in [0, 1]")
@@ -51,12 +66,14 @@ class LinkedTeamSearcher:
             raise ValueError(f"link delay {link_delay} must be 0 or more steps")
         self.name = f"team:{searcher or 'none'}"
         self.snap, self.graph, self.N = snap, graph, n_robots
+        # a robot alone flies its own policy, as a robot agent alone does
+        searcher = searcher if n_robots > 1 else None
         self.searcher, self.link_loss, self.link_delay = searcher, link_loss, link_delay
         self.fallback_after, self.timeout_steps = fallback_after, timeout_steps
         self.rng = np.random.default_rng(seed)  # the missions' seeds
         self.link_rng = np.random.default_rng([seed, 1])  # the lost messages
         self.robots = [f"r{i + 1}" for i in range(n_robots)]
-        self.team_model = team_model
+        self.team_model, self.link_quality_min, self.history_sent = team_model, link_quality_min, history_sent
         model = team_model or snap.model
         self.planner = FhpeSAPlanner(graph, model, snap.sensor) if searcher == "fhpe-sa" else None
         self.teams: dict[int, list[TeamAgent]] = {}  # slot -> the episode's robots
@@ -83,9 +100,17 @@ class LinkedTeamSearcher:
                 planner=self.planner,
                 plan_cache=plans,
                 team_model=self.team_model,
+                link_quality_min=self.link_quality_min,
+                link_history=self._history(),
             )
             team.append(agent)
         self.teams[slot], self.inbox[slot] = team, []
+
+    def _history(self) -> LinkHistory:
+        """What a robot's links delivered before this mission: ``history_sent`` messages over the
+        same link, each delivered with probability 1 - link_loss."""
+        heard = self.link_rng.binomial(self.history_sent, 1.0 - self.link_loss)
+        return LinkHistory(heard=float(heard), sent=float(self.history_sent))
 
     def act(self, obs: Obs) -> torch.Tensor:
         pos, z, t_all = obs.pos.numpy(), obs.z.numpy(), obs.t.numpy()
