@@ -293,10 +293,11 @@ class Agent:
             log.warning("policy update failed (%s); keeping version %s", exc, have)
 
     # ------------------------------------------------------------------ Zenoh
-    def telemetry(self, msg: dict[str, Any], force: bool = False, belief: Any = None) -> None:
+    def telemetry(self, msg: dict[str, Any], force: bool = False, belief: Any = None, team_belief: Any = None) -> None:
         """Live state on mures/<fleet>/telemetry/<id> (docs/SPEC.md section 6), at most TELEMETRY_HZ
-        a second (``force``: now); during a mission with the robot's own belief, rounded. Best
-        effort: a lost message is replaced by the next one."""
+        a second (``force``: now); during a mission with the robot's own belief and, flying with a
+        team searcher, the team's collective belief it holds, rounded. Best effort: a lost message
+        is replaced by the next one."""
         now = time.monotonic()
         if self.telemetry_pub is None or (not force and now - self.last_telemetry < 1.0 / TELEMETRY_HZ):
             return
@@ -307,8 +308,9 @@ class Agent:
             "backend": self.args.backend,
             "ts": round(time.time(), 3),
         }
-        if belief is not None and len(belief) <= TELEMETRY_MAX_NODES:
-            out["belief"] = [round(float(x), 4) for x in np.asarray(belief)]
+        for key, b in (("belief", belief), ("team_belief", team_belief)):
+            if b is not None and len(b) <= TELEMETRY_MAX_NODES:
+                out[key] = [round(float(x), 4) for x in np.asarray(b)]
         try:
             self.telemetry_pub.put(json.dumps(out).encode())
         except Exception as exc:  # never let telemetry stop a mission
@@ -570,6 +572,7 @@ class Agent:
                 {"state": "mission", "mission_id": mid, "t": t, "node": node, "z": z, "goal": goal, "mode": mode},
                 force=t == 0,
                 belief=agent.own.belief,
+                team_belief=agent.collective.belief(t) if agent.searcher is not None else None,
             )
             node = int(backend.move(goal))
             if node not in graph.index:

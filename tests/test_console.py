@@ -6,23 +6,18 @@ tests/test_console_browser.py."""
 from __future__ import annotations
 
 import json
-import math
 import time
 
 import numpy as np
-import pytest
 from test_api import AG, OP, api, auth  # noqa: F401 - api: the fixture (the in-process API)
 
 from shared.core.belief_filter import BeliefFilter
-from shared.core.graph import builtin_graph, graph_from_dict
-from shared.core.models import Sensor, uniform_walk
+from shared.core.models import Sensor
 from shared.core.records import make_record
 from shared.core.snapshot_format import read_snapshot
-from shared.engine.evaluate import mean_ci95
-from training_server.api.policies import stationary
+from shared.core.team import CollectiveBelief
+from training_server.bus import live_state
 from training_server.console import PAGES
-from training_server.console.hub import Hub
-from training_server.console.layout import node_layout
 from training_server.jobs import TrainingParams
 
 
@@ -97,7 +92,10 @@ def test_event_stream_sends_fleet_belief_and_status(api):
     srv.bus.online["r1"] = time.time()
     srv.bus.gone["r2"] = time.time() - 30
     srv.store.add_mission("m-live", "default", ["r1"], {"seed": 1, "max_steps": 5, "start_node": 43}, 1)
+    team = [0.0] * n
+    team[g_row := srv.graph.index[23]] = 1.0
     srv.bus.live["r1"] = {"state": "mission", "mission_id": "m-live", "t": 3, "node": 44, "z": 1, "belief": belief}
+    srv.bus.live["r1"]["team_belief"] = team
     srv.bus.truth["m-live"] = {"t": 3, "target": 23, "robots": {"r1": {"node": 44, "z": 1, "seen": False}}}
     assert c.get("/api/v1/events?once=true").status_code == 401
     r = c.get("/api/v1/events?once=true&belief=r1", headers=auth(AG))
@@ -108,7 +106,8 @@ def test_event_stream_sends_fleet_belief_and_status(api):
     assert a["r1"]["state"] == "flying" and a["r1"]["step"] == 3 and a["r1"]["z"] == 1 and a["r1"]["node"] == 44
     assert a["r2"]["online"] is False and a["r2"]["state"] == "offline"
     assert fleet["truth"] == {"m-live": srv.bus.truth["m-live"]}
-    assert ev["belief"] == [{"robot_id": "r1", "mission_id": "m-live", "t": 3, "belief": belief}]
+    assert ev["belief"] == [{"robot_id": "r1", "mission_id": "m-live", "t": 3, "belief": belief, "team_belief": team}]
+    assert ev["belief"][0]["team_belief"][g_row] == 1.0
     status = ev["status"][0]
     assert status["running_missions"] == ["m-live"] and status["current_policy"] == 1
     assert [x["kind"] for x in status["alerts"]] == ["robot-lost"] and "r2" in status["alerts"][0]["text"]
@@ -132,115 +131,25 @@ def test_replay_recomputes_each_robots_belief_from_its_own_record(api):
         for k, (v, zk) in enumerate(zip(nodes, z, strict=True)):
             want = bf.reset(g.index[v], zk) if k == 0 else bf.update(g.index[v], zk)
             np.testing.assert_allclose(rep["belief"][k], want, atol=1e-4)
+    # the team's collective belief: both records' observations of each step fused (Eq. 6-7); r2's
+    # record ends at step 2, so step 3 holds r1's observation alone
+    collective = CollectiveBelief(g, snap.model, Sensor(), ["r1", "r2"])
+    for robot, (nodes, z, _ct) in recs.items():
+        for k, (v, zk) in enumerate(zip(nodes, z, strict=True)):
+            collective.add(k, robot, g.index[v], zk)
+    assert len(body["team_belief"]) == 4
+    for k in range(4):
+        np.testing.assert_allclose(body["team_belief"][k], collective.belief(k), atol=1e-4)
+    _mission(srv, "m-one", ["r1"], records={"r1": ([43, 44], [0, 0], None)})
+    assert c.get("/api/v1/missions/m-one/replay", headers=auth(AG)).json()["team_belief"] is None
     assert c.get("/api/v1/missions/nope/replay", headers=auth(AG)).status_code == 404
 
 
-def test_capture_time_per_version_counts_captures_and_step_limits_only(api):
-    srv, c = api
-    srv.ensure_initial_policy(2, None, Sensor(), seed=0)  # no-op: version 1 exists
-    cts = [4, 9, 2]
-    for i, ct in enumerate(cts):
-        ev = {"type": "captured", "mission_id": f"m{i}", "t": ct}
-        _mission(srv, f"m{i}", ["r1"], records={"r1": ([43] * (ct + 1), [0] * ct + [1], ct)}, status_event=ev)
-    limit = {"type": "stop", "mission_id": "m-limit", "reason": "step limit"}
-    _mission(srv, "m-limit", ["r1"], records={"r1": ([43] * 31, [0] * 31, None)}, status_event=limit)
-    stop = {"type": "stop", "mission_id": "m-op", "reason": "operator"}
-    _mission(srv, "m-op", ["r1"], records={"r1": ([43] * 3, [0] * 3, None)}, status_event=stop)
-    body = c.get("/api/v1/policies/performance", headers=auth(AG)).json()
-    mean, half = mean_ci95([*cts, 30])
-    assert body["excluded"] == 1
-    assert body["items"] == [
-        {"version": 1, "missions": 4, "captured": 3, "mean_capture_time": round(mean, 4), "ci95": round(half, 4)}
-    ]
-
-
-def test_target_model_of_a_version(api):
-    srv, c = api
-    body = c.get("/api/v1/policies/1/model", headers=auth(AG)).json()
-    model = read_snapshot(srv.snapshot_dir(1), srv.graph).model
-    np.testing.assert_allclose(body["b0"], model.b0, atol=1e-6)
-    gamma = model.dense()
-    for u, row in body["moves"].items():
-        assert math.isclose(sum(row.values()), 1.0, abs_tol=1e-5)
-        for v, p in row.items():
-            assert math.isclose(p, gamma[srv.graph.index[int(u)], srv.graph.index[int(v)]], abs_tol=1e-6)
-    np.testing.assert_allclose(body["stationary"], stationary(gamma), atol=1e-6)
-    assert c.get("/api/v1/policies/9/model", headers=auth(AG)).status_code == 404
-
-
-def test_stationary_distribution_is_a_fixed_point():
-    g = builtin_graph("office")
-    gamma = uniform_walk(g).dense()
-    pi = stationary(gamma)
-    np.testing.assert_allclose(gamma.T @ pi, pi, atol=1e-9)
-    assert math.isclose(pi.sum(), 1.0) and pi.min() > 0
-    deg = g.deg_closed / g.deg_closed.sum()  # a uniform walk on the closed neighbourhoods: pi ~ |N[p]|
-    np.testing.assert_allclose(pi, deg, atol=1e-6)
-
-
-def test_alerts_for_lost_robots_failed_or_gated_runs_and_rising_rejections(api, monkeypatch):
-    srv, c = api
-    monkeypatch.setattr("training_server.console.hub.STATUS_EVERY", 0.0)
-    assert c.get("/api/v1/alerts", headers=auth(AG)).json() == {"items": []}
-    srv.bus.gone["r9"] = time.time() - 12
-    for rid, err in (
-        ("run-a", "training process died (exit code 9)"),
-        ("run-b", "evaluation gate: new 9.1, current 8.0"),
-    ):
-        srv.store.add_run(rid, {})
-        srv.store.update_run(rid, status="failed", finished=time.time(), error=err)
-    srv.store.reject(["json", "json", "graph"])
-    items = c.get("/api/v1/alerts", headers=auth(AG)).json()["items"]
-    kinds = {a["kind"]: a for a in items}
-    assert set(kinds) == {"robot-lost", "run-failed", "run-gated-out", "ingest-rejections"}
-    assert kinds["robot-lost"]["subject"] == "r9" and kinds["run-gated-out"]["subject"] == "run-b"
-    assert kinds["ingest-rejections"]["text"].startswith("3 episode records rejected")
-    assert c.get("/api/v1/alerts").status_code == 401
-
-
-def test_rejection_alert_needs_new_rejections(api, monkeypatch):
-    srv, _c = api
-    monkeypatch.setattr("training_server.console.hub.STATUS_EVERY", 0.0)
-    srv.store.reject(["json"])  # before anyone watched: old news, no alert
-    hub = Hub(srv)
-    assert hub.alerts() == []
-    assert hub.alerts() == []  # nothing new since
-
-
-def test_layout_uses_file_positions_or_lays_out_every_node_apart():
-    g = builtin_graph("office")
-    pos, source = node_layout(g)
-    assert source == "automatic" and set(pos) == {int(v) for v in g.labels}
-    xy = np.array(list(pos.values()))
-    assert xy.min() >= 0 and xy.max() <= 1
-    d = np.linalg.norm(xy[:, None] - xy[None], axis=-1) + np.eye(len(xy))
-    assert d.min() > 0.005  # no two rooms drawn on top of each other
-    assert node_layout(g) == (pos, source)  # the same picture every time
-    edge_len = np.array([np.linalg.norm(xy[u] - xy[v]) for u, v in g.edges])
-    assert np.median(edge_len) < np.median(d)  # neighbours drawn nearer than most pairs
-    data = {"name": "t", "start_node": 1, "nodes": [1, 2, 3], "edges": [[1, 2], [2, 3]]}
-    data["positions"] = {"1": [0, 0], "2": [10, 0], "3": [10, 5]}
-    pos, source = node_layout(graph_from_dict(data))
-    assert source == "file" and pos == {1: (0.0, 0.5), 2: (1.0, 0.5), 3: (1.0, 0.0)}
-
-
-def test_event_stream_ends_when_the_server_stops(api):
-    srv, c = api
-    srv.is_stopping = lambda: True
-    r = c.get("/api/v1/events", headers=auth(AG))  # no once: returns only because the server stops
-    assert r.status_code == 200 and r.text.startswith("retry:")
-
-
-@pytest.mark.parametrize("bad", ["/api/v1/policies/0/model", "/api/v1/policies/x/model"])
-def test_bad_model_versions_are_422(api, bad):
-    _srv, c = api
-    assert c.get(bad, headers=auth(AG)).status_code == 422
-
-
-def test_status_lists_the_ten_newest_runs_newest_first(api):
-    srv, c = api
-    for k in range(12):
-        srv.store.add_run(f"run-{k:02d}", {})
-        time.sleep(0.002)  # distinct creation times
-    status = _events(c.get("/api/v1/events?once=true", headers=auth(AG)).text)["status"][0]
-    assert [r["id"] for r in status["runs"]] == [f"run-{k:02d}" for k in range(11, 1, -1)]
+def test_the_server_keeps_a_robots_beliefs_only_when_they_are_n_probabilities():
+    n = 5
+    good = [0.2] * n
+    for team, kept in ((good, True), (good[:-1], False), ([*good[:-1], "x"], False), ([*good[:-1], 1.5], False)):
+        msg = {"state": "mission", "mission_id": "m", "t": 1, "node": 3, "belief": good, "team_belief": team}
+        live = live_state(msg, n)
+        assert live is not None and live["belief"] == good and ("team_belief" in live) is kept
+    assert live_state({"state": "flying"}, n) is None and live_state(None, n) is None

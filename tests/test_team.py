@@ -10,11 +10,13 @@ import torch
 
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, lazy_walk, uniform_walk
+from shared.core.records import RecordError, make_record, parse_record
 from shared.core.snapshot_format import PolicyAgent, SnapshotData, SnapshotError
 from shared.core.team import CollectiveBelief, LinkHistory, TeamAgent, mission_seed, team_searcher_of
 from shared.engine.batched_belief import BatchedBelief, BeliefTracker
 from shared.engine.evaluate import evaluate
 from shared.engine.linked_team import LinkedTeamSearcher
+from training_server.jobs import measured_links
 
 
 def _observations(graph, robots: int, steps: int, seed: int) -> list[list[tuple[int, int]]]:
@@ -260,3 +262,36 @@ def test_the_team_in_the_simulator_with_links_up_down_and_lossy():
     assert c_stale["team"] == c_stale["partial"] == 0 and np.array_equal(stale, own)
     assert mission_seed(5, 0) != mission_seed(5, 1)
     assert len(lossy) == 40
+
+
+def test_the_servers_link_loss_counts_the_records_of_robots_that_flew_with_a_team():
+    def rec(searcher, heard, sent, team=3, own=1):
+        c = {"team_searcher": searcher, "team_steps": team, "partial_steps": 0, "own_steps": own}
+        return {"coordination": {**c, "observations_heard": heard, "observations_sent": sent}}
+
+    links = measured_links([rec("fhpe-sa", 30, 40), rec("fhpe-sa", 10, 40, team=0, own=4), rec(None, 0, 0), {}, "x"])
+    assert links == {"records": 2, "link_loss": 0.5, "coordinated_share": 0.375}
+    assert measured_links([rec(None, 0, 0), {}]) == {"records": 0, "link_loss": None, "coordinated_share": None}
+
+
+def test_a_records_coordination_is_checked_and_kept():
+    graph = builtin_graph("office")
+    base = {"team_searcher": "fhpe-sa", "team_steps": 1, "partial_steps": 0, "own_steps": 1}
+
+    def record(coordination):
+        return make_record(
+            graph, fleet="f", mission_id="m", robot_id="r1", nodes=[0, 0, 0], z=[0, 0, 0], sensor=Sensor(),
+            captured=False, capture_time=None, captured_by=None, policy_version=1, coordination=coordination,
+        )  # fmt: skip
+
+    full = {**base, "observations_heard": 3, "observations_sent": 4}
+    assert parse_record(record(full), graph).coordination == full
+    assert parse_record(record(base), graph).coordination == base  # records of agents before links were counted
+    for bad in (
+        {"observations_heard": 5, "observations_sent": 4},
+        {"observations_heard": 3},
+        {"observations_sent": -1},
+    ):
+        with pytest.raises(RecordError, match="observations_heard and observations_sent") as err:
+            parse_record(record({**base, **bad}), graph)
+        assert err.value.reason == "coordination"

@@ -58,6 +58,7 @@ def _long_mission(fleet, seed0):
 
 def test_with_links_up_the_robots_fly_the_teams_plan(fleet):
     steps = {"team": 0, "own": 0}
+    heard = sent = 0
     for seed in range(3):
         m = fleet.fly(ROBOTS, seed=seed, max_steps=40)
         for rec in _records(fleet, m["id"], ROBOTS).values():
@@ -66,9 +67,11 @@ def test_with_links_up_the_robots_fly_the_teams_plan(fleet):
             assert c["team_steps"] + c["partial_steps"] + c["own_steps"] >= len(rec["steps"]) - 1
             steps["team"] += c["team_steps"]
             steps["own"] += c["partial_steps"] + c["own_steps"]
+            heard, sent = heard + c["observations_heard"], sent + c["observations_sent"]
     # a teammate's t = 0 can come before a robot has subscribed (its own first step then falls
     # back); every later step is complete on loopback
     assert steps["team"] >= 0.8 * (steps["team"] + steps["own"]) > 0
+    assert 0.8 * sent <= heard <= sent  # what the links delivered: nearly all of it
 
 
 def test_a_teammate_killed_mid_mission_holds_nobody_up(fleet):
@@ -133,6 +136,9 @@ def test_a_retrain_decides_whether_its_version_flies_as_a_team(fleet):
     assert done["status"] == "succeeded", done
     team = done["metrics"]["team"]
     assert team["decided_by"] == "comparison" and team["episodes"] == 30
+    # the gate's links lose what the fleet's lost: its team missions so far lost little
+    links = team["links"]
+    assert links["records"] >= 9 and 0.0 <= links["link_loss"] < 0.5 and 0.0 < links["coordinated_share"] <= 1.0
     better = team["paired_difference"] + team["paired_ci95"] < 0
     assert team["team_searcher"] == ("fhpe-sa" if better else "none")
     snapshot = fleet.workdir / "server" / "policies" / f"v{done['version']}" / "snapshot" / "policy.json"

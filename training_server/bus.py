@@ -38,6 +38,32 @@ INGEST_BATCH = 512
 CAPTURE_WINDOW_S = 0.2
 
 
+LIVE_FIELDS = ("state", "mission_id", "t", "node", "z", "goal", "mode", "policy_version", "backend", "ts")
+
+
+def live_state(msg: dict[str, Any] | None, n: int) -> dict[str, Any] | None:
+    """What the server keeps of a telemetry message (docs/SPEC.md section 6): its known fields, a
+    down agent's reason, and its beliefs when each is n probabilities; None when it is not a live
+    state."""
+    if msg is None or msg.get("state") not in ("mission", "idle", "down"):
+        return None
+    keep = {
+        k: msg.get(k)
+        for k in ("state", "mission_id", "t", "node", "z", "goal", "mode", "policy_version", "backend", "ts")
+    }
+    if msg["state"] == "down":  # the agent stopped on an error it cannot retry, and says which
+        keep["reason"] = str(msg.get("reason"))[:500]
+    for name in ("belief", "team_belief"):
+        b = msg.get(name)
+        if isinstance(b, list) and len(b) == n and all(_probability(x) for x in b):
+            keep[name] = b
+    return keep
+
+
+def _probability(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and 0.0 <= x <= 1.0
+
+
 def _json_object(raw: bytes) -> dict[str, Any] | None:
     """A best-effort message (telemetry, ground truth) as a JSON object; None when it is larger
     than 1 MiB, not JSON, or not an object (such messages are dropped)."""
@@ -126,18 +152,9 @@ class Bus:
     def _telemetry(self, key: str, raw: bytes) -> None:
         """Keep a robot's last live state, if it is one (docs/SPEC.md section 6); others are dropped."""
         robot = key.rsplit("/", 1)[-1]
-        msg = _json_object(raw)
-        if msg is None or msg.get("state") not in ("mission", "idle", "down"):
+        keep = live_state(_json_object(raw), self.server.graph.n)
+        if keep is None:
             return
-        keep = {
-            k: msg.get(k)
-            for k in ("state", "mission_id", "t", "node", "z", "goal", "mode", "policy_version", "backend", "ts")
-        }
-        if msg["state"] == "down":  # the agent stopped on an error it cannot retry, and says which
-            keep["reason"] = str(msg.get("reason"))[:500]
-        belief = msg.get("belief")
-        if isinstance(belief, list) and len(belief) == self.server.graph.n:
-            keep["belief"] = belief
         with self.online_lock:
             self.live[robot] = {**keep, "received": time.time()}
             self.last_seen[robot] = time.time()

@@ -20,6 +20,7 @@ from typing import Any
 from shared.core.belief_filter import BeliefFilter
 from shared.core.models import Sensor
 from shared.core.snapshot_format import SnapshotError, read_snapshot
+from shared.core.team import CollectiveBelief
 
 STEP_NS = 1_000_000_000  # one step shown as one second
 
@@ -144,18 +145,40 @@ def recomputed_beliefs(srv: Any, rec: dict[str, Any], cache: dict[int, Any]) -> 
     return out
 
 
-def _belief_filter(srv: Any, rec: dict[str, Any], cache: dict[int, Any]) -> BeliefFilter | None:
-    """The robot's own belief filter: the belief model of the policy version it flew, its sensor;
-    None when that version is not on this server any more."""
-    version = rec.get("policy_version")
-    if version is None:
+def recomputed_team_belief(srv: Any, records: dict[str, dict[str, Any]], cache: dict[int, Any]) -> list[Any] | None:
+    """The team's collective belief b^c_t (an (n,) array in the map's row order) after each step of
+    a mission, from every robot's record (Eq. 6-7: all the team's observations of a step fused, as
+    a robot whose links delivered them all held it), with the belief model of the version the
+    first record flew; None for fewer than two records or when that version is gone."""
+    if len(records) < 2:
         return None
+    first = records[min(records)]
+    version = first.get("policy_version")
+    snap = _snapshot(srv, version, cache) if version is not None else None
+    if snap is None:
+        return None
+    collective = CollectiveBelief(srv.graph, snap.model, Sensor(**first["sensor"]), sorted(records))
+    for robot, rec in records.items():
+        for t, st in enumerate(rec["steps"]):
+            collective.add(t, robot, srv.graph.index[st["node"]], st["z"])
+    return [collective.belief(t) for t in range(max(len(r["steps"]) for r in records.values()))]
+
+
+def _snapshot(srv: Any, version: int, cache: dict[int, Any]) -> Any:
+    """The policy version's snapshot (None when it is not on this server any more), read once."""
     if version not in cache:
         try:
             cache[version] = read_snapshot(srv.snapshot_dir(version), srv.graph)
         except (OSError, SnapshotError, ValueError):
             cache[version] = None
-    snap = cache[version]
+    return cache[version]
+
+
+def _belief_filter(srv: Any, rec: dict[str, Any], cache: dict[int, Any]) -> BeliefFilter | None:
+    """The robot's own belief filter: the belief model of the policy version it flew, its sensor;
+    None when that version is not on this server any more."""
+    version = rec.get("policy_version")
+    snap = _snapshot(srv, version, cache) if version is not None else None
     if snap is None:
         return None
     return BeliefFilter(srv.graph, snap.model, Sensor(**rec["sensor"]))

@@ -48,6 +48,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             Path(args.workdir) if args.workdir else None,
             quiet=args.json,
             serve=args.serve,
+            retrains=args.retrains,
             server=args.server,
             zenoh_connect=args.zenoh_connect,
             token_file=args.token_file,
@@ -153,6 +154,9 @@ def add_fleet_commands(sub: Any) -> None:
     )
     p.add_argument("--retrain-every", type=int, default=0, metavar="K", help="retrain over HTTP every K missions")
     p.add_argument("--retrain-episodes", type=positive_int, default=20_000, help="CE-PG episodes per retrain")
+    p.add_argument(
+        "--retrains", type=positive_int, default=None, metavar="R", help="retrain at most R times (default: no limit)"
+    )
     p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")
     p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step, seconds")
     p.add_argument(

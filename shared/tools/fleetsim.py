@@ -350,10 +350,12 @@ def run_fleet_sim(
     workdir: Path | None,
     quiet: bool,
     serve: bool = False,
+    retrains: int | None = None,
     **launch_kw: Any,
 ) -> dict[str, Any]:
-    """Fly ``missions`` missions and return the summary (see ``mures fleet-sim``); with ``serve``,
-    then keep the fleet up for the operator console until Ctrl-C (or SIGTERM)."""
+    """Fly ``missions`` missions and return the summary (see ``mures fleet-sim``), retraining
+    every ``retrain_every`` missions (at most ``retrains`` times); with ``serve``, then keep the
+    fleet up for the operator console until Ctrl-C (or SIGTERM)."""
     say = (lambda *_a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     tmp = None
     if workdir is None:
@@ -380,7 +382,8 @@ def run_fleet_sim(
             if (k + 1) % max(1, missions // 10) == 0 or k + 1 == missions:
                 mean, half = mean_ci95([r["capture_time"] for r in results])
                 say(f"fleet-sim: {k + 1}/{missions} missions, mean capture time {mean:.2f} ± {half:.2f}")
-            if retrain_every and (k + 1) % retrain_every == 0 and k + 1 < missions:
+            due = retrain_every and (k + 1) % retrain_every == 0 and k + 1 < missions
+            if due and (retrains is None or len(runs) < retrains):
                 say(f"fleet-sim: retraining over HTTP after {k + 1} missions ({json.dumps(retrain_params)})")
                 run = _retrain(fleet, {**retrain_params, "seed": seed + k}, say)
                 runs.append({key: run[key] for key in ("id", "status", "version", "error", "metrics")})

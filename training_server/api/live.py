@@ -5,8 +5,10 @@ and a ReadableStream) sends:
   event: fleet    at most 5 a second, when it changed: GET /api/v1/fleet's body with each robot's
                   last observation z, and "truth": {mission_id: {"t", "target", "robots"}}, the
                   simulated world's ground truth of running missions (fleet-sim only)
-  event: belief   with ?belief=ROBOT: that robot's last reported belief {"robot_id", "mission_id",
-                  "t", "belief": [n floats in the map's node order]}, when it changed
+  event: belief   with ?belief=ROBOT: that robot's last reported beliefs {"robot_id", "mission_id",
+                  "t", "belief": [n floats in the map's node order], "team_belief": the team's
+                  collective belief it holds, alike (null unless it flies with a team searcher)},
+                  when they changed
   event: status   at most once a second, when it changed: current policy, running missions, the
                   last training runs with their progress, episode counts, alerts
 and a comment line every 15 s when nothing changed. ?once=true sends one of each and ends.

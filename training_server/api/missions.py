@@ -143,24 +143,33 @@ def export_mission(mission_id: str, request: Request, srv: Srv) -> Response:
 def replay_mission(mission_id: str, request: Request, srv: Srv) -> MissionReplay:
     """The mission step by step from its stored records: each robot's positions and observations,
     and its own belief after each step recomputed from its record alone (Eq. 1) with the belief
-    model of the version it flew (null when that version is gone)."""
-    from training_server.export import recomputed_beliefs
+    model of the version it flew (null when that version is gone); and the team's collective
+    belief from all the records (Eq. 6-7)."""
+    from training_server.export import recomputed_beliefs, recomputed_team_belief
 
     fleet_scope(request, "a replay")
     m = mission_view(srv, mission_id)
     robots: dict[str, RobotReplay] = {}
     cache: dict[int, Any] = {}
+    records = {}
     for r in m.episodes_received:
         rec = srv.store.get_record(srv.fleet, r, mission_id)
         if rec is None:
             continue
+        records[r] = rec
         beliefs = recomputed_beliefs(srv, rec, cache)
         robots[r] = RobotReplay(
             policy_version=rec.get("policy_version"),
             steps=rec["steps"],
             belief=None if beliefs is None else [[round(float(x), 4) for x in b] for b in beliefs],
         )
-    return MissionReplay(mission=m, nodes=[int(v) for v in srv.graph.labels], robots=robots)
+    team = recomputed_team_belief(srv, records, cache)
+    return MissionReplay(
+        mission=m,
+        nodes=[int(v) for v in srv.graph.labels],
+        robots=robots,
+        team_belief=None if team is None else [[round(float(x), 4) for x in b] for b in team],
+    )
 
 
 @router.post("/{mission_id}/stop", dependencies=WRITE, responses=errors(401, 403, 404))

@@ -205,6 +205,12 @@ class MissionReplay(BaseModel):  # (RobotReplay is rebuilt below, after Step)
     mission: Mission
     nodes: list[int] = Field(description="the map's node labels, the order of every belief")
     robots: dict[str, RobotReplay]
+    team_belief: list[list[float]] | None = Field(
+        None,
+        description="the team's collective belief b^c_t after each step, from every robot's record (Eq. 6-7: what a "
+        "robot whose links delivered every teammate's observation held), n floats in the map's node order; null for "
+        "a robot alone or when the version flown is gone",
+    )
 
 
 # ---------------------------------------------------------------------- episodes

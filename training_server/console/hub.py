@@ -59,6 +59,7 @@ class Hub:
                 "mission_id": live.get("mission_id"),
                 "t": live.get("t"),
                 "belief": live["belief"],
+                "team_belief": live.get("team_belief"),
             }
             for robot, a in bus.agents().items()
             if (live := a["live"] or {}).get("state") == "mission" and "belief" in live
@@ -69,8 +70,9 @@ class Hub:
         return body, key
 
     def belief(self, robot: str) -> dict[str, Any] | None:
-        """The robot's last reported belief {"robot_id", "mission_id", "t", "belief"} (None: none
-        reported), as of the last fleet refresh."""
+        """The robot's last reported beliefs {"robot_id", "mission_id", "t", "belief", "team_belief"
+        (null unless it flies with a team searcher)} (None: none reported), as of the last fleet
+        refresh."""
         self.fleet()
         with self.lock:
             return self._beliefs.get(robot)

@@ -406,10 +406,26 @@ pages.fleet = async function (ctx) {
     if (fleet) draw();
   });
 
+  const teamBox = $("#team-belief");
+  let lastBelief = null; // the selected robot's last beliefs {belief, team_belief}
+  function heat() {
+    const b = lastBelief;
+    const team = teamBox.checked;
+    const shown = b && (team ? b.team_belief : b.belief);
+    view.setHeat(shown || null);
+    if (selected) {
+      const what = team ? "the team's belief held by" : "own belief of";
+      const missing = b && team && !b.team_belief ? " (it flies alone: no team's belief)" : "";
+      $("#belief-of").textContent = `${what} ${selected} (node colour)${missing}`;
+    }
+  }
+  teamBox.addEventListener("change", heat);
+
   function select(robot) {
     selected = robot === selected ? null : robot;
+    lastBelief = null;
     $("#belief-of").textContent = selected ? `belief of ${selected} (node colour)` : "click a robot to see its belief";
-    view.setHeat(null);
+    heat();
     connect();
     if (fleet) draw();
   }
@@ -477,7 +493,9 @@ pages.fleet = async function (ctx) {
         draw();
       },
       belief: (b) => {
-        if (b.robot_id === selected) view.setHeat(b.belief);
+        if (b.robot_id !== selected) return;
+        lastBelief = b;
+        heat();
       },
       status: (s) => ctx.status(s),
     });
@@ -569,6 +587,7 @@ pages.replay = async function (ctx) {
   let timer = null;
   const slider = $("#replay-t");
   const pick = $("#replay-robot");
+  const teamBox = $("#replay-team");
 
   function at(steps, t) {
     // the robot's step t, or its last one when its record is shorter (it stopped earlier)
@@ -591,7 +610,8 @@ pages.replay = async function (ctx) {
     }
     view.setRobots(robots);
     const sel = data.robots[pick.value];
-    view.setHeat(sel && sel.belief ? sel.belief[Math.min(t, sel.steps.length - 1)] : null);
+    if (teamBox.checked && data.team_belief) view.setHeat(data.team_belief[Math.min(t, data.team_belief.length - 1)]);
+    else view.setHeat(sel && sel.belief ? sel.belief[Math.min(t, sel.steps.length - 1)] : null);
     $("#replay-table tbody").replaceChildren(...rows);
     $("#replay-step").textContent = t;
     slider.value = t;
@@ -625,6 +645,7 @@ pages.replay = async function (ctx) {
       ...Object.entries(data.robots).map(([rid, r]) => el("option", { value: rid, disabled: !r.belief }, rid + (r.belief ? "" : " (no belief: version gone)"))),
     );
     if (prev && prev in data.robots) pick.value = prev;
+    teamBox.disabled = !data.team_belief;
     draw();
   }
   slider.addEventListener("input", () => {
@@ -632,6 +653,7 @@ pages.replay = async function (ctx) {
     draw();
   });
   pick.addEventListener("change", draw);
+  teamBox.addEventListener("change", draw);
   view.onRobotClick = (rid) => {
     pick.value = rid;
     draw();
