@@ -43,11 +43,12 @@ from shared.learning.team_snapshot import PolicySearcher, load_snapshot, torch_w
 from shared.planners import make_baseline
 
 
-def fleet_model(snap_dir: Path, graph, missions: int, seed: int):
-    """(Gamma_hat, b0) by EM with the server's priors from ``missions`` missions the team flew
-    alone, its mean row TV to the truth (the uniform walk), and b0's mass on the truth's start."""
+def fleet_model(snap_dir: Path, graph, missions: int, seed: int, truth=None, pseudo_count: float = 1.0):
+    """(Gamma_hat, b0) by EM with the server's priors (``pseudo_count`` for both) from ``missions``
+    missions the team flew alone under the target ``truth`` (default the uniform walk), its mean
+    row TV to the truth, and b0's mass on the truth's start nodes."""
     snap = load_snapshot(snap_dir, graph)
-    truth, sensor = uniform_walk(graph), Sensor()
+    truth, sensor = truth or uniform_walk(graph), Sensor()
     res = evaluate(
         graph,
         truth,
@@ -59,7 +60,15 @@ def fleet_model(snap_dir: Path, graph, missions: int, seed: int):
         record=True,
     )
     data = collect_missions(((0, r) for r in episode_records(graph, res, sensor, mission_prefix="fleet")), graph)
-    est = em(graph, data, init=uniform_walk(graph), max_iter=300, tol=1e-5, pseudo_count=1.0, b0_pseudo_count=1.0)
+    est = em(
+        graph,
+        data,
+        init=uniform_walk(graph),
+        max_iter=300,
+        tol=1e-5,
+        pseudo_count=pseudo_count,
+        b0_pseudo_count=pseudo_count,
+    )
     b0_on_start = float(est.model.b0[truth.b0 > 0].sum())
     return est.model, mean_row_tv(est.model, truth), b0_on_start
 
