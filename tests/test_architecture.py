@@ -21,6 +21,7 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     "shared.learning": ("shared.core", "shared.engine", "shared.envs", "shared.learning"),
     "shared.planners": ("shared.core", "shared.engine", "shared.planners"),
     "shared.registry": ("shared.core", "shared.engine", "shared.planners", "shared.learning", "shared.registry"),
+    "shared.floorplan": ("shared.core", "shared.floorplan"),
     "shared.tools": ("shared",),
     "robot_agent": ("shared.core", "robot_agent"),
     "training_server": ("shared.core", "shared.engine", "shared.learning", "training_server"),
@@ -33,6 +34,7 @@ FORBIDDEN: dict[str, tuple[str, ...]] = {
     "shared.envs": ("scipy", "matplotlib", "fastapi"),
     "shared.learning": ("scipy", "matplotlib", "fastapi"),
     "shared.planners": ("matplotlib", "fastapi"),
+    "shared.floorplan": ("torch", "matplotlib", "fastapi"),
 }
 
 

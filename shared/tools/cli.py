@@ -4,31 +4,29 @@
     mures simulate  (--env | --graph) --robots N --missions M --out FILE.jsonl ...
     mures estimate  (--env | --graph) --episodes FILE.jsonl --out model.json ...
     mures train     (--env | --graph) --robots N --out DIR [--beta 0.5] [--episodes 400000] ...
-    mures map       (--env | --graph)
+    mures map       (--env | --graph);  mures map import MAP.yaml --out GRAPH.json ...
     mures fleet-sim | world | experiment | report | snapshot convert ...
 
 Each family of commands adds its own parser: sim_commands (evaluate, simulate), estimate_command,
-train_command, fleet_commands (fleet-sim, world), experiment_commands (experiment, report); map
-and snapshot are here. Bad arguments and bad input files end with one line ``mures: error: ...``
-and exit status 2.
+train_command, fleet_commands (fleet-sim, world), experiment_commands (experiment, report),
+map_commands (map, map import); snapshot is here. Bad arguments and bad input files end with one
+line ``mures: error: ...`` and exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-
-import numpy as np
 
 from shared.core.graph import GraphError
 from shared.core.models import ModelError
 from shared.core.snapshot_format import SnapshotError
 from shared.engine.estimate import EMWorkerError
-from shared.tools.cli_args import CliError, add_map_args, graph_of
+from shared.tools.cli_args import CliError
 from shared.tools.estimate_command import add_estimate_command
 from shared.tools.experiment_commands import add_experiment_commands
 from shared.tools.fleet_commands import add_fleet_commands
+from shared.tools.map_commands import add_map_commands
 from shared.tools.sim_commands import add_sim_commands
 from shared.tools.train_command import add_train_command
 
@@ -43,23 +41,6 @@ def cmd_snapshot_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-# ---------------------------------------------------------------------- map
-def cmd_map(args: argparse.Namespace) -> int:
-    g = graph_of(args)
-    deg = g.deg_closed - 1
-    info = {
-        "name": g.name,
-        "nodes": g.n,
-        "edges": g.m,
-        "start_node": int(g.labels[g.start]),
-        "max_degree": int(deg.max()),
-        "mean_degree": float(np.mean(deg)),
-        "graph_id": g.graph_id,
-    }
-    print(json.dumps(info, indent=2))
-    return 0
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mures", description="MuRES fleet: multirobot search for a moving target")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -71,9 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_experiment_commands(sub)
 
-    p = sub.add_parser("map", help="print a map's size and graph_id")
-    add_map_args(p)
-    p.set_defaults(func=cmd_map)
+    add_map_commands(sub)
 
     p = sub.add_parser("snapshot", help="policy snapshot tools")
     snap_sub = p.add_subparsers(dest="snapshot_command", required=True, metavar="ACTION")
