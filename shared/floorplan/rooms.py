@@ -78,6 +78,7 @@ def segment(
     labels = _areas(rooms, max_region_m, res, seed)
     start_label = _start_label(grid, labels, start_xy)
     labels, edges = _connected(labels, clearance, min_door_m, start_label, notes)
+    labels = np.where(grid.free, labels, 0)  # filled clutter is no free pixel: no region's
     centers = _centers(labels)
     rooms = np.where(labels > 0, rooms, 0)
     start = int(labels[_start_pixel(grid, labels, start_xy)]) - 1

@@ -1,0 +1,150 @@
+"""`mures map import`: a ROS occupancy-grid map turned into the fleet's graph of rooms. Nav2's maps
+and generated office floors segment into a connected graph whose every node stands on its own
+region's free space; the reader follows map_server's modes; every bad input ends with one line
+and exit status 2, writing nothing."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from shared.core.graph import load_graph_file
+from shared.floorplan.floors import office_floor
+from shared.floorplan.occupancy import MapError, read_map
+from shared.floorplan.rooms import segment
+
+NAV2 = Path(__file__).resolve().parents[1] / "examples" / "maps" / "nav2"
+
+
+def mures(*args):
+    return subprocess.run([sys.executable, "-m", "shared.tools.cli", *args], capture_output=True, text=True)
+
+
+def recall_precision(truth: np.ndarray, found: np.ndarray) -> tuple[float, float]:
+    """Room-segmentation scores over the pixels both label (benchmarks/segmentation.py's)."""
+    both = (truth > 0) & (found > 0)
+    t, f = truth[both].astype(np.int64), found[both].astype(np.int64)
+    joint = np.bincount(t * (f.max() + 1) + f, minlength=(t.max() + 1) * (f.max() + 1)).reshape(t.max() + 1, -1)
+    rows, cols = joint.sum(1), joint.sum(0)
+    recall = np.mean([joint[i].max() / rows[i] for i in range(1, len(rows)) if rows[i]])
+    precision = np.mean([joint[:, j].max() / cols[j] for j in range(1, len(cols)) if cols[j]])
+    return float(recall), float(precision)
+
+
+def test_nav2_depot_imports_as_a_connected_graph_with_its_regions_and_preview(tmp_path):
+    out, regions, preview = tmp_path / "depot.json", tmp_path / "regions.png", tmp_path / "preview.png"
+    r = mures("map", "import", str(NAV2 / "depot.yaml"), "--out", str(out), "--regions", str(regions),
+              "--preview", str(preview))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    graph = load_graph_file(out)  # validated: connected, edges between its nodes
+    data = json.loads(out.read_text())
+    assert data["source"]["map"] == "depot.yaml" and data["source"]["parameters"]["max_region_m"] == 8.0
+    assert f"{graph.n} nodes" in r.stdout and graph.graph_id in r.stdout
+    labels = np.asarray(Image.open(regions))
+    grid = read_map(NAV2 / "depot.yaml")
+    assert labels.dtype == np.uint16 and labels.shape == grid.shape and labels.max() == graph.n
+    assert not (labels[~grid.free] > 0).any()  # regions on free pixels only
+    for k in range(graph.n):  # every node's position is a free pixel of its own region
+        x, y = data["positions"][str(k)]
+        row, col = grid.to_pixel(x, y)
+        assert labels[row, col] == k + 1
+    assert Image.open(preview).size[0] >= grid.shape[1]
+    # the graph flies: a search on it, with the imported file as --graph
+    r = mures("evaluate", "--graph", str(out), "--robots", "2", "--searcher", "greedy", "--episodes", "20", "--json")
+    assert r.returncode == 0, r.stderr and json.loads(r.stdout)["episodes"] == 20
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_generated_office_floors_segment_into_their_rooms(tmp_path, seed):
+    floor = office_floor(seed)
+    grid = read_map(floor.write(tmp_path, f"floor-{seed}"))
+    regions = segment(grid)
+    recall, precision = recall_precision(floor.rooms, regions.rooms)
+    assert recall >= 0.85 and precision >= 0.92, (recall, precision)
+    assert regions.labels.max() >= floor.rooms.max()  # areas: at least a node per room
+    # every node reachable: the edges join all the regions kept
+    seen, todo = {regions.start}, [regions.start]
+    adjacency = {k: set() for k in range(int(regions.labels.max()))}
+    for i, j, width in regions.edges:
+        assert width >= 0.6
+        adjacency[i].add(j)
+        adjacency[j].add(i)
+    while todo:
+        for j in adjacency[todo.pop()] - seen:
+            seen.add(j)
+            todo.append(j)
+    assert len(seen) == regions.labels.max()
+
+
+def _write(tmp_path, pixels, **yaml_extra):
+    Image.fromarray(np.asarray(pixels, dtype=np.uint8)).save(tmp_path / "m.pgm")
+    settings = {"image": "m.pgm", "resolution": 0.1, "origin": [-1.0, -2.0, 0.0], "negate": 0,
+                "occupied_thresh": 0.65, "free_thresh": 0.196, **yaml_extra}  # fmt: skip
+    (tmp_path / "m.yaml").write_text("\n".join(f"{k}: {json.dumps(v)}" for k, v in settings.items()) + "\n")
+    return tmp_path / "m.yaml"
+
+
+def test_the_reader_follows_map_servers_modes_and_frame(tmp_path):
+    row = [[0, 50, 205, 254, 255]]
+    grid = read_map(_write(tmp_path, row))
+    assert grid.free.tolist() == [[False, False, False, True, True]]
+    assert grid.occupied.tolist() == [[True, True, False, False, False]]
+    neg = read_map(_write(tmp_path, row, negate=1))  # p = v / 255
+    assert neg.free.tolist() == [[True, False, False, False, False]] and neg.occupied[0, 3:].all()
+    raw = read_map(_write(tmp_path, [[0, 10, 50, 100, 101]], mode="raw"))  # occupancy in percent
+    assert raw.free.tolist() == [[True, True, False, False, False]]
+    assert raw.occupied.tolist() == [[False, False, False, True, False]]
+    # trinary: map_saver's unknown grey stays unknown even under a free_thresh of 0.25
+    assert not read_map(_write(tmp_path, row, free_thresh=0.25)).free[0, 2]
+    assert read_map(_write(tmp_path, row, free_thresh=0.25, mode="scale")).free[0, 2]
+    # the map frame: the origin is the lower-left pixel's corner; row 0 is the top row
+    grid = read_map(_write(tmp_path, [[254] * 5] * 3))
+    assert grid.to_map_frame(2, 0) == pytest.approx((-0.95, -1.95))
+    assert grid.to_pixel(-0.95, -1.95) == (2, 0) and grid.to_pixel(-0.55, -1.85) == (1, 4)
+
+
+def test_bad_maps_end_with_one_line_and_exit_2_writing_nothing(tmp_path):
+    cases = {}
+    cases["no such map file"] = tmp_path / "absent.yaml"
+    (tmp_path / "bad.yaml").write_text("image: [unclosed\n")
+    cases["not valid YAML"] = tmp_path / "bad.yaml"
+    (tmp_path / "noimage.yaml").write_text("image: gone.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    cases["is missing"] = tmp_path / "noimage.yaml"
+    (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
+    cases["expected a YAML mapping"] = tmp_path / "list.yaml"
+    d = tmp_path / "unknown"
+    d.mkdir()
+    cases["no free pixel"] = _write(d, [[205] * 20] * 20)
+    d = tmp_path / "mode"
+    d.mkdir()
+    cases["'mode' must be one of"] = _write(d, [[254] * 4] * 4, mode="fancy")
+    d = tmp_path / "resolution"
+    d.mkdir()
+    cases["'resolution' must be positive"] = _write(d, [[254] * 4] * 4, resolution=0)
+    d = tmp_path / "pieces"
+    d.mkdir()
+    two_rooms = np.full((60, 130), 254)
+    two_rooms[:, 60:70] = 0  # a wall with no door: two halls of 3 x 6 m
+    pieces = _write(d, two_rooms)
+    cases["in 2 pieces"] = pieces
+    out = tmp_path / "out.json"
+    for fragment, path in cases.items():
+        r = mures("map", "import", str(path), "--out", str(out))
+        assert r.returncode == 2, (fragment, r.stdout, r.stderr)
+        last = r.stderr.strip().splitlines()[-1]
+        assert last.startswith("mures: error: map import:") and fragment in last, (fragment, r.stderr)
+        assert "Traceback" not in r.stderr and not out.exists()
+    r = mures("map", "import", str(pieces), "--out", str(out), "--largest-part")
+    assert r.returncode == 0, r.stderr and "1 nodes" in r.stdout
+    r = mures("map", "import", str(pieces), "--out", str(tmp_path / "o2.json"), "--largest-part", "--start", "50,50")
+    assert r.returncode == 2 and "not on the building's free space" in r.stderr
+    r = mures("map", "import", str(pieces), "--out", str(out), "--max-region-m", "-1")
+    assert r.returncode == 2 and "a length in metres above 0" in r.stderr
+    with pytest.raises(MapError, match="pieces"):
+        segment(read_map(pieces))
