@@ -21,6 +21,17 @@ def _help(parser: argparse.ArgumentParser) -> str:
     return "```text\n" + parser.format_help().rstrip() + "\n```\n"
 
 
+def _subcommands(prefix: str, parser: argparse.ArgumentParser) -> list[str]:
+    """A section for every subcommand of ``parser``, and theirs (`mures map import`)."""
+    out = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                out.append(f"### {prefix} {name}\n\n" + _help(sub))
+                out += _subcommands(f"{prefix} {name}", sub)
+    return out
+
+
 def command_line() -> str:
     from robot_agent.agent import build_parser as agent_parser
     from shared.tools.cli import build_parser as mures_parser
@@ -31,10 +42,7 @@ def command_line() -> str:
     out = []
     mures = mures_parser()
     out.append("## mures\n\n" + _help(mures))
-    for action in mures._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for name, sub in action.choices.items():
-                out.append(f"### mures {name}\n\n" + _help(sub))
+    out += _subcommands("mures", mures)
     out.append("## training-server\n\n" + _help(server_parser()))
     out.append("### training-server kit\n\n" + _help(kit_parser()))
     out.append("## robot-agent\n\n" + _help(agent_parser()))

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 from scipy.cluster.vq import kmeans2
+from scipy.spatial import cKDTree
 from skimage import morphology, segmentation
 
 from shared.floorplan import MAX_DOOR_M, MAX_REGION_M, MIN_DOOR_M
@@ -172,8 +173,8 @@ def _cut(mask: np.ndarray, pts: np.ndarray, radius_px: float, seed: int) -> np.n
     k = max(2, math.ceil(len(pts) / (math.pi * radius_px**2)))
     while True:
         centres, _ = kmeans2(sample, k, minit="++", seed=seed)
-        nearest = np.argmin(((pts[:, None, :] - centres[None, :, :]) ** 2).sum(2), axis=1)
-        far = np.linalg.norm(pts - centres[nearest], axis=1).max()
+        distance, nearest = cKDTree(centres).query(pts)
+        far = float(distance.max())
         if far <= radius_px or k >= len(sample):
             break
         k = math.ceil(k * 1.2)

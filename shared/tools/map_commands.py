@@ -87,7 +87,8 @@ def cmd_map_import(args: argparse.Namespace) -> int:
     rooms = len(np.unique(regions.rooms)) - 1
     start = data["positions"][str(regions.start)]
     print(
-        f"{graph.n} nodes ({rooms} rooms cut into areas of at most {args.max_region_m:g} m), {graph.m} edges, "
+        f"{graph.n} nodes ({rooms} room{'s' if rooms != 1 else ''} cut into areas of at most {args.max_region_m:g} m), "
+        f"{graph.m} edges, "
         f"start node {regions.start} at ({start[0]:g}, {start[1]:g}); graph_id {graph.graph_id}; "
         f"wrote {', '.join(written)} in {time.perf_counter() - t0:.1f} s"
     )
