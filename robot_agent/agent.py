@@ -668,7 +668,12 @@ class Agent:
                 self.telemetry_pub = self.session.declare_publisher(telemetry_key(self.fleet, self.robot_id))
             try:
                 backend = load_backend(
-                    self.args.backend, graph=self.graph, robot_id=self.robot_id, session=self.session, fleet=self.fleet
+                    self.args.backend,
+                    graph=self.graph,
+                    robot_id=self.robot_id,
+                    session=self.session,
+                    fleet=self.fleet,
+                    args=self.args,
                 )
             except ValueError as exc:  # the fleet sees why this robot is down (GET /api/v1/fleet, the console)
                 self.report_down(str(exc))
@@ -699,6 +704,17 @@ class Agent:
             self.session.close()
         log.info("robot %s stopped (%d records waiting in the outbox)", self.robot_id, len(self.outbox.pending()))
         return 0
+
+
+def positive_seconds(text: str) -> float:
+    """A number of seconds above 0 (argparse type)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not 0.0 < v < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds above 0, got {v}")
+    return v
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -734,7 +750,33 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="P",
         help="simulation only: drop each outgoing observation with probability P (default 0)",
     )
-    p.add_argument("--backend", default="sim", help="sim (fleet simulator) or MODULE:CLASS (robot_agent/backend.py)")
+    p.add_argument(
+        "--backend",
+        default="sim",
+        help="sim (fleet simulator), nav2 (a Nav2 robot through zenoh-bridge-ros2dds: robot_agent/nav2.py) or "
+        "MODULE:CLASS (robot_agent/backend.py)",
+    )
+    nav2 = p.add_argument_group("--backend nav2 (docs/connecting-a-robot.md)")
+    nav2.add_argument(
+        "--nav2-connect", metavar="ENDPOINT", help="the robot's zenoh-bridge-ros2dds (default: the fleet's session)"
+    )
+    nav2.add_argument(
+        "--nav2-namespace", metavar="NS", help="the robot's ROS namespace in the bridge (default: its id)"
+    )
+    nav2.add_argument(
+        "--nav2-pose-topic", default="amcl_pose", help="its PoseWithCovarianceStamped (default amcl_pose)"
+    )
+    nav2.add_argument(
+        "--nav2-detection-topic", default="detection", help="its detector's std_msgs/Bool (default detection)"
+    )
+    nav2.add_argument(
+        "--nav2-goal-timeout", type=positive_seconds, default=120.0, metavar="S",
+        help="cancel a navigation goal after S seconds; the robot stays where it was (default 120)",
+    )  # fmt: skip
+    nav2.add_argument(
+        "--nav2-answer-timeout", type=positive_seconds, default=10.0, metavar="S",
+        help="a robot that leaves a goal or its pose unanswered this long ends the mission for itself (default 10)",
+    )  # fmt: skip
     p.add_argument(
         "--telemetry",
         action=argparse.BooleanOptionalAction,

@@ -13,9 +13,10 @@ mission::
 ended (the simulated world does; a real robot learns it from the mission-control message).
 
 ``--backend MODULE:CLASS`` loads any class with this interface; its constructor is called as
-``CLASS(graph=..., robot_id=..., session=..., fleet=...)`` (keyword arguments it does not take
-are not passed). ``robot_agent/examples/nav_goal.py`` is a documented adapter for a navigation
-stack that takes goal nodes, as the paper's robots did.
+``CLASS(graph=..., robot_id=..., session=..., fleet=..., args=...)`` (``args``: the agent's parsed
+flags; keyword arguments it does not take are not passed). ``--backend nav2`` is a Nav2 robot
+through zenoh-bridge-ros2dds (robot_agent/nav2.py); ``robot_agent/examples/nav_goal.py`` is a
+documented adapter for a navigation stack that takes goal nodes, as the paper's robots did.
 """
 
 from __future__ import annotations
@@ -108,9 +109,15 @@ def resolve_backend(spec: str) -> type:
     the agent's start, before it connects anywhere)."""
     if spec == "sim":
         return SimBackend
+    if spec == "nav2":
+        try:
+            from robot_agent.nav2 import Nav2Backend
+        except ImportError as exc:  # pycdr2: the nav2 extra
+            raise ValueError(f"--backend nav2 needs the nav2 extra (pip install 'mures-fleet[nav2]'): {exc}") from None
+        return Nav2Backend
     mod_name, sep, cls_name = spec.partition(":")
     if not sep or not mod_name or not cls_name:
-        raise ValueError(f"--backend must be 'sim' or MODULE:CLASS, got {spec!r}")
+        raise ValueError(f"--backend must be 'sim', 'nav2' or MODULE:CLASS, got {spec!r}")
     try:
         cls = getattr(importlib.import_module(mod_name), cls_name)
     except (ImportError, AttributeError) as exc:

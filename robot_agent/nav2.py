@@ -1,0 +1,182 @@
+"""``--backend nav2``: a ROS 2 robot running Nav2, driven through zenoh-bridge-ros2dds on the fleet's
+Zenoh network, without a ROS install on the agent's side (docs/connecting-a-robot.md).
+
+The bridge maps the robot's ROS graph into Zenoh under its namespace (``--nav2-namespace``,
+default the robot id). The backend reaches it on ``--nav2-connect`` (the bridge's own endpoint on
+the robot, e.g. tcp/127.0.0.1:7447: the robot's ROS traffic stays on the robot) or, without it,
+through the agent's fleet session. It uses, with CDR payloads (robot_agent/nav2_msgs.py):
+
+    <ns>/navigate_to_pose/_action/send_goal    query: NavigateToPose_SendGoal_Request -> _Response
+    <ns>/navigate_to_pose/_action/get_result   query: NavigateToPose_GetResult_Request -> _Response
+    <ns>/navigate_to_pose/_action/cancel_goal  query: CancelGoal_Request -> _Response
+    <ns>/<pose topic>                          subscribed: PoseWithCovarianceStamped (amcl_pose)
+    <ns>/<detection topic>                     subscribed: std_msgs/Bool (the target detector)
+
+A move sends a NavigateToPose goal to the node's position (the graph file's ``positions``, map
+frame) and waits for its result: succeeded, the robot is at the goal node; aborted, canceled, or
+no result within ``--nav2-goal-timeout`` (the goal is then cancelled), it stays where it was (a
+legal move: staying), and the agent's log says why. A robot that does not answer a goal or a pose
+within ``--nav2-answer-timeout`` is down: the mission ends for it with that reason (BackendError).
+``detect`` is 1 when the detector published true since the last reading.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+import uuid
+from typing import Any
+
+import zenoh
+
+from robot_agent import nav2_msgs as msg
+from robot_agent.backend import BackendError
+from shared.core.graph import Graph
+from shared.core.wire import zenoh_config
+
+log = logging.getLogger("mures.agent.nav2")
+
+GOAL_TIMEOUT_S = 120.0  # the longest a navigation goal may take before it is cancelled
+ANSWER_TIMEOUT_S = 10.0  # the longest the robot may leave a goal or its pose unanswered
+OUTCOMES = {msg.STATUS_SUCCEEDED: "succeeded", msg.STATUS_CANCELED: "canceled", msg.STATUS_ABORTED: "aborted"}
+
+
+def action_key(namespace: str, part: str) -> str:
+    """The bridge's key of NavigateToPose's ``part`` (send_goal, get_result, cancel_goal, ...)."""
+    return f"{namespace}/navigate_to_pose/_action/{part}"
+
+
+class Nav2Backend:
+    """One Nav2 robot, over the bridge's keys (module docstring)."""
+
+    def __init__(self, graph: Graph, robot_id: str, session: zenoh.Session, args: Any = None) -> None:
+        missing = [int(v) for i, v in enumerate(graph.labels) if i not in graph.positions]
+        if missing:
+            raise ValueError(f"the graph has no position for nodes {missing[:10]}: a goal needs one per node")
+        self.graph, self.robot_id = graph, robot_id
+        bridge = getattr(args, "nav2_connect", None)
+        self.own_session = zenoh.open(zenoh_config("client", connect=[bridge])) if bridge else None
+        self.session = self.own_session or session
+        self.ns = (getattr(args, "nav2_namespace", None) or robot_id).strip("/")
+        self.goal_timeout = float(getattr(args, "nav2_goal_timeout", None) or GOAL_TIMEOUT_S)
+        self.answer_timeout = float(getattr(args, "nav2_answer_timeout", None) or ANSWER_TIMEOUT_S)
+        pose_topic = getattr(args, "nav2_pose_topic", None) or "amcl_pose"
+        detection_topic = getattr(args, "nav2_detection_topic", None) or "detection"
+        self.lock = threading.Lock()
+        self.pose: tuple[float, float] | None = None
+        self.detected = False
+        self.node = -1
+        self.pose_sub = self.session.declare_subscriber(f"{self.ns}/{pose_topic}", self._on_pose)
+        self.detection_sub = self.session.declare_subscriber(f"{self.ns}/{detection_topic}", self._on_detection)
+
+    # callbacks: decode and keep, no Zenoh call (docs/zenoh.md)
+    def _on_pose(self, sample: Any) -> None:
+        try:
+            p = msg.PoseWithCovarianceStamped.deserialize(bytes(sample.payload.to_bytes())).pose.pose.position
+        except Exception as exc:
+            log.warning("nav2: a pose that is no PoseWithCovarianceStamped: %s", exc)
+            return
+        with self.lock:
+            self.pose = (p.x, p.y)
+
+    def _on_detection(self, sample: Any) -> None:
+        try:
+            seen = msg.Bool.deserialize(bytes(sample.payload.to_bytes())).data
+        except Exception as exc:
+            log.warning("nav2: a detection that is no std_msgs/Bool: %s", exc)
+            return
+        if seen:
+            with self.lock:
+                self.detected = True
+
+    def nearest_node(self, x: float, y: float) -> int:
+        """The label of the node whose position is nearest to map-frame point (x, y)."""
+        best = min(self.graph.positions, key=lambda i: math.dist(self.graph.positions[i], (x, y)))
+        return int(self.graph.labels[best])
+
+    def begin(self, mission: dict[str, Any]) -> int:
+        """The node nearest to the robot's pose (waiting for its first pose at most the answer
+        timeout); the detector's earlier readings are forgotten."""
+        deadline = time.monotonic() + self.answer_timeout
+        while True:
+            with self.lock:
+                pose, self.detected = self.pose, False
+            if pose is not None:
+                break
+            if time.monotonic() > deadline:
+                raise BackendError(
+                    f"nav2: no pose from robot {self.robot_id} on {self.ns}/… within {self.answer_timeout:g} s "
+                    "(is zenoh-bridge-ros2dds running on it, with its pose topic allowed?)"
+                )
+            time.sleep(0.05)
+        self.node = self.nearest_node(*pose)
+        return self.node
+
+    def detect(self) -> int:
+        with self.lock:
+            seen, self.detected = self.detected, False
+        return int(seen)
+
+    def move(self, goal: int) -> int:
+        """Navigate to ``goal``'s position: ``goal`` once there, the node it was on otherwise."""
+        if goal not in self.graph.index:
+            raise BackendError(f"nav2: goal {goal} is not on the map")
+        if goal == self.node:
+            return self.node  # staying: no goal to send
+        goal_id = msg.UUID(uuid.uuid4().bytes)  # type: ignore[arg-type]  # pycdr2 takes bytes for uint8[16]
+        x, y = self.graph.positions[self.graph.index[goal]]
+        pose = msg.PoseStamped(msg.Header(_now(), "map"), msg.Pose(msg.Point(float(x), float(y), 0.0)))
+        request = msg.NavigateToPose_SendGoal_Request(goal_id, msg.NavigateToPose_Goal(pose, ""))
+        reply = self._ask("send_goal", request.serialize(), self.answer_timeout)
+        if reply is None:
+            raise BackendError(
+                f"nav2: robot {self.robot_id} did not answer a goal on {action_key(self.ns, 'send_goal')} "
+                f"within {self.answer_timeout:g} s"
+            )
+        if not msg.NavigateToPose_SendGoal_Response.deserialize(reply).accepted:
+            log.warning("nav2: goal to node %s rejected by Nav2; robot %s stays at %s", goal, self.robot_id, self.node)
+            return self.node
+        raw = self._ask("get_result", msg.NavigateToPose_GetResult_Request(goal_id).serialize(), self.goal_timeout)
+        if raw is None:
+            log.warning(
+                "nav2: goal to node %s timed out after %g s; cancelled, robot %s stays at %s",
+                goal, self.goal_timeout, self.robot_id, self.node,
+            )  # fmt: skip
+            self._ask("cancel_goal", msg.CancelGoal_Request(msg.GoalInfo(goal_id, msg.Time())).serialize(), 2.0)
+            return self.node
+        result = msg.NavigateToPose_GetResult_Response.deserialize(raw)
+        if result.status == msg.STATUS_SUCCEEDED:
+            self.node = goal
+        else:
+            log.warning(
+                "nav2: goal to node %s %s (error %s: %s); robot %s stays at %s",
+                goal, OUTCOMES.get(result.status, f"ended with status {result.status}"),
+                result.result.error_code, result.result.error_msg or "-", self.robot_id, self.node,
+            )  # fmt: skip
+        return self.node
+
+    def _ask(self, part: str, payload: bytes, timeout: float) -> bytes | None:
+        """The first reply's payload to a query on the action's ``part``, or None by ``timeout``."""
+        replies = self.session.get(action_key(self.ns, part), payload=payload, timeout=timeout)
+        for reply in replies:
+            if reply.ok is not None:
+                return bytes(reply.ok.payload.to_bytes())
+            err = reply.err.payload.to_string() if reply.err is not None else "?"
+            log.warning("nav2: %s answered with an error: %s", part, err)
+        return None
+
+    def end(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self.pose_sub.undeclare()
+        self.detection_sub.undeclare()
+        if self.own_session is not None:
+            self.own_session.close()
+
+
+def _now() -> msg.Time:
+    t = time.time()
+    return msg.Time(int(t), int((t % 1) * 1e9))
