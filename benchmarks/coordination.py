@@ -81,11 +81,16 @@ def main() -> None:
     ap.add_argument("--policy-episodes", type=int, default=1500, help="episodes of CE-PG alone's own row")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--missions", type=int, nargs="+", default=[100, 500, 2000, 10000])
-    ap.add_argument("--losses", type=float, nargs="+", default=[0.1, 0.3, 0.5, 0.9, 1.0])
-    ap.add_argument("--delays", type=int, nargs="+", default=[1, 3])
+    ap.add_argument("--losses", type=float, nargs="*", default=[0.1, 0.3, 0.5, 0.9, 1.0])
+    ap.add_argument("--delays", type=int, nargs="*", default=[1, 3])
     ap.add_argument("--learners", nargs="*", default=["masac-300000-s0", "beta1.0-400000-s0"])
     ap.add_argument("--withdraw-at", type=int, default=5, help="step robot N is withdrawn at (0: no such rows)")
     ap.add_argument("--fewer", action="store_true", help="fly the team with k = 1..N-1 of its robots")
+    ap.add_argument(
+        "--merge",
+        action="store_true",
+        help="replace the rows this run measures in the map's existing record, keeping the others",
+    )
     ap.add_argument("--results", type=Path, default=Path("results"), help="where the protocol's snapshots are")
     ap.add_argument("--out", type=Path, default=Path("results/coordination"))
     args = ap.parse_args()
@@ -167,13 +172,25 @@ def main() -> None:
     rows = _paired(rows, rows[1], informed=rows[0]) + later
     out = args.out / f"{args.map}-N{N}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
+    command = "python benchmarks/coordination.py " + " ".join(sys.argv[1:])
+    kept = [r for r in rows if r is not rows[0] and r is not rows[1]] if args.merge else rows
+    if args.merge:  # the measured rows replace their namesakes; the others stay as recorded
+        old = json.loads(out.read_text())
+        new = {_key(r): r for r in kept}
+        merged = [new.pop(_key(r), r) for r in old["rows"]]
+        rows = merged + list(new.values())
+        commands = [*old.get("commands", [old["command"]]), command]
+        t_start -= old["wall_seconds"]  # the record's wall time: every run's
+    else:
+        commands = [command]
     record = {
         "map": args.map,
         "robots": N,
         "episodes": E,
         "seed": args.seed,
         "team": team_dir(N).name,
-        "command": "python benchmarks/coordination.py " + " ".join(sys.argv[1:]),
+        "command": commands[0],
+        "commands": commands,
         "machine": {"platform": platform.platform(), "python": platform.python_version()},
         "wall_seconds": round(time.perf_counter() - t_start, 1),
         "rows": [{k: v for k, v in r.items() if k != "capture_times"} for r in rows],
@@ -181,6 +198,23 @@ def main() -> None:
     out.write_text(json.dumps(record, indent=1) + "\n")
     print_table(record)
     print(f"wrote {out}")
+
+
+def _key(row: dict) -> tuple:
+    """What a row measured: its searcher and setting."""
+    return tuple(
+        row.get(k)
+        for k in (
+            "searcher",
+            "robots",
+            "link_loss",
+            "link_delay",
+            "fleet_missions",
+            "withdrawn",
+            "trained_for",
+            "own_row",
+        )
+    )
 
 
 def _paired(rows: list[dict], alone: dict, informed: dict | None = None) -> list[dict]:

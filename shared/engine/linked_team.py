@@ -108,8 +108,9 @@ class LinkedTeamSearcher:
 
     def _history(self) -> LinkHistory:
         """What a robot's links delivered before this mission: ``history_sent`` messages over the
-        same link, each delivered with probability 1 - link_loss."""
-        heard = self.link_rng.binomial(self.history_sent, 1.0 - self.link_loss)
+        same link, each delivered in time with probability 1 - link_loss (0 when delayed)."""
+        in_time = 1.0 - self.link_loss if self.link_delay == 0 else 0.0
+        heard = self.link_rng.binomial(self.history_sent, in_time)
         return LinkHistory(heard=float(heard), sent=float(self.history_sent))
 
     def act(self, obs: Obs) -> torch.Tensor:
