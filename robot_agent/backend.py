@@ -31,6 +31,8 @@ import zenoh
 from shared.core.graph import Graph
 from shared.core.wire import sim_key
 
+NAV2_BACKEND = "robot_agent.nav2:Nav2Backend"  # `--backend nav2` (it imports this module: loaded by name)
+
 
 class MissionOver(Exception):
     """The robot's world ended the mission (capture announced, stop, or step limit)."""
@@ -111,10 +113,9 @@ def resolve_backend(spec: str) -> type:
         return SimBackend
     if spec == "nav2":
         try:
-            from robot_agent.nav2 import Nav2Backend
-        except ImportError as exc:  # pycdr2: the nav2 extra
+            return resolve_backend(NAV2_BACKEND)
+        except ValueError as exc:  # pycdr2 missing: the nav2 extra
             raise ValueError(f"--backend nav2 needs the nav2 extra (pip install 'mures-fleet[nav2]'): {exc}") from None
-        return Nav2Backend
     mod_name, sep, cls_name = spec.partition(":")
     if not sep or not mod_name or not cls_name:
         raise ValueError(f"--backend must be 'sim', 'nav2' or MODULE:CLASS, got {spec!r}")

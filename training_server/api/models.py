@@ -263,7 +263,9 @@ class Coordination(BaseModel):
     team_steps: int = Field(description="decisions on the team's plan, every live teammate's step in")
     partial_steps: int = Field(0, description="decisions on the team's plan with a teammate's step missing")
     own_steps: int = Field(description="decisions on the robot's own policy (no teammate heard, or no team searcher)")
-    observations_heard: int | None = Field(None, description="teammates' observations its links delivered")
+    observations_heard: int | None = Field(
+        None, description="teammates' observations its links delivered in time for its decision at their step"
+    )
     observations_sent: int | None = Field(
         None, description="teammates' observations sent to it (each teammate's up to its latest step heard)"
     )
