@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from coordination_tables import table  # benchmarks/coordination_tables.py, beside this script
 
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
@@ -196,7 +197,7 @@ def main() -> None:
         "rows": [{k: v for k, v in r.items() if k != "capture_times"} for r in rows],
     }
     out.write_text(json.dumps(record, indent=1) + "\n")
-    print_table(record)
+    table(record)
     print(f"wrote {out}")
 
 
@@ -225,33 +226,6 @@ def _paired(rows: list[dict], alone: dict, informed: dict | None = None) -> list
                 d, h = mean_ci95(r["capture_times"] - base["capture_times"])
                 r[f"diff_to_{name}"], r[f"diff_to_{name}_ci95"] = round(d, 3), round(h, 3)
     return rows
-
-
-def _diff(row: dict, name: str) -> str:
-    d = row.get(f"diff_to_{name}")
-    return "—" if d is None else f"{d:+.2f} ± {row[f'diff_to_{name}_ci95']:.2f}"
-
-
-def print_table(record: dict) -> None:
-    """The record's rows as a Markdown table."""
-    print(
-        "| searcher | robots | setting | fleet missions | capture time | vs CE-PG alone | vs FHPE-SA informed "
-        "| robot-steps complete / partial / own |"
-    )
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for r in record["rows"]:
-        setting = ", ".join(
-            f"{k} {r[k]}"
-            for k in ("link_loss", "link_delay", "withdrawn", "trained_for")
-            if r.get(k) not in (None, 0, 0.0)
-        )
-        if r.get("own_row"):
-            setting = f"{r['episodes']} episodes"
-        print(
-            f"| {r['searcher']} | {r['robots']} | {setting or '—'} | {r.get('fleet_missions', '—')} "
-            f"| {r['mean_capture_time']:.2f} ± {r['ci95_halfwidth']:.2f} | {_diff(r, 'cepg_alone')} | {_diff(r, 'fhpe_sa_informed')} "
-            f"| {r.get('share_complete', '—')} / {r.get('share_partial', '—')} / {r.get('share_own', '—')} |"
-        )
 
 
 if __name__ == "__main__":

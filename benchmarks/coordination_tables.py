@@ -56,10 +56,16 @@ def summary() -> None:
 
 
 def detail(name: str) -> None:
-    """Every row of one record."""
+    """Every row of one record, after the command that wrote it."""
     rec = json.loads((OUT / name).read_text())
     print(f"`{rec['command']}` ({rec['episodes']} paired episodes, seed {rec['seed']}, {rec['wall_seconds']:.0f} s)")
     print()
+    table(rec)
+    print()
+
+
+def table(rec: dict) -> None:
+    """A benchmarks/coordination.py record's rows as a Markdown table."""
     print("| searcher | robots | setting | fleet missions (Gamma_hat row TV) | capture time | vs CE-PG alone "
           "| vs FHPE-SA informed | robot-steps complete / partial / own |")  # fmt: skip
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -80,7 +86,6 @@ def detail(name: str) -> None:
             f"| {r['mean_capture_time']:.2f} ± {r['ci95_halfwidth']:.2f} | {_cell(r, 'cepg_alone')} "
             f"| {_cell(r, 'fhpe_sa_informed')} | {_share(r)} |"
         )
-    print()
 
 
 def model_error(name: str) -> None:

@@ -23,23 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.floorplan.floors import office_floor
+from shared.floorplan.floors import office_floor, segmentation_scores
 from shared.floorplan.occupancy import read_map
 from shared.floorplan.rooms import segment
 
 NAV2 = Path(__file__).resolve().parents[1] / "examples" / "maps" / "nav2"
 AIM = {"recall": 0.85, "precision": 0.92}
-
-
-def scores(truth: np.ndarray, found: np.ndarray) -> tuple[float, float]:
-    """(recall, precision) of the room labels ``found`` against ``truth`` ((H, W), 0: none)."""
-    both = (truth > 0) & (found > 0)
-    t, f = truth[both].astype(np.int64), found[both].astype(np.int64)
-    joint = np.bincount(t * (f.max() + 1) + f, minlength=(t.max() + 1) * (f.max() + 1)).reshape(t.max() + 1, -1)
-    rows, cols = joint.sum(1), joint.sum(0)
-    recall = np.mean([joint[i].max() / rows[i] for i in range(1, len(rows)) if rows[i]])
-    precision = np.mean([joint[:, j].max() / cols[j] for j in range(1, len(cols)) if cols[j]])
-    return float(recall), float(precision)
 
 
 def connected_on_free(grid, regions) -> bool:
@@ -75,7 +64,7 @@ def main() -> None:
             regions = segment(grid)
             seconds = time.perf_counter() - t0
             truth = grid.free.astype(np.int32) if truth is None else truth  # an open hall: one room
-            recall, precision = scores(truth, regions.rooms)
+            recall, precision = segmentation_scores(truth, regions.rooms)
             rows.append(
                 {
                     "map": name,

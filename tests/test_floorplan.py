@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 from shared.core.graph import load_graph_file
-from shared.floorplan.floors import office_floor
+from shared.floorplan.floors import office_floor, segmentation_scores
 from shared.floorplan.occupancy import MapError, read_map
 from shared.floorplan.rooms import segment
 
@@ -24,17 +24,6 @@ NAV2 = Path(__file__).resolve().parents[1] / "examples" / "maps" / "nav2"
 
 def mures(*args):
     return subprocess.run([sys.executable, "-m", "shared.tools.cli", *args], capture_output=True, text=True)
-
-
-def recall_precision(truth: np.ndarray, found: np.ndarray) -> tuple[float, float]:
-    """Room-segmentation scores over the pixels both label (benchmarks/segmentation.py's)."""
-    both = (truth > 0) & (found > 0)
-    t, f = truth[both].astype(np.int64), found[both].astype(np.int64)
-    joint = np.bincount(t * (f.max() + 1) + f, minlength=(t.max() + 1) * (f.max() + 1)).reshape(t.max() + 1, -1)
-    rows, cols = joint.sum(1), joint.sum(0)
-    recall = np.mean([joint[i].max() / rows[i] for i in range(1, len(rows)) if rows[i]])
-    precision = np.mean([joint[:, j].max() / cols[j] for j in range(1, len(cols)) if cols[j]])
-    return float(recall), float(precision)
 
 
 def test_nav2_depot_imports_as_a_connected_graph_with_its_regions_and_preview(tmp_path):
@@ -65,7 +54,7 @@ def test_generated_office_floors_segment_into_their_rooms(tmp_path, seed):
     floor = office_floor(seed)
     grid = read_map(floor.write(tmp_path, f"floor-{seed}"))
     regions = segment(grid)
-    recall, precision = recall_precision(floor.rooms, regions.rooms)
+    recall, precision = segmentation_scores(floor.rooms, regions.rooms)
     assert recall >= 0.85 and precision >= 0.92, (recall, precision)
     assert regions.labels.max() >= floor.rooms.max()  # areas: at least a node per room
     # every node reachable: the edges join all the regions kept

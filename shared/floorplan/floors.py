@@ -1,5 +1,5 @@
-"""Synthetic office floors as a SLAM map shows them, with their true rooms: what a room
-segmentation is measured against (benchmarks/segmentation.py).
+"""Synthetic office floors as a SLAM map shows them, with their true rooms, and the scores a room
+segmentation is measured by (benchmarks/segmentation.py).
 
 A floor is a corridor with a row of rooms on each side (offices, and open-plan rooms two or three
 offices wide), each room with a door to the corridor and some with a door to the next room; walls
@@ -128,3 +128,17 @@ def _scan_noise(image: np.ndarray, rng: np.random.Generator) -> None:
     near[:, 1:] |= wall[:, :-1]
     near[:, :-1] |= wall[:, 1:]
     image[free & near & (rng.random(image.shape) < 0.15)] = OCCUPIED
+
+
+def segmentation_scores(truth: np.ndarray, found: np.ndarray) -> tuple[float, float]:
+    """(recall, precision) of the room labels ``found`` against ``truth`` ((H, W), 0: no room),
+    over the pixels both label (Bormann et al., ICRA 2016): recall is the mean over true rooms of
+    the share of a room's area in its best-matching found room, precision the mean over found rooms
+    of the share of its area in its best-matching true room."""
+    both = (truth > 0) & (found > 0)
+    t, f = truth[both].astype(np.int64), found[both].astype(np.int64)
+    joint = np.bincount(t * (f.max() + 1) + f, minlength=(t.max() + 1) * (f.max() + 1)).reshape(t.max() + 1, -1)
+    rows, cols = joint.sum(1), joint.sum(0)
+    recall = np.mean([joint[i].max() / rows[i] for i in range(1, len(rows)) if rows[i]])
+    precision = np.mean([joint[:, j].max() / cols[j] for j in range(1, len(cols)) if cols[j]])
+    return float(recall), float(precision)
