@@ -758,6 +758,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     nav2 = p.add_argument_group("--backend nav2 (docs/connecting-a-robot.md)")
     nav2.add_argument(
+        "--nav2-regions", metavar="PNG", help="`mures map import --regions`: a pose's node is its region's"
+    )
+    nav2.add_argument("--nav2-map", metavar="MAP.yaml", help="with --nav2-regions: the map it was imported from")
+    nav2.add_argument(
         "--nav2-connect", metavar="ENDPOINT", help="the robot's zenoh-bridge-ros2dds (default: the fleet's session)"
     )
     nav2.add_argument(

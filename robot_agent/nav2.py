@@ -12,8 +12,11 @@ through the agent's fleet session. It uses, with CDR payloads (robot_agent/nav2_
     <ns>/<pose topic>                          subscribed: PoseWithCovarianceStamped (amcl_pose)
     <ns>/<detection topic>                     subscribed: std_msgs/Bool (the target detector)
 
-A move sends a NavigateToPose goal to the node's position (the graph file's ``positions``, map
-frame) and waits for its result: succeeded, the robot is at the goal node; aborted, canceled, or
+A mission starts at the node whose region holds the robot's pose: looked up in the regions image
+`mures map import --regions` wrote (``--nav2-regions REGIONS.png`` with ``--nav2-map MAP.yaml``,
+the map it was imported from), or, without them, the node whose position is nearest. A move sends
+a NavigateToPose goal to the node's position (the graph file's ``positions``, map frame) and waits
+for its result: succeeded, the robot is at the goal node; aborted, canceled, or
 no result within ``--nav2-goal-timeout`` (the goal is then cancelled), it stays where it was (a
 legal move: staying), and the agent's log says why. A robot that does not answer a goal or a pose
 within ``--nav2-answer-timeout`` is down: the mission ends for it with that reason (BackendError).
@@ -27,6 +30,7 @@ import math
 import threading
 import time
 import uuid
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -34,6 +38,7 @@ import zenoh
 from robot_agent import nav2_msgs as msg
 from robot_agent.backend import BackendError
 from shared.core.graph import Graph
+from shared.core.map_frame import MapFrame
 from shared.core.wire import zenoh_config
 
 log = logging.getLogger("mures.agent.nav2")
@@ -68,6 +73,7 @@ class Nav2Backend:
         self.pose: tuple[float, float] | None = None
         self.detected = False
         self.node = -1
+        self.regions = load_regions(getattr(args, "nav2_regions", None), getattr(args, "nav2_map", None))
         self.pose_sub = self.session.declare_subscriber(f"{self.ns}/{pose_topic}", self._on_pose)
         self.detection_sub = self.session.declare_subscriber(f"{self.ns}/{detection_topic}", self._on_detection)
 
@@ -91,8 +97,17 @@ class Nav2Backend:
             with self.lock:
                 self.detected = True
 
-    def nearest_node(self, x: float, y: float) -> int:
-        """The label of the node whose position is nearest to map-frame point (x, y)."""
+    def node_at(self, x: float, y: float) -> int:
+        """The label of the node whose region holds map-frame point (x, y) (``regions``), else of
+        the node whose position is nearest."""
+        if self.regions is not None:
+            labels, frame = self.regions
+            row, col = frame.to_pixel(x, y)
+            if 0 <= row < labels.shape[0] and 0 <= col < labels.shape[1] and labels[row, col] > 0:
+                label = int(labels[row, col]) - 1  # region k + 1 is node k (mures map import)
+                if label in self.graph.index:
+                    return label
+            log.warning("nav2: pose (%.2f, %.2f) is in no region of the regions image: the nearest node", x, y)
         best = min(self.graph.positions, key=lambda i: math.dist(self.graph.positions[i], (x, y)))
         return int(self.graph.labels[best])
 
@@ -111,7 +126,7 @@ class Nav2Backend:
                     "(is zenoh-bridge-ros2dds running on it, with its pose topic allowed?)"
                 )
             time.sleep(0.05)
-        self.node = self.nearest_node(*pose)
+        self.node = self.node_at(*pose)
         return self.node
 
     def detect(self) -> int:
@@ -175,6 +190,29 @@ class Nav2Backend:
         self.detection_sub.undeclare()
         if self.own_session is not None:
             self.own_session.close()
+
+
+def load_regions(regions: str | None, map_yaml: str | None) -> tuple[Any, MapFrame] | None:
+    """(labels (H, W), the map frame) from a regions image and the map it was made from; None
+    without them. ValueError names what is wrong."""
+    if regions is None and map_yaml is None:
+        return None
+    if regions is None or map_yaml is None:
+        raise ValueError("--nav2-regions and --nav2-map go together: the regions image and the map it was made from")
+    import numpy as np
+    import yaml
+    from PIL import Image
+
+    try:
+        with Image.open(regions) as im:
+            labels = np.asarray(im, dtype=np.int64)
+        raw = yaml.safe_load(Path(map_yaml).read_text(encoding="utf-8"))
+        frame = MapFrame(float(raw["resolution"]), tuple(float(v) for v in raw["origin"]), labels.shape[0])  # type: ignore[arg-type]
+    except (OSError, ValueError, KeyError, TypeError, yaml.YAMLError) as exc:
+        raise ValueError(f"cannot read --nav2-regions {regions} with --nav2-map {map_yaml}: {exc}") from None
+    if labels.ndim != 2:
+        raise ValueError(f"--nav2-regions {regions} is not a one-channel (16-bit) regions image")
+    return labels, frame
 
 
 def _now() -> msg.Time:

@@ -9,11 +9,14 @@ import dataclasses
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from robot_agent import nav2_msgs as msg
+from robot_agent.nav2 import Nav2Backend, load_regions
 from shared.core.graph import load_graph_file
 from shared.core.models import Sensor, uniform_walk
 from shared.tools.cli import main as mures
@@ -98,12 +101,36 @@ def test_the_codec_agrees_with_rosbags_both_ways(typestore, index):
     assert bytes(store.serialize_cdr(decoded, typename)) == ours.serialize()
 
 
+def test_a_pose_is_snapped_to_the_node_of_its_region(tmp_path):
+    """With the regions image, a pose's node is its region's, even where another node's position
+    is nearer; outside every region, the nearest node."""
+    depot = ROOT / "examples" / "maps" / "nav2" / "depot.yaml"
+    graph_file, regions = tmp_path / "depot.json", tmp_path / "regions.png"
+    assert mures(["map", "import", str(depot), "--out", str(graph_file), "--regions", str(regions), "--quiet"]) == 0
+    graph = load_graph_file(graph_file)
+    with_regions = SimpleNamespace(graph=graph, regions=load_regions(str(regions), str(depot)))
+    nearest_only = SimpleNamespace(graph=graph, regions=None)
+    labels, frame = with_regions.regions
+    disagree = 0
+    for row, col in zip(*np.nonzero(labels[::7, ::7]), strict=True):  # a grid of the building's pixels
+        x, y = frame.to_map(7 * row, 7 * col)
+        node = Nav2Backend.node_at(with_regions, x, y)
+        assert node == labels[7 * row, 7 * col] - 1
+        disagree += node != Nav2Backend.node_at(nearest_only, x, y)
+    assert disagree > 0  # the nearest node is not always the region's
+    x, y = frame.to_map(-50, -50)  # off the map: the nearest node
+    assert Nav2Backend.node_at(with_regions, x, y) == Nav2Backend.node_at(nearest_only, x, y)
+    with pytest.raises(ValueError, match="go together"):
+        load_regions(str(regions), None)
+    with pytest.raises(ValueError, match="cannot read"):
+        load_regions(str(tmp_path / "absent.png"), str(depot))
+
+
 @pytest.mark.slow
 def test_agents_fly_nav2_robots_through_the_bridge_with_an_abort_and_a_timeout(tmp_path):
-    graph_file = tmp_path / "depot.json"
-    assert (
-        mures(["map", "import", str(ROOT / "examples/maps/nav2/depot.yaml"), "--out", str(graph_file), "--quiet"]) == 0
-    )
+    depot = ROOT / "examples" / "maps" / "nav2" / "depot.yaml"
+    graph_file, regions = tmp_path / "depot.json", tmp_path / "regions.png"
+    assert mures(["map", "import", str(depot), "--out", str(graph_file), "--regions", str(regions), "--quiet"]) == 0
     graph = load_graph_file(graph_file)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     standin_log = tmp_path / "standin.log"
@@ -116,6 +143,7 @@ def test_agents_fly_nav2_robots_through_the_bridge_with_an_abort_and_a_timeout(t
     try:
         assert standin.stdout is not None and standin.stdout.readline().strip() == "ready"
         agent_extra = ["--backend", "nav2", "--nav2-connect", endpoint, "--nav2-goal-timeout", "1.0"]
+        agent_extra += ["--nav2-regions", str(regions), "--nav2-map", str(depot)]  # poses looked up by region
         fleet = launch(graph, ["--graph", str(graph_file)], uniform_walk(graph), Sensor(), 2, tmp_path / "fleet",
                        agent_extra=agent_extra)  # fmt: skip
         for seed in range(20):

@@ -29,6 +29,8 @@ import numpy as np
 import yaml
 from PIL import Image, UnidentifiedImageError
 
+from shared.core.map_frame import MapFrame
+
 MODES = ("trinary", "scale", "raw")
 SAVER_UNKNOWN = 205  # the grey map_saver writes for an unknown cell
 
@@ -51,21 +53,17 @@ class OccupancyGrid:
     def shape(self) -> tuple[int, int]:
         return self.free.shape
 
+    @property
+    def frame(self) -> MapFrame:
+        return MapFrame(self.resolution, self.origin, self.free.shape[0])
+
     def to_map_frame(self, row: float, col: float) -> tuple[float, float]:
         """The map-frame point (metres) at the centre of pixel (row, col)."""
-        h = self.free.shape[0]
-        dx, dy = (col + 0.5) * self.resolution, (h - row - 0.5) * self.resolution
-        x0, y0, yaw = self.origin
-        c, s = math.cos(yaw), math.sin(yaw)
-        return x0 + c * dx - s * dy, y0 + s * dx + c * dy
+        return self.frame.to_map(row, col)
 
     def to_pixel(self, x: float, y: float) -> tuple[int, int]:
         """The (row, col) of the pixel holding map-frame point (x, y); may lie outside the image."""
-        x0, y0, yaw = self.origin
-        c, s = math.cos(yaw), math.sin(yaw)
-        dx, dy = c * (x - x0) + s * (y - y0), -s * (x - x0) + c * (y - y0)
-        h = self.free.shape[0]
-        return h - 1 - math.floor(dy / self.resolution), math.floor(dx / self.resolution)
+        return self.frame.to_pixel(x, y)
 
 
 def read_map(yaml_path: str | Path) -> OccupancyGrid:
