@@ -1,7 +1,7 @@
 """`robot-agent`: one robot's agent process (docs/operating.md).
 
     robot-agent --robot-id ID --server URL --zenoh-connect ENDPOINT [--fleet NAME]
-                [--token-file F] [--state-dir DIR] [--backend sim|MODULE:CLASS] [--no-telemetry]
+                [--token-file F] [--state-dir DIR] [--backend sim|nav2|MODULE:CLASS] [--no-telemetry]
 
 The agent connects to the fleet over Zenoh, declares its liveliness token, waits for missions on
 ``mures/<fleet>/missions/*``, flies each with the committed policy and its own belief filter

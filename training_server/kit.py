@@ -258,11 +258,14 @@ def build_kit(args: argparse.Namespace) -> dict[str, Any]:
                 "MURES_ZENOH_CONNECT": f"tls/{_url_host(host)}:{args.zenoh_port}",
                 "MURES_ROBOT_DIR": ROBOT_ETC,
                 "MURES_BACKEND": args.backend,
+                "MURES_BACKEND_ARGS": "",
             },
             f"robot-agent settings of robot {r} (deploy/systemd/mures-robot-agent.service).\n"
             f"Install: copy this directory to {ROBOT_ETC}/ on the robot (token and zenoh-password\n"
             "are secrets: mode 0600, owned by the user the agent runs as). MURES_BACKEND: your robot's\n"
-            "backend (robot_agent/backend.py); sim flies in `mures world`'s simulated building.",
+            "backend (robot_agent/backend.py); sim flies in `mures world`'s simulated building, nav2 a\n"
+            "Nav2 robot; MURES_BACKEND_ARGS: its flags, split at spaces (e.g. --nav2-connect\n"
+            "tcp/127.0.0.1:7447 --nav2-regions /etc/mures/robot/regions.png --nav2-map /etc/mures/robot/map.yaml).",
         )
         issued.append(r)
 
