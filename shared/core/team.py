@@ -18,9 +18,9 @@ collective belief is complete, with its own decentralised policy when it is not:
   but at least half of the teammates were heard at this step or the last (the others at their
   last known positions), its own policy on its own belief otherwise (or after ``fallback_after``
   incomplete steps in a row, if set; back to the team's plan once complete again), and throughout
-  while its links deliver too few of the teammates' observations in time (``LinkHistory``). A teammate
-  silent for ``timeout_steps`` steps is dropped from the team's plan, and taken in again when it
-  reports.
+  while its links deliver too few of the teammates' observations in time (``LinkHistory``). A
+  teammate silent for ``timeout_steps`` steps is dropped from the team's plan, and taken in again
+  when it reports.
 
 Team searchers: ``fhpe-sa`` (FHPE-SA on the team's model, every robot computing the whole team's
 plan from its own copy of the same information, ties broken by a generator seeded by the mission
@@ -58,15 +58,18 @@ FALLBACK_AFTER: int | None = None
 STALE_STEPS = 1
 # A robot plans with its team only while its links deliver at least LINK_QUALITY_MIN of its
 # teammates' observations in time for its decision at their step, over this mission and its
-# earlier ones (``LinkHistory``). Planning on the teammates' positions of the step before gained on
-# MUSEUM N = 4 (every message one step late: 2.94 ± 2.15 steps sooner than the own policies) and
-# lost on OFFICE N = 5 (0.95 ± 0.61 later; 400 paired episodes each), so a late message counts as
-# lost: never worse than the own policies comes first. Team and own
-# decisions mixed in one mission cost more than either (a robot off the team's plan leaves a hole
-# in it), and a per-mission estimate mixes them: on OFFICE N = 4 (300 paired episodes, the robots'
-# own policies alone 8.17) deciding on each mission's messages alone captured in 8.67 / 13.02 /
-# 11.45 / 7.84 steps with 90 / 70 / 50 / 30 % of the messages lost, planning whenever some teammate
-# was heard in 9.33 / 8.95 / 8.14 / 7.61: the team gains up to about 40 % loss and loses beyond
+# earlier ones (``LinkHistory``), for three reasons measured with benchmarks/coordination.py:
+# - planning whenever some teammate was heard gains up to about 40 % loss and loses beyond: on
+#   OFFICE N = 4 (300 paired episodes, the robots' own policies alone 8.17) 7.61 / 8.14 / 8.95 /
+#   9.33 steps with 30 / 50 / 70 / 90 % of the messages lost;
+# - team and own decisions mixed in one mission cost more than either (a robot off the team's plan
+#   leaves a hole in it), and a per-mission estimate mixes them: deciding on each mission's
+#   messages alone captured in 7.84 / 11.45 / 13.02 / 8.67 steps at the same losses; the link's
+#   history, alike for the robots of a fleet on one network, makes them decide alike;
+# - planning on the teammates' positions of the step before (every message one step late) gained
+#   on MUSEUM N = 4 (2.94 ± 2.15 steps sooner than the own policies) and lost on OFFICE N = 5
+#   (0.95 ± 0.61 later; 400 paired episodes each): a late message counts as lost, so that the
+#   team is never worse than its robots alone.
 LINK_QUALITY_MIN = 0.6
 LINK_MEMORY = 0.9  # the weight of a mission's messages in ``LinkHistory``, per mission since
 TIMEOUT_STEPS = 3  # steps without a teammate's observation before it is dropped from the plan
