@@ -511,7 +511,7 @@ class Agent:
             robots,
             self.robot_id,
             seed=seed,
-            searcher=team_searcher_of(snap) if len(robots) > 1 else None,
+            searcher=team_searcher_of(snap),  # a robot alone plans on its own belief, the team's
             fallback_after=self.args.fallback_after,
             own_seed=mission_seed(seed, index),
             link_history=self.links,

@@ -183,6 +183,8 @@ def test_agent_killed_mid_mission_resends_its_journal_and_outbox(fleet):
             break
         wait_until(lambda mid=mid: fleet.api.get(f"/api/v1/missions/{mid}")["status"] == "completed", 30, "mission")
     m = {"id": mid}
+    # the world runs a step ahead of what a loaded agent has written: kill r1 once it has 4 steps
+    wait_until(lambda: len(journal.read_text().splitlines()) - 1 >= 4, 10, "r1 to journal 4 steps", every=0.01)
     fleet.stop_agent("r1", signal.SIGKILL)
     flown = len(journal.read_text().splitlines()) - 1  # the header, then one line per step
     assert flown >= 4

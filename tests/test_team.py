@@ -189,8 +189,9 @@ def test_a_robot_falls_back_to_its_own_policy_while_its_teammates_are_missing():
 def test_a_robot_whose_links_deliver_too_little_flies_its_own_policy_throughout():
     """The link's quality counts this mission's messages and the earlier missions' (LinkHistory):
     a robot whose earlier missions heard half of what was sent flies its own policy even on a
-    complete step, one with a good history plans with its team; a teammate's silence after its
-    last step heard (a withdrawn robot) is not counted as loss."""
+    complete step, one with a good history plans with its team, and a robot alone always does (its
+    belief is the team's); a teammate's silence after its last step heard (a withdrawn robot) is
+    not counted as loss."""
     graph = builtin_graph("office")
     snap = _snapshot(graph, 2)
     robots = ["r1", "r2"]
@@ -205,6 +206,10 @@ def test_a_robot_whose_links_deliver_too_little_flies_its_own_policy_throughout(
             agent.observe("r1", t, 0, 0)
             agent.observe("r2", t, 4, 0)
             assert agent.act(t, 0)[1] == expected
+    # a robot alone plans on its own belief (the team's): no link to judge
+    lone = TeamAgent(snap, graph, ["r1"], "r1", seed=3, searcher="fhpe-sa", link_history=poor)
+    lone.observe("r1", 0, 0, 0)
+    assert lone.act(0, 0)[1] == "team"
     # r2 reports steps 0-2 and falls silent: its steps 3-9 are not counted as sent
     agent = TeamAgent(snap, graph, robots, "r1", seed=3, searcher="fhpe-sa")
     for t in range(10):

@@ -290,7 +290,8 @@ class TeamAgent:
         self.incomplete_run = 0 if complete else self.incomplete_run + 1
         usable = complete or (self.heard(t) and self.fresh(t))
         gave_up = self.fallback_after is not None and self.incomplete_run >= self.fallback_after
-        if not usable or gave_up or self.link_quality() < self.link_quality_min:
+        poor_links = len(self.robots) > 1 and self.link_quality() < self.link_quality_min
+        if not usable or gave_up or poor_links:
             return self._own(p)
         mode = "team" if complete else "partial"
         self.steps[mode] += 1

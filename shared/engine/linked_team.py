@@ -66,8 +66,6 @@ class LinkedTeamSearcher:
             raise ValueError(f"link delay {link_delay} must be 0 or more steps")
         self.name = f"team:{searcher or 'none'}"
         self.snap, self.graph, self.N = snap, graph, n_robots
-        # a robot alone flies its own policy, as a robot agent alone does
-        searcher = searcher if n_robots > 1 else None
         self.searcher, self.link_loss, self.link_delay = searcher, link_loss, link_delay
         self.fallback_after, self.timeout_steps = fallback_after, timeout_steps
         self.rng = np.random.default_rng(seed)  # the missions' seeds
