@@ -494,7 +494,7 @@ class Agent:
 
     def _begin_mission(self, msg: dict[str, Any]) -> tuple[TeamAgent, dict[str, Any], int, bool]:
         """This robot's TeamAgent for the mission (the policy version it names, fetched first if
-        need be; its team searcher the version's, none for a robot alone), the record's header,
+        need be; its team searcher the version's, a robot alone's too), the record's header,
         the step limit, and whether detections capture at once."""
         assert self.policies is not None and self.graph is not None
         mid = msg["mission_id"]

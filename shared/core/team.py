@@ -183,7 +183,7 @@ class TeamAgent:
     """Robot ``me`` of the mission's ``robots``: ``observe(robot, t, p, z)`` for its own and its
     teammates' observations as they come, then ``act(t, p)`` -> (next node row, "team" or "own").
 
-    ``searcher``: "fhpe-sa", "c-cepg" or None (always its own policy, as a lone robot). The own
+    ``searcher``: "fhpe-sa", "c-cepg" or None (always its own policy, as before teams). The own
     policy is the snapshot's decentralised one; a c-cepg snapshot's network is flown on the
     robot's own belief when it falls back. The collective belief and the plan use ``team_model``
     (default the snapshot's model, which its own policy keeps)."""
@@ -252,8 +252,7 @@ class TeamAgent:
 
     def heard(self, t: int) -> bool:
         """Some teammate has reported within the last ``timeout_steps`` steps. A robot that hears
-        none cannot tell their absence from its own link being down, and searches as a lone robot
-        does (its own policy)."""
+        none cannot tell their absence from its own link being down, and flies its own policy."""
         for r in self.robots:
             last = self.collective.position(r, t) if r != self.me else None
             if last is not None and t - last[0] < self.timeout_steps:
