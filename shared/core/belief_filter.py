@@ -45,30 +45,26 @@ class BeliefFilter:
         self.belief = self._b0.copy()
         self.restarts = 0
 
+    def weigh(self, x: np.ndarray, p: int, z: int) -> np.ndarray:
+        """x (n,) *= Lambda(p, z)'s diagonal (Eq. 2), in place, unnormalised; returns x. The
+        collective belief weighs by every robot's observation in turn (Eq. 7)."""
+        l_in, l_out = (self._in1, self._out1) if z else (self._in0, self._out0)
+        d = p if self._node_detection else self._didx[self._dptr[p] : self._dptr[p + 1]]
+        keep = x[d] * l_in
+        x *= l_out
+        x[d] = keep
+        return x
+
     def _observe(self, prior: np.ndarray, p: int, z: int) -> np.ndarray:
         """prior (n,) -> Lambda(p, z) prior, normalised (Eq. 1-2); the array is reused."""
-        l_in, l_out = (self._in1, self._out1) if z else (self._in0, self._out0)
-        if self._node_detection:
-            keep = prior[p] * l_in
-            prior *= l_out
-            prior[p] = keep
-        else:
-            d = self._didx[self._dptr[p] : self._dptr[p + 1]]
-            keep = prior[d] * l_in
-            prior *= l_out
-            prior[d] = keep
-        total = prior.sum()
+        total = self.weigh(prior, p, z).sum()
         if total > TINY:
             prior /= total
             return prior
         # vanished mass: restart from the observation alone, then from uniform (module docstring)
         self.restarts += 1
-        prior[:] = l_out
-        if self._node_detection:
-            prior[p] = l_in
-        else:
-            prior[self._didx[self._dptr[p] : self._dptr[p + 1]]] = l_in
-        total = prior.sum()
+        prior[:] = 1.0
+        total = self.weigh(prior, p, z).sum()
         if total > TINY:
             prior /= total
         else:
@@ -81,8 +77,12 @@ class BeliefFilter:
         return self.belief
 
     def predict(self) -> np.ndarray:
+        """Gamma_hat^T b of this robot's belief b."""
+        return self.predict_of(self.belief)
+
+    def predict_of(self, b: np.ndarray) -> np.ndarray:
         """Gamma_hat^T b: (Gamma^T b)(v) = sum_u Gamma(u, v) b(u); O(nnz) = O(n + m)."""
-        return np.bincount(self._dst, weights=self._prob * self.belief[self._src], minlength=self.n)
+        return np.bincount(self._dst, weights=self._prob * b[self._src], minlength=self.n)
 
     def update(self, p: int, z: int) -> np.ndarray:
         """Theorem 1, Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}."""

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.core.belief_filter import TINY
+from shared.core.belief_filter import TINY, BeliefFilter
 from shared.core.choices import TEAM_SEARCHERS
 from shared.core.fhpe_sa import HORIZON, FhpeSAPlanner
 from shared.core.graph import Graph
@@ -111,10 +111,8 @@ class CollectiveBelief:
     def __init__(self, graph: Graph, model: TargetModel, sensor: Sensor, robots: list[str]) -> None:
         self.n, self.robots = graph.n, list(robots)
         self._order = {r: i for i, r in enumerate(self.robots)}
-        self._src, self._dst, self._prob = model.src, model.dst, model.prob
         self._b0 = model.b0.copy()
-        self._dptr, self._didx = graph.detection_sets(sensor.detection)
-        (self._in0, self._in1), (self._out0, self._out1) = sensor.likelihoods()
+        self._filter = BeliefFilter(graph, model, sensor)  # its weigh (Lambda(p, z)) and predict_of (Gamma_hat^T b)
         self.obs: list[dict[str, tuple[int, int]]] = []  # obs[t][robot] = (p, z)
         self._beliefs: list[np.ndarray] = []  # b^c_0 .. b^c_{k-1}, valid while no earlier step changes
         self.restarts = 0
@@ -149,12 +147,7 @@ class CollectiveBelief:
         lik = np.ones(self.n)
         got = self.obs[t] if t < len(self.obs) else {}
         for robot in sorted(got, key=self._order.__getitem__):
-            p, z = got[robot]
-            l_in, l_out = (self._in1, self._out1) if z else (self._in0, self._out0)
-            d = self._didx[self._dptr[p] : self._dptr[p + 1]]
-            inside = lik[d] * l_in
-            lik *= l_out
-            lik[d] = inside
+            self._filter.weigh(lik, *got[robot])
         return lik
 
     def belief(self, t: int) -> np.ndarray:
@@ -163,7 +156,7 @@ class CollectiveBelief:
         uniform), as ``BatchedBelief.normalise`` does."""
         for s in range(len(self._beliefs), t + 1):
             lik = self.likelihood(s)
-            prior = self._b0 if s == 0 else self._predict(self._beliefs[s - 1])
+            prior = self._b0 if s == 0 else self._filter.predict_of(self._beliefs[s - 1])
             x = lik * prior
             total = x.sum()
             if total <= TINY:
@@ -173,10 +166,6 @@ class CollectiveBelief:
                     x, total = np.full(self.n, 1.0 / self.n), 1.0
             self._beliefs.append(x / total)
         return self._beliefs[t]
-
-    def _predict(self, b: np.ndarray) -> np.ndarray:
-        """Gamma_hat^T b in O(n + m)."""
-        return np.bincount(self._dst, weights=self._prob * b[self._src], minlength=self.n)
 
 
 class TeamAgent:
@@ -236,37 +225,37 @@ class TeamAgent:
             self.messages_heard += t > self.decided  # in time: before this robot decided at step t
             self.last_heard[robot] = max(self.last_heard[robot], t)
 
+    def _ages(self, t: int) -> dict[str, int | None]:
+        """Each teammate's steps since its latest observation at or before ``t`` (None: none yet)."""
+        out: dict[str, int | None] = {}
+        for r in self.robots:
+            if r != self.me:
+                last = self.collective.position(r, t)
+                out[r] = None if last is None else t - last[0]
+        return out
+
     def live(self, t: int) -> list[str]:
         """The teammates in the team's plan at step ``t``: this robot, and each other robot that
         has reported within the last ``timeout_steps`` steps (all of them in the first steps)."""
+        ages = self._ages(t)
         out = []
         for r in self.robots:
-            last = self.collective.position(r, t)
-            if (
-                r == self.me
-                or (last is None and t < self.timeout_steps)
-                or (last is not None and t - last[0] < self.timeout_steps)
-            ):
+            age = ages.get(r)  # None for this robot, and for a teammate not heard yet
+            if r == self.me or (t < self.timeout_steps if age is None else age < self.timeout_steps):
                 out.append(r)
         return out
 
     def heard(self, t: int) -> bool:
         """Some teammate has reported within the last ``timeout_steps`` steps. A robot that hears
         none cannot tell their absence from its own link being down, and flies its own policy."""
-        for r in self.robots:
-            last = self.collective.position(r, t) if r != self.me else None
-            if last is not None and t - last[0] < self.timeout_steps:
-                return True
-        return False
+        return any(age is not None and age < self.timeout_steps for age in self._ages(t).values())
 
     def fresh(self, t: int) -> bool:
         """At least half of the other live robots' last observations are of step ``t`` or
         ``t - 1`` (``STALE_STEPS``): enough of the team known well enough to plan with."""
+        ages = self._ages(t)
         others = [r for r in self.live(t) if r != self.me]
-        recent = 0
-        for r in others:
-            last = self.collective.position(r, t)
-            recent += last is not None and t - last[0] <= STALE_STEPS
+        recent = sum(1 for r in others if (age := ages[r]) is not None and age <= STALE_STEPS)
         return 2 * recent >= len(others)
 
     def complete(self, t: int) -> bool:
