@@ -61,11 +61,10 @@ class Teamwork:
 
     def _on_observation(self, sample: Any) -> None:  # callback: parse and queue only
         msg, _why = parse_observation(str(sample.key_expr), sample.payload.to_bytes())
-        if msg is None or msg["robot_id"] == self.me:
-            if msg is None:
-                self.ignored += 1
-            return
-        self.inbox.put(msg)
+        if msg is None:
+            self.ignored += 1
+        elif msg["robot_id"] != self.me:  # its own comes back from the router: already folded in
+            self.inbox.put(msg)
 
     def publish(self, t: int, node: int, z: int) -> None:
         """This robot's observation of step ``t`` (``node`` a map label) to its teammates."""

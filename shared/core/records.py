@@ -13,7 +13,7 @@ import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -160,6 +160,11 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
     )
 
 
+def _count(v: Any) -> TypeGuard[int]:
+    """A whole number >= 0 (a JSON true is not one)."""
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
 def _coordination(raw: Any) -> dict[str, Any] | None:
     """The optional ``coordination`` of a record: how many of the robot's decisions followed its
     team's plan with every teammate's step in, how many with one missing, and how many its own
@@ -173,7 +178,7 @@ def _coordination(raw: Any) -> dict[str, Any] | None:
     if searcher is not None and searcher not in TEAM_SEARCHERS:
         raise RecordError("coordination", f"coordination.team_searcher {_show(searcher)} is not a team searcher")
     counts = [raw.get("team_steps"), raw.get("partial_steps", 0), raw.get("own_steps")]
-    if any(not isinstance(c, int) or isinstance(c, bool) or c < 0 for c in counts) or sum(counts) > MAX_STEPS:
+    if not all(_count(c) for c in counts) or sum(counts) > MAX_STEPS:
         raise RecordError(
             "coordination",
             f"coordination's team_steps, partial_steps and own_steps must be integers >= 0, at most {MAX_STEPS} in all",
@@ -181,8 +186,7 @@ def _coordination(raw: Any) -> dict[str, Any] | None:
     out = {"team_searcher": searcher, "team_steps": counts[0], "partial_steps": counts[1], "own_steps": counts[2]}
     heard, sent = raw.get("observations_heard"), raw.get("observations_sent")
     if heard is not None or sent is not None:  # what the robot's links delivered (records since teams)
-        counted = [c for c in (heard, sent) if isinstance(c, int) and not isinstance(c, bool) and c >= 0]
-        if len(counted) < 2 or counted[0] > counted[1]:
+        if not (_count(heard) and _count(sent) and heard <= sent):
             raise RecordError(
                 "coordination",
                 "coordination's observations_heard and observations_sent must be integers >= 0, heard at most sent",
