@@ -7,6 +7,11 @@ its teammates' on ``mures/<fleet>/observations/*/<mission>``. Before deciding at
 most ``wait_s`` for every live teammate's step t; whatever has not come by then, the robot decides
 without (its own policy on an incomplete step). No decision ever waits longer on the network.
 
+A teammate whose liveliness token goes (its agent stopped, its process or its link died:
+``mures/<fleet>/agents/<robot>``) is withdrawn from this robot's ``TeamAgent`` before its next
+decision: out of the team's plan, and its own policy the version's team built for the robots
+left (``TeamAgent.withdraw``).
+
 ``link_loss`` is a documented drop point for simulations (`robot-agent --link-loss P`, `mures
 fleet-sim --link-loss P`): each outgoing observation is dropped with probability P before it is
 sent. It changes what the network delivers, never how the robot decides.
@@ -24,7 +29,7 @@ from typing import Any
 
 from shared.core.graph import Graph
 from shared.core.team import TeamAgent
-from shared.core.wire import observation_key, observation_message, parse_observation
+from shared.core.wire import agent_key, observation_key, observation_message, parse_observation
 
 log = logging.getLogger("mures.agent")
 
@@ -58,6 +63,16 @@ class Teamwork:
         self._sub = None
         if agent.searcher is not None:  # a robot that never plans with its team need not listen
             self._sub = session.declare_subscriber(observation_key(fleet, "*", mission_id), self._on_observation)
+        self.gone: queue.Queue[str] = queue.Queue()  # teammates whose liveliness token went
+        self._alive_sub = None
+        if len(agent.robots) > 1:
+            self._alive_sub = session.liveliness().declare_subscriber(agent_key(fleet, "*"), self._on_alive)
+
+    def _on_alive(self, sample: Any) -> None:  # callback: queue only
+        import zenoh
+
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self.gone.put(str(sample.key_expr).rsplit("/", 1)[-1])
 
     def _on_observation(self, sample: Any) -> None:  # callback: parse and queue only
         msg, _why = parse_observation(str(sample.key_expr), sample.payload.to_bytes())
@@ -80,7 +95,8 @@ class Teamwork:
     def gather(self, t: int) -> None:
         """Fold in the teammates' observations that have come, waiting at most ``wait_s`` for the
         rest of step ``t``'s (no wait once the step is complete, for a robot that searches alone,
-        or while no teammate is heard at all)."""
+        or while no teammate is heard at all); teammates whose liveliness went are withdrawn first."""
+        self._withdraw()
         if self._sub is None:
             return
         deadline = time.monotonic() + self.wait_s
@@ -92,6 +108,22 @@ class Teamwork:
                 return
             with contextlib.suppress(queue.Empty):
                 self._fold(self.inbox.get(timeout=min(left, 0.05)))
+
+    def _withdraw(self) -> None:
+        while True:
+            try:
+                robot = self.gone.get_nowait()
+            except queue.Empty:
+                return
+            if self.agent.withdraw(robot):
+                left = len(self.agent.robots) - len(self.agent.withdrawn)
+                log.info(
+                    "mission %s: %s dropped out (liveliness gone); %d robots left, own policy built for %d",
+                    self.mission_id,
+                    robot,
+                    left,
+                    self.agent.flown_for,
+                )
 
     def _drain(self) -> None:
         while True:
@@ -115,6 +147,7 @@ class Teamwork:
                 self.dropped,
                 self.ignored,
             )
-        if self._sub is not None:
-            self._sub.undeclare()
-            self._sub = None
+        for sub in (self._sub, self._alive_sub):
+            if sub is not None:
+                sub.undeclare()
+        self._sub = self._alive_sub = None

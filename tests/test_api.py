@@ -443,7 +443,7 @@ def test_one_refused_row_does_not_affect_the_others_in_its_batch(api):
     assert {e["robot_id"] for e in srv.store.list_episodes("default", 10, 0, None, None)} == {"r0", "r2"}
 
 
-def test_interrupted_runs_end_failed_or_cancelled_and_leftovers_are_removed(api, tmp_path, database_url):
+def test_interrupted_runs_are_queued_again_or_stay_cancelled_and_leftovers_are_removed(api, tmp_path, database_url):
     srv, _c = api
     for run_id in ("a", "b", "c"):
         srv.store.add_run(run_id, {"episodes": 512})
@@ -466,8 +466,8 @@ def test_interrupted_runs_end_failed_or_cancelled_and_leftovers_are_removed(api,
     (srv.data_dir / "policies" / "v7").rmdir()
     srv2 = reopen()
     try:
-        assert sorted(srv2.store.end_interrupted_runs()) == [("a", "failed"), ("b", "failed"), ("c", "cancelled")]
-        assert srv2.store.get_run("c")["status"] == "cancelled" and srv2.store.get_run("a")["error"]
+        assert sorted(srv2.store.requeue_interrupted_runs()) == [("a", "queued"), ("b", "queued"), ("c", "cancelled")]
+        assert srv2.store.get_run("c")["status"] == "cancelled" and srv2.store.get_run("b")["status"] == "queued"
         assert list((srv2.data_dir / "staging").iterdir()) == []
         assert sorted(d.name for d in (srv2.data_dir / "policies").iterdir()) == ["v1"]
         assert srv2.store.next_version() == 2 and srv2.current_version() == 1

@@ -139,7 +139,7 @@ def test_retrain_over_http_improves_and_agents_switch_between_missions(fleet):
     assert done["status"] == "succeeded", done
     # progress during EM, and the episodes the run trains said up front (whole batches of 256)
     assert any(m and m.startswith("EM pass") for m in seen), seen
-    assert "training 30,208 episodes (30,000 asked, rounded up to whole batches of 256)" in seen
+    assert "training cepg for 3 robots, 30,208 episodes (30,000 asked, rounded up to whole batches of 256)" in seen
     assert done["metrics"]["train"]["episodes"] == 30_208
     assert done["version"] == 2 and fleet.api.get("/api/v1/policies/current")["version"] == 2
     assert done["metrics"]["team"] == {

@@ -135,6 +135,6 @@ def test_the_same_data_on_both_backends(tmp_path, database_url):
         s.add_run("a", {"episodes": 1})
         s.update_run("a", status="running", progress={"phase": "em"})
         assert s.get_run("a")["progress"] == {"phase": "em"}
-        assert s.request_cancel("a") == "running" and s.end_interrupted_runs() == [("a", "cancelled")]
+        assert s.request_cancel("a") == "running" and s.requeue_interrupted_runs() == [("a", "cancelled")]
     finally:
         s.close()

@@ -289,8 +289,6 @@ def _open_server(args: argparse.Namespace) -> Server:
     )
     srv.migrate_versions()
     srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)
-    for run_id, status in srv.store.end_interrupted_runs():
-        log.warning("training run %s was interrupted by a server restart: now %s", run_id, status)
     return srv
 
 
@@ -335,6 +333,9 @@ def _serve(srv: Server, args: argparse.Namespace, conf: Any, secured_conf: Any) 
         raise ValueError(f"cannot start Zenoh: {str(exc).split(' at /')[0]}") from None
     srv.supervisor = Supervisor(srv)
     srv.supervisor.start()
+    for run_id, status in srv.supervisor.resume_interrupted():
+        what = "resumes where it was" if status == "queued" else "stays cancelled, as asked"
+        log.warning("training run %s was interrupted by a server restart: it %s", run_id, what)
     stop_watch = threading.Event()
     watcher = None
     if secured_conf is not None:  # robots added or revoked take effect without a restart

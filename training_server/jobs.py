@@ -27,9 +27,22 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
 from shared.learning import config as train_config
+from training_server.methods import (
+    DEFAULT_CANDIDATES,
+    METHODS,
+    MarlMethod,
+    Method,
+    RunFolder,
+    TrainedTeam,
+    check_hyperparameters,
+    default_episodes,
+    train_team,
+)
+
+MAX_TEAM_SIZES = 16  # team sizes one run may train a team for (and the largest such size)
 
 log = logging.getLogger("mures.server.training")
 
@@ -51,16 +64,54 @@ class TrainingParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    episodes: Annotated[int, Field(ge=256, le=10_000_000), INTEGRAL] = Field(
-        20_000,
-        description="CE-PG episodes in simulation, warm-started from the current policy (run in whole batches of "
-        f"{train_config.default('batch')}: a number in between is rounded up, and the run says so)",
+    algorithm: Method | Literal["best"] = Field(
+        "cepg",
+        description="the method that trains the new version's teams (training_server/methods.py): cepg (with "
+        "variant, beta and lr), pg (CE-PG with beta = 1), maddpg, masac, facmac, mambpo or mappo (their "
+        "hyperparameters, docs/SPEC.md section 11), or best: every one of `candidates` trained, evaluated beside "
+        "the current version on the gate's episodes, and the one that captures soonest published",
+    )
+    candidates: list[Method] | None = Field(
+        None,
+        min_length=1,
+        max_length=len(METHODS),
+        description=f"with algorithm best: the methods to train (default {', '.join(DEFAULT_CANDIDATES)}: those "
+        "best somewhere in the recorded protocol)",
+    )
+    episodes: Annotated[int, Field(ge=256, le=10_000_000), INTEGRAL] | None = Field(
+        None,
+        description="training episodes of every team of the run (default: each method's own budget, the "
+        "protocol's: CE-PG and PG 400,000, a MARL baseline its plateau, times budget_fraction; CE-PG runs in "
+        f"whole batches of {train_config.default('batch')}: a number in between is rounded up, and the run says so)",
+    )
+    budget_fraction: float = Field(
+        1.0,
+        gt=0.0,
+        le=1.0,
+        allow_inf_nan=False,
+        description="the compute budget: each team trains for this fraction of its method's default episodes "
+        "(without episodes); the run's record states every team's episodes and wall time",
+    )
+    team_sizes: list[Annotated[int, Field(ge=1, le=MAX_TEAM_SIZES)]] | None = Field(
+        None,
+        max_length=MAX_TEAM_SIZES,
+        description="team sizes k to train a team for besides the fleet's N (one training each, one after "
+        "another): a mission of k robots flies the team built for k, and robots switch to the team for those "
+        "left when a teammate drops out (default: N alone)",
+    )
+    variant: Literal["cepg", "cepg+", "c-cepg"] | None = Field(  # shared.core.choices.VARIANTS
+        None, description="CE-PG's variant (default: the current version's where it is a CE-PG team, else cepg)"
+    )
+    hyperparameters: dict[MarlMethod, dict[str, int | float | bool]] = Field(
+        default_factory=dict,
+        description='a MARL baseline\'s hyperparameters by method, e.g. {"masac": {"lr": 0.0001}} (checked when '
+        "the run starts: an unknown name fails it at once, naming it)",
     )
     beta: float = Field(
         train_config.default("beta")[0], ge=0.0, le=1.0, allow_inf_nan=False, description="Eq. 9's beta (1 = PG)"
     )
     lr: float = Field(
-        train_config.default("lr")[0], gt=0.0, lt=1.0, allow_inf_nan=False, description="Adam learning rate"
+        train_config.default("lr")[0], gt=0.0, lt=1.0, allow_inf_nan=False, description="CE-PG's Adam learning rate"
     )
     seed: Annotated[int, Field(ge=0, le=2**53 - 1), INTEGRAL] = Field(
         train_config.default("seed"), description="training and gate seed"
@@ -125,6 +176,31 @@ class TrainingParams(BaseModel):
         "the default is `mures train`'s",
     )
 
+    @model_validator(mode="after")
+    def _consistent(self) -> TrainingParams:
+        if self.candidates is not None and self.algorithm != "best":
+            raise ValueError("candidates are for algorithm best")
+        if len(set(self.candidates or ())) != len(self.candidates or ()):
+            raise ValueError("candidates must not repeat a method")
+        if self.algorithm == "pg":
+            if "beta" in self.model_fields_set and self.beta != 1.0:
+                raise ValueError("pg is CE-PG with beta = 1: leave beta out, or use cepg")
+            self.beta = 1.0
+        unused = sorted(set(self.hyperparameters) - set(self.methods()))
+        if unused:
+            raise ValueError(f"hyperparameters for {', '.join(unused)}, which this run does not train")
+        return self
+
+    def hyperparameters_of(self, method: str) -> dict[str, int | float | bool]:
+        """The hyperparameters given for ``method`` (none: its documented defaults)."""
+        return next((v for k, v in self.hyperparameters.items() if k == method), {})
+
+    def methods(self) -> tuple[str, ...]:
+        """The methods this run trains a team with."""
+        if self.algorithm == "best":
+            return tuple(self.candidates or DEFAULT_CANDIDATES)
+        return (self.algorithm,)
+
 
 def _die_with_parent(parent_pid: int) -> None:
     """A training process must not outlive its server (a kill -9 of the server included): Linux
@@ -146,19 +222,27 @@ def _die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def run_training(job: dict[str, Any], events: Any, cancel: Any) -> None:
-    """The training process. Puts {"type": "progress"|"done"|"failed"|"cancelled", ...} on ``events``."""
+def run_training(job: dict[str, Any], events: Any, cancel: Any, pause: Any) -> None:
+    """The training process. Puts {"type": "progress"|"done"|"failed"|"cancelled"|"paused", ...}
+    on ``events``; stops at its next check once ``cancel`` (the operator's) or ``pause`` (the
+    server's stop: the run resumes at the next start) is set."""
     _die_with_parent(job["server_pid"])
     try:
-        events.put({"type": "done", **_train(job, events, cancel)})
+        events.put({"type": "done", **_TrainingRun(job, events, cancel, pause).run()})
     except _Cancelled:
         events.put({"type": "cancelled"})
+    except _Paused:
+        events.put({"type": "paused"})
     except Exception as exc:  # reported to the operator, never crashes the server
         events.put({"type": "failed", "error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc()})
 
 
 class _Cancelled(Exception):
     pass
+
+
+class _Paused(Exception):
+    """The server is stopping: the run stops where it is and resumes at the next start."""
 
 
 def measured_links(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -181,23 +265,20 @@ def measured_links(records: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def _train(job: dict[str, Any], events: Any, cancel: Any) -> dict[str, Any]:
-    """A training run, in the training process: EM on the fleet's records, CE-PG in simulation
-    under the estimated model, the evaluation gate; the new snapshot written to job["staging"]."""
-    return _TrainingRun(job, events, cancel).run()
-
-
 class _TrainingRun:
-    """One training run's steps, each telling the server its progress (``say``) and stopping at
-    the next check once the run is cancelled."""
+    """One training run, in the training process: EM on the fleet's records, its teams trained
+    in simulation under the estimated model (training_server/methods.py), the evaluation gate,
+    the team decision, the new snapshot written to job["staging"]. Each step tells the server its
+    progress (``say``) and stops at the next check once the run is cancelled or paused."""
 
-    def __init__(self, job: dict[str, Any], events: Any, cancel: Any) -> None:
+    def __init__(self, job: dict[str, Any], events: Any, cancel: Any, pause: Any) -> None:
         import torch
 
         from shared.core.graph import graph_from_dict
         from shared.learning.team_snapshot import load_snapshot
 
-        self.job, self.events, self.cancel = job, events, cancel
+        self.job, self.events, self.cancel, self.pause = job, events, cancel, pause
+        self.folder = RunFolder(job["folder"])
         self.p = TrainingParams.model_validate(job["params"])
         if self.p.threads:
             torch.set_num_threads(self.p.threads)
@@ -211,31 +292,67 @@ class _TrainingRun:
         self.events.put({"type": "progress", "phase": phase, "elapsed_s": elapsed, **kw})
 
     def run(self) -> dict[str, Any]:
-        data, fit, held = self.missions()
-        model, gate_model, em_info = self.estimate_models(data, fit, held)
-        if self.cancel.is_set():
-            raise _Cancelled
-        cfg, res = self.train_policy(model)
-        figures = self.gate(res.policy, model, gate_model, len(held.length))
-        passed = figures["new"]["mean_capture_time"] <= figures["current"]["mean_capture_time"]
-        team = self.team_decision(res.policy, model, gate_model)
-        self.write_snapshot(cfg, res, model, team["team_searcher"])
+        for method in self.p.methods():  # a misnamed hyperparameter fails the run now, not after EM
+            check_hyperparameters(method, self.p.hyperparameters_of(method))
+        model, gate_model, em_info = self.models()
+        self.check()
+        N = self.current.robots
+        trained = {m: self.train(m, N, model) for m in self.p.methods()}
+        figures = self.evaluate(trained, gate_model, em_info["held_out"])
+        chosen = min(trained, key=lambda m: (figures[m]["mean_capture_time"], self.p.methods().index(m)))
+        gate = {"current": figures["current"], "new": figures[chosen]}
+        passed = gate["new"]["mean_capture_time"] <= gate["current"]["mean_capture_time"]
+        sizes = sorted(set(self.p.team_sizes or ()) - {N})
+        others = {k: self.train(chosen, k, model) for k in sizes}
+        new = trained[chosen]
+        team = self.team_decision(new.snapshot.policy, model, gate_model)
+        self.write_snapshot(new, others, team["team_searcher"])
         train_keys = ("episodes", "env_steps", "wall_seconds", "episodes_per_second")
+        teams = [t for t in (*trained.values(), *others.values())]
         return {
             "metrics": {
                 "em": em_info,
-                "train": {k: res.summary[k] for k in train_keys},
+                "algorithm": self.p.algorithm,
+                "chosen": chosen,
+                "train": {k: new.summary.get(k) for k in train_keys},
+                "teams": [
+                    {"method": t.method, "robots": t.robots, **{k: t.summary.get(k) for k in train_keys}}
+                    | ({"resumed": t.summary["resumed"]} if t.summary.get("resumed") else {})
+                    for t in teams
+                ],
+                "candidates": [{"method": "current", **figures["current"]}]
+                + [
+                    {"method": m, **figures[m], "training": {k: t.summary.get(k) for k in ("episodes", "wall_seconds")}}
+                    for m, t in trained.items()
+                ],
+                "team_sizes": sorted({N, *sizes}),
                 "team": team,
                 "gate": {
-                    **figures,
+                    **gate,
                     "passed": passed,
                     "enforced": self.p.gate,
-                    "model": f"EM on {len(held.length)} held-out missions" if len(held.length) else "the uniform walk",
+                    "model": f"EM on {em_info['held_out']} held-out missions"
+                    if em_info["held_out"]
+                    else "the uniform walk",
                 },
                 "wall_seconds": round(time.perf_counter() - self.t0, 2),
             },
             "passed": passed or not self.p.gate,
         }
+
+    def models(self) -> tuple[Any, Any, dict[str, Any]]:
+        """EM's model and the gate's (``estimate_models`` on the fleet's ``missions``), kept in the
+        run's folder: a resumed run trains on the same model it started with."""
+        saved = self.folder.load_models(self.graph)
+        if saved is not None:
+            models, info = saved
+            self.links = info.pop("links")
+            self.say("em", message="resuming: EM's models as the run estimated them before the restart")
+            return models["fit"], models["gate"], info
+        data, fit, held = self.missions()
+        model, gate_model, em_info = self.estimate_models(data, fit, held)
+        self.folder.save_models({"fit": model, "gate": gate_model}, {**em_info, "links": self.links})
+        return model, gate_model, em_info
 
     def missions(self) -> tuple[Any, Any, Any]:
         """The fleet's missions (robots' positions and observations only), and their split into
@@ -296,8 +413,7 @@ class _TrainingRun:
                 last[0] = time.perf_counter()
                 message = f"EM pass {iteration} {which} (log-likelihood {loglik:.1f})"
                 self.say("em", iteration=iteration, max_iter=self.p.em_max_iter, message=message)
-            if self.cancel.is_set():
-                raise _Cancelled
+            self.check()
 
         return em(
             self.graph,
@@ -310,27 +426,30 @@ class _TrainingRun:
             b0_pseudo_count=self.p.em_b0_pseudo_count,
         )
 
-    def train_policy(self, model: Any) -> tuple[Any, Any]:
-        """Step 2: CE-PG in simulation under the estimated model, from the current policy."""
-        from shared.learning.config import TrainConfig
-        from shared.learning.train import train
-
-        p, current = self.p, self.current
-        cfg = TrainConfig(  # the other fields keep TrainConfig's defaults
-            robots=current.robots,
-            episodes=p.episodes,
-            beta=[p.beta],
-            lr=[p.lr],
-            variant=current.variant,
-            belief="true",
-            seed=p.seed,
-            hidden=current.policy.H,
+    def train(self, method: str, robots: int, model: Any) -> TrainedTeam:
+        """A team of ``method`` for ``robots`` robots in simulation under the EM model: the one
+        this run trained before a restart, else trained now (a MARL team from its checkpoint)."""
+        done = self.folder.load_team(method, robots, self.graph)
+        if done is not None:
+            self.say("train", method=method, robots=robots, message=f"{method} for {robots} robots: trained before")
+            return done
+        episodes = self.p.episodes or max(256, round(default_episodes(method) * self.p.budget_fraction))
+        if method in ("cepg", "pg"):  # whole batches
+            batch = train_config.default("batch")
+            planned = -(-episodes // batch) * batch
+            rounded = f" ({episodes:,} asked, rounded up to whole batches of {batch})" if planned != episodes else ""
+        else:
+            planned, rounded = episodes, ""
+        resumed = self.folder.checkpoint_dir(method, robots).exists()
+        self.say(
+            "train",
+            method=method,
+            robots=robots,
+            episodes=0,
+            total=planned,
+            message=f"training {method} for {robots} robots, {planned:,} episodes{rounded}"
+            + (" (resuming from its checkpoint)" if resumed else ""),
         )
-        planned = -(-p.episodes // cfg.batch) * cfg.batch  # whole batches
-        rounded = (
-            f" ({p.episodes:,} asked, rounded up to whole batches of {cfg.batch})" if planned != p.episodes else ""
-        )
-        self.say("train", episodes=0, total=planned, message=f"training {planned:,} episodes{rounded}")
         last = [0.0]
 
         def on_progress(point: dict[str, Any]) -> None:
@@ -339,46 +458,65 @@ class _TrainingRun:
                 last[0] = now
                 self.say(
                     "train",
-                    episodes=point["episodes"],
-                    total=point["total"],
+                    method=method,
+                    robots=robots,
+                    episodes=int(point["episodes"]),
+                    total=int(point["total"]),
                     mean_capture_time=round(float(point.get("mean_capture_time", float("nan"))), 3),
                 )
 
-        res = train(
-            self.graph,
-            model,
-            self.sensor,
-            cfg,
-            init_policy=current,
-            progress=on_progress,
-            should_stop=self.cancel.is_set,
+        team = train_team(
+            method,
+            robots,
+            episodes,
+            (self.graph, model, self.sensor),
+            self.p,
+            self.current,
+            self.folder,
+            on_progress,
+            self.stopping,
         )
-        if res.interrupted:
+        if team is None:
+            raise _Cancelled if self.cancel.is_set() else _Paused
+        return team
+
+    def check(self) -> None:
+        """Stop here if the run is cancelled (``_Cancelled``) or the server is stopping (``_Paused``)."""
+        if self.cancel.is_set():
             raise _Cancelled
-        return cfg, res
+        if self.pause.is_set():
+            raise _Paused
 
-    def gate(self, policy: Any, model: Any, gate_model: Any, held: int) -> dict[str, dict[str, Any]]:
-        """Step 3, the evaluation gate: the new and the current policy on the same seeds under the
-        held-out missions' model, which the new policy was not trained on (a model fitted on few
-        missions flatters the policy trained on it; the prior keeps the held-out one cautious)."""
-        from shared.engine.evaluate import evaluate
-        from shared.learning.team_snapshot import PolicySearcher, Snapshot
+    def stopping(self) -> bool:
+        """Stop training: the run is cancelled, or the server is stopping (it resumes at the next start)."""
+        return bool(self.cancel.is_set() or self.pause.is_set())
 
-        p, current, graph, sensor = self.p, self.current, self.graph, self.sensor
+    def evaluate(self, trained: dict[str, TrainedTeam], gate_model: Any, held: int) -> dict[str, dict[str, Any]]:
+        """The evaluation gate: the current version and each team trained on the same seeds under
+        the held-out missions' model, which no new team was trained on (a model fitted on few
+        missions flatters the policy trained on it; the prior keeps the held-out one cautious):
+        mean capture time, its 95% CI, and the paired difference to the current version."""
+        from shared.engine.evaluate import evaluate, mean_ci95
+        from shared.learning.team_snapshot import PolicySearcher
+
+        p, graph, sensor, N = self.p, self.graph, self.sensor, self.current.robots
         under = f"the model of {held} held-out missions" if held else "the uniform walk"
-        self.say("gate", message=f"evaluating new and current policy on {p.gate_episodes} episodes under {under}")
-        new = Snapshot(
-            meta={"variant": current.variant, "robots": current.robots}, policy=policy, model=model, sensor=sensor
-        )
-        figures = {}
-        for name, snap in (("current", current), ("new", new)):
+        teams = {"current": self.current, **{m: t.snapshot for m, t in trained.items()}}
+        self.say("gate", message=f"evaluating {', '.join(teams)} on {p.gate_episodes} episodes under {under}")
+        figures, times = {}, {}
+        for name, snap in teams.items():
 
-            def team(seed: int, snap: Snapshot = snap) -> PolicySearcher:
-                return PolicySearcher(snap, graph, sensor, current.robots, seed=seed)
+            def team(seed: int, snap: Any = snap) -> PolicySearcher:
+                return PolicySearcher(snap, graph, sensor, N, seed=seed)
 
-            r = evaluate(graph, gate_model, sensor, current.robots, team, episodes=p.gate_episodes, seed=p.seed + 1)
+            r = evaluate(graph, gate_model, sensor, N, team, episodes=p.gate_episodes, seed=p.seed + 1)
             summary = r.summary()
+            times[name] = np.asarray(r.capture_time, dtype=np.float64)
             figures[name] = {k: summary[k] for k in ("mean_capture_time", "ci95", "censored_fraction", "episodes")}
+            self.check()
+        for name in trained:
+            diff, half = mean_ci95(times[name] - times["current"])
+            figures[name] |= {"paired_difference": round(diff, 3), "paired_ci95": round(half, 3)}
         return figures
 
     def team_decision(self, policy: Any, model: Any, gate_model: Any) -> dict[str, Any]:
@@ -427,29 +565,29 @@ class _TrainingRun:
             "paired_ci95": round(half, 3),
         }
 
-    def write_snapshot(self, cfg: Any, res: Any, model: Any, team_searcher: str) -> None:
-        from shared.learning.team_snapshot import save_snapshot
+    def write_snapshot(self, new: TrainedTeam, others: dict[int, TrainedTeam], team_searcher: str) -> None:
+        """The new version's snapshot: the chosen method's team for N, its teams for the other
+        team sizes, the team searcher decided."""
+        from shared.core.snapshot_format import write_snapshot
+        from shared.learning.team_snapshot import policy_weights
 
         out = Path(self.job["staging"])
         shutil.rmtree(out, ignore_errors=True)
-        config = {
-            **cfg.to_dict(),
-            "target": "em-estimate",
-            "map": self.graph.name,
-            "parent_version": self.job["parent"],
-        }
-        beta = cfg.per_robot(cfg.beta, "beta")
-        save_snapshot(
+        meta = new.snapshot.meta
+        config = {**meta["training"], "parent_version": self.job["parent"], "run_algorithm": self.p.algorithm}
+        write_snapshot(
             out,
-            res.policy,
             self.graph,
-            model,
+            policy_weights(new.snapshot.policy),
+            new.snapshot.model,
             self.sensor,
-            self.current.variant,
-            beta,
+            meta["variant"],
+            meta["beta"],
             config,
-            res.summary,
+            new.summary,
+            algorithm=meta.get("algorithm", "cepg"),
             team_searcher=team_searcher,
+            teams={k: policy_weights(t.snapshot.policy) for k, t in others.items()},
         )
 
 
@@ -463,6 +601,7 @@ def split_missions(data: Any, holdout: float, seed: int) -> tuple[Any, Any]:
 
 
 CURVE_POINTS = 400  # a run's learning curve keeps at most this many points
+PAUSE_WAIT_S = 60.0  # how long a stopping server waits for its training process to pause (a MARL checkpoint)
 
 
 class Supervisor:
@@ -475,6 +614,7 @@ class Supervisor:
         self.cancels: dict[str, Any] = {}
         self.lock = threading.Lock()
         self.stopping = threading.Event()
+        self.pause = self.ctx.Event()  # the server is stopping: the running run pauses, to resume at the next start
         self.thread = threading.Thread(target=self._loop, name="training-supervisor", daemon=True)
         self.current_proc: Any = None
 
@@ -495,17 +635,31 @@ class Supervisor:
         return True
 
     def stop(self) -> None:
+        """The server is stopping: the running run pauses (a MARL team saves its checkpoint) and
+        stays running in the store, as do the queued ones; the next start resumes them
+        (``resume_interrupted``)."""
         self.stopping.set()
-        with self.lock:
-            for ev in self.cancels.values():
-                ev.set()
+        self.pause.set()
         self.queue.put("")
         proc = self.current_proc
         if proc is not None:
-            proc.join(10)
+            proc.join(PAUSE_WAIT_S)
             if proc.is_alive():
                 proc.kill()
         self.thread.join(15)
+
+    def resume_interrupted(self) -> list[tuple[str, str]]:
+        """At the server's start: the runs a previous server process left queued or running go on
+        (queued again, in the order they were created; a run's folder holds what it had done),
+        except those an operator had cancelled. Returns (run, status)."""
+        out = self.server.store.requeue_interrupted_runs()
+        resumed = {run_id for run_id, status in out if status == "queued"}
+        for stale in (self.server.data_dir / "runs").glob("*"):  # folders of runs that ended meanwhile
+            if stale.name not in resumed:
+                shutil.rmtree(stale, ignore_errors=True)
+        for run_id in (run_id for run_id, status in out if status == "queued"):
+            self.submit(run_id)
+        return out
 
     def _loop(self) -> None:
         while not self.stopping.is_set():
@@ -533,9 +687,18 @@ class Supervisor:
         if cancel.is_set():
             store.update_run(run_id, status="cancelled", finished=time.time())
             return
-        parent = srv.current_version()
+        folder = srv.data_dir / "runs" / run_id
+        folder.mkdir(parents=True, exist_ok=True)
+        started = folder / "run.json"  # the version the run started from: a resumed run goes on from it
+        resumed = started.is_file()
+        if resumed:
+            parent = int(json.loads(started.read_text(encoding="utf-8"))["parent"])
+        else:
+            parent = srv.current_version()
+            started.write_text(json.dumps({"parent": parent}), encoding="utf-8")
         staging = srv.data_dir / "staging" / run_id
         job = {
+            "folder": str(folder),
             "params": run["params"],
             "graph": srv.graph.to_json(),
             "db": store.url,
@@ -546,13 +709,25 @@ class Supervisor:
             "staging": str(staging),
         }
         events = self.ctx.Queue()
-        proc = self.ctx.Process(target=run_training, args=(job, events, cancel), name=f"train-{run_id}", daemon=True)
-        store.update_run(run_id, status="running", started=time.time(), progress={"phase": "starting"})
-        log.info("training run %s started from version %s: %s", run_id, parent, json.dumps(run["params"]))
+        proc = self.ctx.Process(
+            target=run_training, args=(job, events, cancel, self.pause), name=f"train-{run_id}", daemon=True
+        )
+        if resumed:
+            store.update_run(run_id, status="running", progress={"phase": "starting", "message": "resuming"})
+        else:
+            store.update_run(run_id, status="running", started=time.time(), progress={"phase": "starting"})
+        log.info(
+            "training run %s %s from version %s: %s",
+            run_id,
+            "resumed" if resumed else "started",
+            parent,
+            json.dumps(run["params"]),
+        )
         self.current_proc = proc
         proc.start()
         result: dict[str, Any] | None = None
-        curve: list[list[float]] = []  # the learning curve: [episodes, mean capture time of the batches]
+        curve: list[list[float]] = []  # the learning curve of the team in training: [episodes, mean capture time]
+        training: tuple[Any, Any] | None = None  # (method, robots) of that team
         while result is None:
             try:
                 ev = events.get(timeout=0.5)
@@ -568,6 +743,8 @@ class Supervisor:
                 point = {k: v for k, v in ev.items() if k != "type"}
                 if isinstance(point.get("mean_capture_time"), float) and not math.isfinite(point["mean_capture_time"]):
                     del point["mean_capture_time"]  # no finished episode in the batch yet: no figure
+                if point.get("phase") == "train" and (point.get("method"), point.get("robots")) != training:
+                    training, curve = (point.get("method"), point.get("robots")), []  # the next team's curve
                 if point.get("phase") == "train" and isinstance(point.get("mean_capture_time"), float):
                     curve.append([point["episodes"], point["mean_capture_time"]])
                     if len(curve) > CURVE_POINTS:  # long runs: every other point
@@ -578,6 +755,12 @@ class Supervisor:
         proc.join(10)
         self.current_proc = None
         now = time.time()
+        if result["type"] == "paused" or (result["type"] == "failed" and self.pause.is_set()):
+            store.update_run(
+                run_id, progress={"phase": "paused", "message": "server stopping; resumes at its next start"}
+            )
+            log.info("training run %s paused by the server's stop; it resumes at the next start", run_id)
+            return
 
         def finish(status: str, phase: str, **fields: Any) -> None:
             """The run's end: its status and last phase, the learning curve kept."""
@@ -610,3 +793,4 @@ class Supervisor:
             finish("succeeded", "canary" if staged else "done", metrics=result["metrics"], version=version)
             log.info("training run %s succeeded: version %d%s", run_id, version, " (on trial)" * staged)
         shutil.rmtree(staging, ignore_errors=True)
+        RunFolder(folder).remove()

@@ -739,9 +739,10 @@ class Store:
             out.append(d)
         return out
 
-    def end_interrupted_runs(self) -> list[tuple[str, str]]:
+    def requeue_interrupted_runs(self) -> list[tuple[str, str]]:
         """Runs left queued or running by a previous server process did not finish: each becomes
-        cancelled if an operator had asked for that, failed otherwise. Returns (run, status)."""
+        cancelled if an operator had asked for that, queued again otherwise (the supervisor
+        resumes it). Returns (run, status)."""
         r = training_runs.c
         now = time.time()
         out = []
@@ -750,10 +751,10 @@ class Store:
                 select(r.id, r.cancel_requested).where(r.status.in_(("queued", "running"))).order_by(r.created)
             ).all()
             for run_id, cancelled in rows:
-                status = "cancelled" if cancelled is not None else "failed"
-                error = None if cancelled is not None else "server restarted during the run"
-                conn.execute(
-                    update(training_runs).where(r.id == run_id).values(status=status, finished=now, error=error)
-                )
-                out.append((run_id, status))
+                if cancelled is not None:
+                    conn.execute(update(training_runs).where(r.id == run_id).values(status="cancelled", finished=now))
+                    out.append((run_id, "cancelled"))
+                else:
+                    conn.execute(update(training_runs).where(r.id == run_id).values(status="queued"))
+                    out.append((run_id, "queued"))
         return out

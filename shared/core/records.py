@@ -23,6 +23,7 @@ from shared.core.models import ModelError, Sensor
 
 SCHEMA = "mures.episode/1"
 MAX_STEPS = 100_000
+MAX_MISSION_ROBOTS = 256  # robots in one mission at most (the missions API's limit)
 MAX_INT = 2**63 - 1  # integers must fit the database's 64 bits
 MAX_RECORD_BYTES = 16 * 1024 * 1024
 SET_ASIDE_REASONS = ("impossible",)  # the codes that start a set-aside record's "<code>: <why>" (unexplained)
@@ -192,6 +193,15 @@ def _coordination(raw: Any) -> dict[str, Any] | None:
                 "coordination's observations_heard and observations_sent must be integers >= 0, heard at most sent",
             )
         out["observations_heard"], out["observations_sent"] = heard, sent
+    dropped, flown_for = raw.get("teammates_dropped"), raw.get("flown_for")
+    if dropped is not None or flown_for is not None:  # teammates withdrawn mid-mission (records since team sizes)
+        if not (_count(dropped) and _count(flown_for) and 1 <= flown_for <= MAX_MISSION_ROBOTS):
+            raise RecordError(
+                "coordination",
+                "coordination's teammates_dropped must be an integer >= 0 and flown_for one in "
+                f"1..{MAX_MISSION_ROBOTS}",
+            )
+        out["teammates_dropped"], out["flown_for"] = dropped, flown_for
     return out
 
 

@@ -21,8 +21,13 @@ Snapshots written before this format hold ``weights.pt`` (torch's format). ``rea
 takes a ``legacy`` reader for those (shared/learning/team_snapshot.py passes torch's); without one it
 says how to convert the snapshot.
 
-Running a team of k robots on a snapshot trained for N: robot i runs network i for k <= N (the
-others dropped out); for k > N robot i runs network i mod N, and ``team_note`` says so.
+A snapshot may also hold teams trained for other team sizes k (``teams`` in policy.json, each
+its own weights file ``team-<k>.safetensors`` with the same tensors for k networks, checked as
+the main one is): a mission of k robots flies the team built for k where there is one
+(``team_for``), and its robots switch to the team for the robots left when a teammate drops out.
+
+Running a team of k robots on a snapshot with no team for k: robot i runs network i of the main
+team (N networks) for k <= N; for k > N robot i runs network i mod N, and ``team_note`` says so.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +58,13 @@ LEGACY_WEIGHTS = "weights.pt"
 META = "policy.json"
 SUMMARY = "training_summary.json"
 PARAMS = ("w_pos", "w_bel", "b1", "w2", "b2")
+MAX_TEAM = 64  # the largest team size a snapshot may hold a team for
+
+
+def team_file(k: int) -> str:
+    """The weights file of a snapshot's team for ``k`` robots (beside the main team's)."""
+    return f"team-{k}.safetensors"
+
 
 Weights = dict[str, np.ndarray]
 
@@ -103,9 +115,25 @@ class TeamInfo:
 
 @dataclass
 class SnapshotData(TeamInfo):
-    """A checked snapshot with its float32 weights (``param_shapes``)."""
+    """A checked snapshot with its float32 weights (``param_shapes``) and those of its teams for
+    other team sizes (``teams``: k -> weights of k networks)."""
 
     weights: Weights
+    teams: dict[int, Weights] = field(default_factory=dict)
+
+    @property
+    def team_sizes(self) -> list[int]:
+        """The team sizes this snapshot holds a team built for: its own N and its ``teams``."""
+        return sorted({self.robots, *self.teams})
+
+    def team_for(self, k: int) -> SnapshotData:
+        """The snapshot as flown by a mission of ``k`` robots: its team built for k where it holds
+        one (meta's robots and hidden then k's), else itself (robot i on network i, or i mod N)."""
+        weights = self.teams.get(k)
+        if weights is None or k == self.robots:
+            return self
+        meta = {**self.meta, "robots": k, "hidden": int(weights["w_pos"].shape[2]), "flown_for": k}
+        return SnapshotData(meta=meta, model=self.model, sensor=self.sensor, weights=weights)
 
 
 def write_snapshot(
@@ -120,17 +148,26 @@ def write_snapshot(
     summary: dict[str, Any],
     algorithm: str = "cepg",
     team_searcher: str | None = None,
+    teams: dict[int, Weights] | None = None,
 ) -> Path:
     """Write a snapshot directory atomically (an existing one at ``path`` is replaced).
     ``algorithm`` names the method that trained the team (ALGORITHMS); every one runs the same way.
     ``team_searcher`` ("fhpe-sa", "c-cepg" or "none"; shared/core/team.py) is what its robots fly
-    together when their links allow; without one, a c-cepg team flies c-cepg and the others none."""
+    together when their links allow; without one, a c-cepg team flies c-cepg and the others none.
+    ``teams``: the weights of teams built for other team sizes k (k networks each), flown by
+    missions of k robots (``SnapshotData.team_for``)."""
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}")
     if algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algorithm!r}")
     robots, n, hidden = weights["w_pos"].shape
     _check_shapes(weights, param_shapes(n, robots, hidden), str(path))
+    blobs = {}
+    for k, team in sorted((teams or {}).items()):
+        if not 1 <= k <= MAX_TEAM or k == robots:
+            raise ValueError(f"team size {k}: expected 1..{MAX_TEAM}, other than the main team's {robots}")
+        _check_shapes(team, param_shapes(n, k, team["w_pos"].shape[2]), f"{path} team {k}")
+        blobs[k] = save_safetensors({name: np.ascontiguousarray(team[name], dtype=np.float32) for name in PARAMS})
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     blob = save_safetensors({k: np.ascontiguousarray(weights[k], dtype=np.float32) for k in PARAMS})
@@ -152,6 +189,16 @@ def write_snapshot(
         "weights": {"file": WEIGHTS, "sha256": sha256_hex(blob), "bytes": len(blob)},
         "summary": summary,
     }
+    if blobs:
+        meta["teams"] = {
+            str(k): {
+                "file": team_file(k),
+                "sha256": sha256_hex(b),
+                "bytes": len(b),
+                "hidden": int((teams or {})[k]["w_pos"].shape[2]),
+            }
+            for k, b in blobs.items()
+        }
     if team_searcher is not None:
         if team_searcher not in (*TEAM_SEARCHERS, "none"):
             raise ValueError(f"unknown team searcher {team_searcher!r}")
@@ -159,6 +206,8 @@ def write_snapshot(
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
         atomic_write(tmp / WEIGHTS, blob)
+        for k, b in blobs.items():
+            atomic_write(tmp / team_file(k), b)
         atomic_write(tmp / META, json.dumps(meta, indent=1) + "\n")
         atomic_write(tmp / SUMMARY, json.dumps(summary, indent=1) + "\n")
         if path.exists():
@@ -248,7 +297,35 @@ def read_snapshot(path: str | Path, graph: Graph, legacy: Callable[[bytes], Weig
         sensor = Sensor(float(s["eta_fn"]), float(s["eta_fp"]), str(s["detection"]))
     except (ModelError, KeyError, TypeError, ValueError) as exc:
         raise SnapshotError(f"{where}/{META}: bad belief model or sensor ({exc})") from None
-    return SnapshotData(meta=meta, weights={k: weights[k] for k in PARAMS}, model=model, sensor=sensor)
+    teams = _read_teams(path, meta, graph.n)
+    return SnapshotData(meta=meta, weights={k: weights[k] for k in PARAMS}, model=model, sensor=sensor, teams=teams)
+
+
+def _read_teams(path: Path, meta: dict[str, Any], n: int) -> dict[int, Weights]:
+    """The teams for other team sizes that policy.json lists, each file's sha256 and shapes checked."""
+    listed = meta.get("teams", {})
+    if not isinstance(listed, dict):
+        raise SnapshotError(f"{path}/{META}: teams must be an object of team size -> weights file")
+    teams: dict[int, Weights] = {}
+    for key, entry in listed.items():
+        k = int(key) if isinstance(key, str) and key.isdigit() else 0
+        ok = isinstance(entry, dict) and entry.get("file") == team_file(k) and isinstance(entry.get("hidden"), int)
+        if not 1 <= k <= MAX_TEAM or k == int(meta["robots"]) or not ok:
+            raise SnapshotError(f"{path}/{META}: teams entry {key!r} is not a team size with its {team_file(k)}")
+        where = f"{path}/{entry['file']}"
+        try:
+            raw = (path / entry["file"]).read_bytes()
+        except FileNotFoundError:
+            raise SnapshotError(f"{path}: no {entry['file']}") from None
+        if sha256_hex(raw) != entry.get("sha256"):
+            raise SnapshotError(f"{where}: sha256 does not match {META} (corrupt or replaced file)")
+        try:
+            weights = dict(load_safetensors(raw))
+        except Exception as exc:
+            raise SnapshotError(f"{where}: cannot be read as weights ({exc})") from None
+        _check_shapes(weights, param_shapes(n, k, entry["hidden"]), where)
+        teams[k] = {name: weights[name] for name in PARAMS}
+    return teams
 
 
 def _check_shapes(weights: Any, expected: dict[str, tuple[int, ...]], where: str) -> None:
@@ -282,15 +359,20 @@ class PolicyAgent:
             raise SnapshotError(
                 "a c-cepg policy needs every robot's observations: fly it in a team (shared.core.team.TeamAgent)"
             )
-        k = snap.network_for(robot)
-        W = {name: np.asarray(w[k], dtype=np.float64) for name, w in snap.weights.items()}
-        self.w_pos, self.w_bel, self.b1 = W["w_pos"], W["w_bel"], W["b1"]  # (n, H), (n, H), (H,)
-        self.w2, self.b2 = W["w2"], W["b2"]  # (H, n), (n,)
+        self.fly(snap, robot)
         self.graph = graph
         self.filter = BeliefFilter(graph, snap.model, snap.sensor)
         self.rng = np.random.default_rng(seed)
         self.greedy_actions = greedy_actions
         self.belief: np.ndarray | None = None
+
+    def fly(self, snap: SnapshotData, robot: int) -> None:
+        """Decide from now on with network ``snap.network_for(robot)`` of ``snap`` (a team of the
+        same version for another team size: the belief, its model and the generator are kept)."""
+        k = snap.network_for(robot)
+        W = {name: np.asarray(w[k], dtype=np.float64) for name, w in snap.weights.items()}
+        self.w_pos, self.w_bel, self.b1 = W["w_pos"], W["w_bel"], W["b1"]  # (n, H), (n, H), (H,)
+        self.w2, self.b2 = W["w2"], W["b2"]  # (H, n), (n,)
 
     def reset(self, p0: int, z0: int) -> None:
         """b_0 ∝ Lambda(p_0, z_0) b0 (Theorem 1 at t = 0)."""

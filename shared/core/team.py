@@ -20,7 +20,10 @@ collective belief is complete, with its own decentralised policy when it is not:
   incomplete steps in a row, if set; back to the team's plan once complete again), and throughout
   while its links deliver too few of the teammates' observations in time (``LinkHistory``). A
   teammate silent for ``timeout_steps`` steps is dropped from the team's plan, and taken in again
-  when it reports.
+  when it reports. Its own policy is the version's team built for the mission's robots where the
+  version holds one (``SnapshotData.team_for``); a teammate known to have dropped out (its
+  liveliness token gone: ``withdraw``) leaves the plan at once, and the robot flies the team
+  built for the robots left from its next decision.
 
 Team searchers: ``fhpe-sa`` (FHPE-SA on the team's model, every robot computing the whole team's
 plan from its own copy of the same information, ties broken by a generator seeded by the mission
@@ -202,7 +205,11 @@ class TeamAgent:
         self.index = self.robots.index(me)
         self.seed, self.searcher = int(seed), searcher
         self.fallback_after, self.timeout_steps = fallback_after, timeout_steps
-        self.own = PolicyAgent(snap, graph, self.index, seed=self.seed if own_seed is None else own_seed, team=True)
+        self.snap = snap
+        self.withdrawn: set[str] = set()  # teammates known to have dropped out (``withdraw``)
+        team = snap.team_for(len(self.robots))
+        self.own = PolicyAgent(team, graph, self.index, seed=self.seed if own_seed is None else own_seed, team=True)
+        self.flown_for = team.robots if team is not snap else len(self.robots)  # the team size its policy is built for
         model = team_model or snap.model  # the team's (Gamma_hat, b0); the own policy keeps its own
         self.collective = CollectiveBelief(graph, model, snap.sensor, self.robots)
         if searcher == "fhpe-sa" and planner is None:
@@ -225,22 +232,41 @@ class TeamAgent:
             self.messages_heard += t > self.decided  # in time: before this robot decided at step t
             self.last_heard[robot] = max(self.last_heard[robot], t)
 
+    def withdraw(self, robot: str) -> bool:
+        """Teammate ``robot`` has dropped out of the mission (its liveliness token is gone): it
+        leaves the team's plan now, and this robot's own policy becomes the team built for the
+        robots left where the version holds one (same belief). False (nothing changes) for this
+        robot, a robot outside the mission or one withdrawn already."""
+        if robot == self.me or robot not in self.robots or robot in self.withdrawn:
+            return False
+        self.withdrawn.add(robot)
+        left = [r for r in self.robots if r not in self.withdrawn]
+        team = self.snap.team_for(len(left))
+        if team is not self.snap:
+            self.own.fly(team, left.index(self.me))
+            self.flown_for = len(left)
+        return True
+
     def _ages(self, t: int) -> dict[str, int | None]:
-        """Each teammate's steps since its latest observation at or before ``t`` (None: none yet)."""
+        """Each teammate's (not withdrawn) steps since its latest observation at or before ``t``
+        (None: none yet)."""
         out: dict[str, int | None] = {}
         for r in self.robots:
-            if r != self.me:
+            if r != self.me and r not in self.withdrawn:
                 last = self.collective.position(r, t)
                 out[r] = None if last is None else t - last[0]
         return out
 
     def live(self, t: int) -> list[str]:
-        """The teammates in the team's plan at step ``t``: this robot, and each other robot that
-        has reported within the last ``timeout_steps`` steps (all of them in the first steps)."""
+        """The teammates in the team's plan at step ``t``: this robot, and each other robot not
+        withdrawn that has reported within the last ``timeout_steps`` steps (all of them in the
+        first steps)."""
         ages = self._ages(t)
         out = []
         for r in self.robots:
             age = ages.get(r)  # None for this robot, and for a teammate not heard yet
+            if r in self.withdrawn:
+                continue
             if r == self.me or (t < self.timeout_steps if age is None else age < self.timeout_steps):
                 out.append(r)
         return out
@@ -260,7 +286,7 @@ class TeamAgent:
 
     def complete(self, t: int) -> bool:
         """Every live teammate's observation of step ``t`` is in (and some teammate is heard)."""
-        if len(self.robots) == 1:
+        if len(self.robots) - len(self.withdrawn) == 1:  # alone, or every teammate dropped out
             return True
         return self.heard(t) and set(self.live(t)) <= self.collective.reported(t)
 
@@ -278,7 +304,8 @@ class TeamAgent:
         self.incomplete_run = 0 if complete else self.incomplete_run + 1
         usable = complete or (self.heard(t) and self.fresh(t))
         gave_up = self.fallback_after is not None and self.incomplete_run >= self.fallback_after
-        poor_links = len(self.robots) > 1 and self.link_quality() < self.link_quality_min
+        alone = len(self.robots) - len(self.withdrawn) == 1
+        poor_links = not alone and self.link_quality() < self.link_quality_min
         if not usable or gave_up or poor_links:
             return self._own(p)
         mode = "team" if complete else "partial"
@@ -329,12 +356,15 @@ class TeamAgent:
         return -1 if last is None else last[1]
 
     def summary(self) -> dict[str, Any]:
-        """This robot's decisions by how they were made (``act``) and what its links delivered
-        (``link_counts``), as its record reports them."""
+        """This robot's decisions by how they were made (``act``), what its links delivered
+        (``link_counts``), the teammates that dropped out and the team size its own policy was
+        built for at the end (``withdraw``), as its record reports them."""
         return {
             "team_steps": self.steps["team"],
             "partial_steps": self.steps["partial"],
             "own_steps": self.steps["own"],
             "observations_heard": self.link_counts()[0],
             "observations_sent": self.link_counts()[1],
+            "teammates_dropped": len(self.withdrawn),
+            "flown_for": self.flown_for,
         }

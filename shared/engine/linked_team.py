@@ -4,7 +4,10 @@
 Each robot of each episode is a ``TeamAgent`` (shared/core/team.py), the decision code a robot
 agent runs. After every step each robot's observation (t, node, z) goes to each teammate as its
 own message: lost with probability ``link_loss``, else delivered ``link_delay`` steps later (0:
-before the teammates decide at that step). A withdrawn robot sends nothing and stays put. Each
+before the teammates decide at that step). A withdrawn robot sends nothing and stays put; with
+``known_withdrawals`` its teammates learn it at once (as robot agents do when its liveliness
+token goes: ``TeamAgent.withdraw``, which switches them to the team built for the robots left),
+else only from its silence. Each
 robot starts with what the same link delivered over its earlier missions (``HISTORY_SENT``
 messages), as a robot agent that has flown on that network has measured it.
 
@@ -59,6 +62,7 @@ class LinkedTeamSearcher:
         team_model: TargetModel | None = None,
         link_quality_min: float = LINK_QUALITY_MIN,
         history_sent: int = HISTORY_SENT,
+        known_withdrawals: bool = False,
     ) -> None:
         if not 0.0 <= link_loss <= 1.0:
             raise ValueError(f"link loss {link_loss} is not a probability in [0, 1]")
@@ -72,6 +76,7 @@ class LinkedTeamSearcher:
         self.link_rng = np.random.default_rng([seed, 1])  # the lost messages
         self.robots = [f"r{i + 1}" for i in range(n_robots)]
         self.team_model, self.link_quality_min, self.history_sent = team_model, link_quality_min, history_sent
+        self.known_withdrawals = known_withdrawals
         model = team_model or snap.model
         self.planner = FhpeSAPlanner(graph, model, snap.sensor) if searcher == "fhpe-sa" else None
         self.teams: dict[int, list[TeamAgent]] = {}  # slot -> the episode's robots
@@ -121,6 +126,9 @@ class LinkedTeamSearcher:
             team, inbox, t = self.teams[e], self.inbox[e], int(t_all[e])
             for i, agent in enumerate(team):
                 if not active[e, i]:
+                    if self.known_withdrawals:
+                        for mate in team:
+                            mate.withdraw(agent.me)
                     continue
                 p, zi = int(pos[e, i]), int(z[e, i])
                 agent.observe(agent.me, t, p, zi)

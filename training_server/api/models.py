@@ -11,7 +11,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.core.records import ID_RE
+from shared.core.records import ID_RE, MAX_MISSION_ROBOTS
 from training_server.jobs import INTEGRAL, TrainingParams
 
 RobotId = Annotated[str, Field(pattern=ID_RE.pattern, description="1-128 characters of A-Z a-z 0-9 _ . -")]
@@ -111,7 +111,7 @@ class MissionRequest(_Request):
         default=None,
         description="robot ids to fly, each once (default: every agent online)",
         min_length=1,
-        max_length=256,
+        max_length=MAX_MISSION_ROBOTS,
         json_schema_extra={"uniqueItems": True},
     )
     seed: Annotated[int, Field(ge=0, le=MAX_ID), INTEGRAL] | None = Field(
@@ -268,6 +268,12 @@ class Coordination(BaseModel):
     )
     observations_sent: int | None = Field(
         None, description="teammates' observations sent to it (each teammate's up to its latest step heard)"
+    )
+    teammates_dropped: int | None = Field(
+        None, description="teammates whose liveliness went during the mission (withdrawn from its team)"
+    )
+    flown_for: int | None = Field(
+        None, description="the team size its own policy was built for at the mission's end (the robots left)"
     )
 
 

@@ -68,8 +68,16 @@ def _render(request: Request, template: str, title: str, **extra: Any) -> HTMLRe
 def _page(template: str, title: str) -> Any:
     def handler(request: Request) -> HTMLResponse:
         from training_server.jobs import TrainingParams
+        from training_server.methods import DEFAULT_CANDIDATES, METHODS
 
-        return _render(request, template, title, defaults=TrainingParams())  # the retrain form's defaults
+        return _render(  # the retrain form's defaults and choices
+            request,
+            template,
+            title,
+            defaults=TrainingParams(),
+            methods=METHODS,
+            candidates=DEFAULT_CANDIDATES,
+        )
 
     return handler
 

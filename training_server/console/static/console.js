@@ -831,13 +831,37 @@ pages.training = async function (ctx) {
     else if (p.phase === "train" && p.total) [bar.max, bar.value] = [p.total, p.episodes];
     else if (p.phase === "em" && p.max_iter) [bar.max, bar.value] = [p.max_iter, p.iteration || 0];
     else bar.removeAttribute("value");
-    const where = p.phase === "train" && p.total ? `${p.episodes.toLocaleString()} of ${p.total.toLocaleString()} episodes` : "";
+    const team = p.phase === "train" && p.method ? `${p.method} for ${p.robots} robots: ` : "";
+    const where = p.phase === "train" && p.total ? `${team}${p.episodes.toLocaleString()} of ${p.total.toLocaleString()} episodes` : "";
     $("#run-message").textContent = `${r.status}${p.phase ? " · " + p.phase : ""}${where ? " · " + where : ""}${p.message ? " · " + p.message : ""}${r.version ? ` · published v${r.version}` : ""}`;
     const err = $("#run-error");
     err.hidden = !r.error;
     err.textContent = r.error ? `Why: ${r.error}` : "";
     drawCurve(p.curve);
+    candidates(r.metrics || {});
   }
+  function candidates(m) {
+    const table = $("#candidates-table");
+    const rows = m.candidates || [];
+    table.hidden = !rows.length;
+    table.querySelector("tbody").replaceChildren(
+      ...rows.map((c) => {
+        const t = c.training;
+        const ci = c.ci95 ? `${c.ci95[0].toFixed(2)} – ${c.ci95[1].toFixed(2)}` : "—";
+        const diff = c.paired_difference === undefined ? "—" : `${c.paired_difference >= 0 ? "+" : ""}${c.paired_difference.toFixed(2)} ± ${c.paired_ci95.toFixed(2)}`;
+        const cost = t ? `${(t.episodes || 0).toLocaleString()} episodes, ${Math.round(t.wall_seconds || 0)} s` : "—";
+        const name = c.method === "current" ? "current version" : c.method + (c.method === m.chosen ? " (chosen)" : "");
+        return el("tr", { "data-method": c.method }, el("td", {}, name), el("td", {}, c.mean_capture_time.toFixed(2)), el("td", {}, ci), el("td", {}, diff), el("td", {}, cost));
+      }),
+    );
+  }
+  function syncForm() {
+    const algorithm = $("#run-algorithm").value;
+    $("#run-candidates").hidden = algorithm !== "best";
+    $("#run-beta").closest("label").hidden = algorithm !== "cepg";
+  }
+  $("#run-algorithm").addEventListener("change", syncForm);
+  syncForm();
   async function refresh() {
     runs = (await api("/api/v1/training-runs")).items.reverse(); // newest first
     if (!selected && runs.length) selected = runs[0].id;
@@ -879,9 +903,10 @@ pages.training = async function (ctx) {
   }
   $("#run-form").addEventListener("submit", async (ev) => {
     ev.preventDefault();
+    const algorithm = $("#run-algorithm").value;
     const body = {
-      episodes: Number($("#run-episodes").value),
-      beta: Number($("#run-beta").value),
+      algorithm,
+      budget_fraction: Number($("#run-budget").value),
       seed: Number($("#run-seed").value),
       gate_episodes: Number($("#run-gate-episodes").value),
       min_missions: Number($("#run-min-missions").value),
@@ -889,6 +914,11 @@ pages.training = async function (ctx) {
       gate: $("#run-gate").checked,
       promote: $("#run-promote").checked,
     };
+    if ($("#run-episodes").value) body.episodes = Number($("#run-episodes").value);
+    if (algorithm === "cepg") body.beta = Number($("#run-beta").value);
+    if (algorithm === "best") body.candidates = [...document.querySelectorAll("#run-candidates input:checked")].map((x) => x.value);
+    const sizes = $("#run-team-sizes").value.split(/[\s,]+/).filter(Boolean);
+    if (sizes.length) body.team_sizes = sizes.map(Number);
     const r = await act("Training run queued", () => api("/api/v1/training-runs", { method: "POST", body }));
     if (r) selected = r.id;
     refresh();
