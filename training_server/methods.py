@@ -99,7 +99,7 @@ class RunFolder:
 
         from shared.core.files import atomic_write
 
-        arrays = {}
+        arrays: dict[str, Any] = {}
         for name, m in models.items():
             arrays |= {f"{name}.src": m.src, f"{name}.dst": m.dst, f"{name}.prob": m.prob, f"{name}.b0": m.b0}
         buf = io.BytesIO()

@@ -328,6 +328,39 @@ def _read_teams(path: Path, meta: dict[str, Any], n: int) -> dict[int, Weights]:
     return teams
 
 
+def combine_teams(main: str | Path, others: list[str | Path], out: str | Path, graph: Graph) -> SnapshotData:
+    """Write at ``out`` the snapshot ``main`` holding, besides its own team, the team of each of
+    ``others`` (snapshots for other team sizes on the same map and sensor; `mures snapshot
+    combine`); a SnapshotError names a snapshot that does not fit. The robots keep ``main``'s
+    belief model whatever team they fly (a team trained with its own EM estimate flies on it)."""
+    base = read_snapshot(main, graph)
+    teams = dict(base.teams)
+    for where in others:
+        other = read_snapshot(where, graph)
+        k = other.robots
+        if k == base.robots or k in teams:
+            raise SnapshotError(f"{where}: a team for {k} robots is there already")
+        if other.sensor != base.sensor:
+            raise SnapshotError(f"{where}: its sensor differs from {main}'s")
+        teams[k] = other.weights
+    m = base.meta
+    write_snapshot(
+        out,
+        graph,
+        base.weights,
+        base.model,
+        base.sensor,
+        m["variant"],
+        list(m.get("beta") or []),
+        {**m.get("training", {}), "teams_from": [str(w) for w in others]},
+        m.get("summary") or {},
+        algorithm=m.get("algorithm", "cepg"),
+        team_searcher=m.get("team_searcher"),
+        teams=teams,
+    )
+    return read_snapshot(out, graph)
+
+
 def _check_shapes(weights: Any, expected: dict[str, tuple[int, ...]], where: str) -> None:
     if not isinstance(weights, dict) or set(weights) != set(expected):
         got = sorted(weights) if isinstance(weights, dict) else type(weights).__name__

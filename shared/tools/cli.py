@@ -5,7 +5,7 @@
     mures estimate  (--env | --graph) --episodes FILE.jsonl --out model.json ...
     mures train     (--env | --graph) --robots N --out DIR [--beta 0.5] [--episodes 400000] ...
     mures map       (--env | --graph);  mures map import MAP.yaml --out GRAPH.json ...
-    mures fleet-sim | world | experiment | report | snapshot convert ...
+    mures fleet-sim | world | experiment | report | snapshot convert | snapshot combine ...
 
 Each family of commands adds its own parser: sim_commands (evaluate, simulate), estimate_command,
 train_command, fleet_commands (fleet-sim, world), experiment_commands (experiment, report),
@@ -18,11 +18,13 @@ from __future__ import annotations
 import argparse
 import sys
 
+import numpy as np
+
 from shared.core.graph import GraphError
 from shared.core.models import ModelError
 from shared.core.snapshot_format import SnapshotError
 from shared.engine.estimate import EMWorkerError
-from shared.tools.cli_args import CliError
+from shared.tools.cli_args import CliError, add_map_args
 from shared.tools.estimate_command import add_estimate_command
 from shared.tools.experiment_commands import add_experiment_commands
 from shared.tools.fleet_commands import add_fleet_commands
@@ -38,6 +40,25 @@ def cmd_snapshot_convert(args: argparse.Namespace) -> int:
     for d in args.dirs:
         done = convert_snapshot(d)
         print(f"{d}: {'converted to weights.safetensors' if done else 'already in the numpy-readable format'}")
+    return 0
+
+
+def cmd_snapshot_combine(args: argparse.Namespace) -> int:
+    from shared.core.snapshot_format import combine_teams, read_snapshot
+    from shared.tools.cli_args import graph_of
+
+    graph = graph_of(args)
+    snap = combine_teams(args.main, args.teams, args.out, graph)
+    sizes = ", ".join(str(k) for k in snap.team_sizes)
+    print(f"wrote {args.out}: {args.main}'s team for {snap.robots} robots, with teams for {sizes} robots")
+    for where in args.teams:
+        other = read_snapshot(where, graph).model
+        gap = float(np.abs(other.dense() - snap.model.dense()).max())
+        if gap > 1e-9:
+            print(
+                f"note: {where}'s belief model differs from {args.main}'s (largest |Gamma_hat| gap {gap:.3g}); "
+                "its robots fly on the latter's"
+            )
     return 0
 
 
@@ -61,6 +82,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("dirs", nargs="+", metavar="DIR", help="snapshot directories")
     c.set_defaults(func=cmd_snapshot_convert)
+    c = snap_sub.add_parser(
+        "combine",
+        help="one snapshot holding a team per team size: MAIN's and each TEAM's (a mission of k robots flies the "
+        "team built for k; give it to training-server --init-policy)",
+    )
+    add_map_args(c)
+    c.add_argument("main", metavar="MAIN", help="the snapshot whose team, model and settings the result keeps")
+    c.add_argument("teams", nargs="+", metavar="TEAM", help="snapshots of teams for other team sizes")
+    c.add_argument("--out", required=True, metavar="DIR", help="snapshot directory to write")
+    c.set_defaults(func=cmd_snapshot_combine)
     return parser
 
 

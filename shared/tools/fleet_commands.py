@@ -11,7 +11,7 @@ from typing import Any
 
 from shared.core.choices import DETECTIONS
 from shared.core.wire import add_zenoh_arguments
-from shared.learning.config import positive_int, whole_number
+from shared.learning.config import positive_int, seconds, whole_number
 from shared.learning.team_snapshot import load_snapshot
 from shared.tools.cli_args import CliError, add_map_args, add_world_args, eta_arg, probability, world_of
 
@@ -34,6 +34,10 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
     server_extra = ["--init-policy", str(Path(args.init_policy).resolve())] if args.init_policy else None
     if args.init_policy:
         load_snapshot(args.init_policy, graph)  # a clear error before anything starts
+    if args.step_timeout <= 0:
+        raise CliError("fleet-sim: --step-timeout must be more than 0 seconds")
+    if args.kill >= args.robots:
+        raise CliError(f"fleet-sim: --kill {args.kill} leaves no robot of {args.robots} to search")
     try:
         res = run_fleet_sim(
             graph,
@@ -54,6 +58,9 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             token_file=args.token_file,
             agent_token_file=args.agent_token_file,
             step_delay=args.step_delay,
+            step_timeout=args.step_timeout,
+            kill=args.kill,
+            kill_by=args.kill_by,
             server_extra=server_extra,
             agent_extra=["--link-loss", str(args.link_loss)] if args.link_loss else None,
         )
@@ -165,6 +172,24 @@ def add_fleet_commands(sub: Any) -> None:
         default=0.0,
         metavar="P",
         help="each agent drops each of its observations to its teammates with probability P (robot-agent --link-loss)",
+    )
+    p.add_argument(
+        "--kill",
+        type=whole_number,
+        default=0,
+        metavar="K",
+        help="in every mission, kill K robots (SIGKILL, drawn from the mission seed) at steps drawn from 1..--kill-by; "
+        "they are started again after the mission (default 0)",
+    )
+    p.add_argument(
+        "--kill-by", type=positive_int, default=10, metavar="T", help="the latest step of a kill (default 10)"
+    )
+    p.add_argument(
+        "--step-timeout",
+        type=seconds,
+        default=10.0,
+        metavar="S",
+        help="the world withdraws a robot that has not reported its step within S seconds (default 10)",
     )
     p.add_argument("--workdir", help="keep the server's data, agents' state and logs here (default: a temp dir)")
     p.add_argument("--server", metavar="URL", help="attach to this running server instead of starting one")

@@ -100,6 +100,9 @@ class SimulatedOperator:
         self.thread.join(5)
 
 
+KILLED_RECORD_WAIT_S = 15.0  # how long a mission waits for the records of its killed robots, started again
+
+
 @dataclass
 class Fleet:
     """Handles of a running simulated fleet (server, world, agents)."""
@@ -159,6 +162,53 @@ class Fleet:
             f"mission {mid}",
             every=0.01,
         )
+
+    def fly_losing(
+        self, robots: list[str], seed: int, kill: int, kill_by: int, timeout: float = 300.0
+    ) -> dict[str, Any]:
+        """A mission in which ``kill`` of ``robots`` (drawn from the mission seed) are killed
+        (SIGKILL: their liveliness goes, as a robot's that dies) each at a step drawn from 1..``kill_by``;
+        they are started again once the others have finished (their journals send what they flew)
+        and the mission is returned when every record is stored, with ``killed``: [robot, step]."""
+        rng = np.random.default_rng([seed, 57])
+        victims = [robots[i] for i in rng.choice(len(robots), size=kill, replace=False)]
+        schedule = sorted(zip((int(s) for s in rng.integers(1, kill_by + 1, size=kill)), victims, strict=True))
+        mid = self.api.post("/api/v1/missions", {"robots": robots, "seed": seed})["id"]
+        world = self.world.missions
+        killed = []
+        for step, robot in schedule:
+            wait_until(
+                lambda step=step: mid in world and (world[mid].t >= step or world[mid].ended),
+                timeout,
+                "the step",
+                every=0.002,
+            )
+            if world[mid].ended:
+                break
+            self.stop_agent(robot, signal.SIGKILL)
+            killed.append([robot, world[mid].t])
+        survivors = set(robots) - {r for r, _t in killed}
+        wait_until(
+            lambda: survivors <= set(self.api.get(f"/api/v1/missions/{mid}")["episodes_received"]),
+            timeout,
+            f"the records of mission {mid}'s robots left",
+            every=0.02,
+        )
+        for robot, _t in killed:
+            self.start_agent(robot)
+        wait_until(
+            lambda: {r for r, _t in killed} <= set(self.online()), 90, "the killed robots back online", every=0.1
+        )
+        try:  # a robot killed before its journal held a step has no record to send
+            m = wait_until(
+                lambda: (r := self.api.get(f"/api/v1/missions/{mid}"))["status"] == "completed" and r,
+                KILLED_RECORD_WAIT_S,
+                f"mission {mid}",
+                every=0.02,
+            )
+        except TimeoutError:
+            m = self.api.get(f"/api/v1/missions/{mid}")
+        return {**m, "killed": killed}
 
     def close(self) -> None:
         if self.operator is not None:
@@ -351,11 +401,14 @@ def run_fleet_sim(
     quiet: bool,
     serve: bool = False,
     retrains: int | None = None,
+    kill: int = 0,
+    kill_by: int = 10,
     **launch_kw: Any,
 ) -> dict[str, Any]:
     """Fly ``missions`` missions and return the summary (see ``mures fleet-sim``), retraining
-    every ``retrain_every`` missions (at most ``retrains`` times); with ``serve``, then keep the
-    fleet up for the operator console until Ctrl-C (or SIGTERM)."""
+    every ``retrain_every`` missions (at most ``retrains`` times), killing ``kill`` robots in each
+    at steps up to ``kill_by`` (``Fleet.fly_losing``); with ``serve``, then keep the fleet up for
+    the operator console until Ctrl-C (or SIGTERM)."""
     say = (lambda *_a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     tmp = None
     if workdir is None:
@@ -373,7 +426,12 @@ def run_fleet_sim(
     try:
         say(f"fleet-sim: {robots} agents online after {time.perf_counter() - t0:.1f} s; flying {missions} missions")
         for k in range(missions):
-            results.append(_mission_result(fleet, fleet.fly(ids, seed=seed * 100_003 + k)))
+            mission_seed = seed * 100_003 + k
+            if kill:
+                m = fleet.fly_losing(ids, mission_seed, kill, kill_by)
+                results.append({**_mission_result(fleet, m), "killed": m["killed"]})
+            else:
+                results.append(_mission_result(fleet, fleet.fly(ids, seed=mission_seed)))
             if on_trial is not None:
                 trial = _trial_decided(fleet, on_trial, say)
                 if trial is not None:
@@ -430,7 +488,7 @@ def _mission_result(fleet: Fleet, m: dict[str, Any]) -> dict[str, Any]:
     out = m["outcome"] or {}
     ct = out.get("capture_time")
     team = own = 0
-    for robot in m["robots"]:
+    for robot in m.get("episodes_received", m["robots"]):  # a robot killed before its first step sends none
         coordination = fleet.api.get(f"/api/v1/episodes/{robot}/{m['id']}").get("coordination") or {}
         team += coordination.get("team_steps", 0) + coordination.get("partial_steps", 0)
         own += coordination.get("own_steps", 0)
