@@ -67,8 +67,13 @@ def test_pages_are_served_without_data_and_with_a_strict_policy(api):
         assert "<script>" not in r.text  # no inline script: the policy would block it
         assert OP not in r.text and AG not in r.text
     assert '<label for="token">Token</label>' in c.get("/signin").text
-    defaults = TrainingParams()
-    assert f'id="run-episodes" type="number" min="256" step="1" value="{defaults.episodes}"' in c.get("/training").text
+    defaults, training = TrainingParams(), c.get("/training").text
+    assert (
+        f'id="run-budget" type="number" min="0.001" max="1" step="any" value="{defaults.budget_fraction}"' in training
+    )
+    assert '<option value="cepg" selected>' in training and '<option value="best">' in training
+    for method in ("pg", "maddpg", "masac", "facmac", "mambpo", "mappo"):  # every method, and best's candidates
+        assert f'<option value="{method}">' in training and f'<input type="checkbox" value="{method}"' in training
     assert 'data-mission-id="m-1"' in c.get("/missions/m-1").text
     assert "&lt;x&gt;" in c.get("/missions/%3Cx%3E").text  # escaped, not markup
     js = c.get("/console/static/console.js")

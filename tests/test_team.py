@@ -4,6 +4,8 @@ fallback to a robot's own policy, and the team flown in the simulator over lossy
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -11,7 +13,14 @@ import torch
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, lazy_walk, uniform_walk
 from shared.core.records import RecordError, make_record, parse_record
-from shared.core.snapshot_format import PolicyAgent, SnapshotData, SnapshotError
+from shared.core.snapshot_format import (
+    PolicyAgent,
+    SnapshotData,
+    SnapshotError,
+    param_shapes,
+    read_snapshot,
+    write_snapshot,
+)
 from shared.core.team import CollectiveBelief, LinkHistory, TeamAgent, mission_seed, team_searcher_of
 from shared.engine.batched_belief import BatchedBelief, BeliefTracker
 from shared.engine.evaluate import evaluate
@@ -179,6 +188,8 @@ def test_a_robot_falls_back_to_its_own_policy_while_its_teammates_are_missing():
         "own_steps": 2,
         "observations_heard": 8,
         "observations_sent": 16,
+        "teammates_dropped": 0,  # silent, not gone: their liveliness stayed
+        "flown_for": 3,
     }
     alone = TeamAgent(snap, graph, robots, "r1", seed=7, searcher="fhpe-sa", timeout_steps=1)
     alone.observe("r1", 0, 0, 0)
@@ -300,3 +311,130 @@ def test_a_records_coordination_is_checked_and_kept():
         with pytest.raises(RecordError, match="observations_heard and observations_sent") as err:
             parse_record(record({**base, **bad}), graph)
         assert err.value.reason == "coordination"
+
+
+def _weights(graph, robots: int, hidden: int, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {k: rng.normal(size=s).astype(np.float32) for k, s in param_shapes(graph.n, robots, hidden).items()}
+
+
+def test_a_snapshot_holds_a_team_per_team_size_each_file_checked(tmp_path):
+    graph = builtin_graph("office")
+    path = tmp_path / "s"
+    teams = {1: _weights(graph, 1, 4, 1), 2: _weights(graph, 2, 8, 2)}
+    write_snapshot(
+        path, graph, _weights(graph, 3, 8, 0), uniform_walk(graph), Sensor(), "cepg", [0.5], {}, {}, teams=teams
+    )
+    snap = read_snapshot(path, graph)
+    assert snap.team_sizes == [1, 2, 3]
+    one = snap.team_for(1)
+    assert one.robots == 1 and one.meta["hidden"] == 4 and np.array_equal(one.weights["w2"], teams[1]["w2"])
+    assert snap.team_for(3) is snap and snap.team_for(5) is snap  # its own N, and a size it holds no team for
+    with pytest.raises(ValueError, match="other than the main team's 3"):
+        write_snapshot(path, graph, snap.weights, snap.model, Sensor(), "cepg", [0.5], {}, {}, teams={3: snap.weights})
+    (path / "team-2.safetensors").write_bytes(b"x" + (path / "team-2.safetensors").read_bytes()[1:])
+    with pytest.raises(SnapshotError, match=r"team-2\.safetensors: sha256 does not match"):
+        read_snapshot(path, graph)
+    meta = json.loads((path / "policy.json").read_text())
+    meta["teams"]["7"] = meta["teams"].pop("2")
+    (path / "policy.json").write_text(json.dumps(meta))
+    with pytest.raises(SnapshotError, match="teams entry '7'"):
+        read_snapshot(path, graph)
+
+
+def test_a_robot_flies_the_team_for_its_missions_robots_and_switches_when_a_teammate_drops_out():
+    graph = builtin_graph("office")
+    snap = _snapshot(graph, 3)
+    snap.teams = {1: _weights(graph, 1, 8, 1), 2: _weights(graph, 2, 8, 2)}
+    pair = TeamAgent(snap, graph, ["a", "b"], "b", seed=1, searcher=None)
+    assert pair.flown_for == 2 and np.array_equal(pair.own.w2, snap.teams[2]["w2"][1])
+    trio = TeamAgent(snap, graph, ["a", "b", "c"], "c", seed=1, searcher=None)
+    trio.observe("c", 0, 5, 0)
+    trio.act(0, 5)
+    belief = trio.own.belief.copy()
+    assert trio.withdraw("a") and not trio.withdraw("a") and not trio.withdraw("c") and not trio.withdraw("x")
+    # c is the second of the robots left: network 1 of the team for 2, its belief kept
+    assert trio.flown_for == 2 and np.array_equal(trio.own.w2, snap.teams[2]["w2"][1])
+    assert np.array_equal(trio.own.belief, belief) and trio.live(1) == ["b", "c"]
+    trio.withdraw("b")
+    assert trio.flown_for == 1 and np.array_equal(trio.own.w2, snap.teams[1]["w2"][0])
+    assert trio.summary()["teammates_dropped"] == 2 and trio.summary()["flown_for"] == 1
+    # a version without teams: the N-robot team's network i, whoever drops out
+    plain = TeamAgent(_snapshot(graph, 3), graph, ["a", "b", "c"], "c", seed=1, searcher=None)
+    plain.withdraw("a")
+    assert plain.flown_for == 3 and np.array_equal(plain.own.w2, _snapshot(graph, 3).weights["w2"][2])
+
+
+def test_with_known_withdrawals_the_robots_left_fly_the_team_built_for_them_in_the_simulator():
+    """The simulator's withdrawn robot (Fig. 12, 13): robots that learn of it fly the team for the
+    robots left; robots that do not, and a version without teams, fly the N-robot team throughout."""
+    graph = builtin_graph("office")
+    snap = _snapshot(graph, 3)
+    snap.teams = {2: _weights(graph, 2, 8, 2)}
+    counts = {}
+    for known in (False, True):
+        counter = {"team": 0, "partial": 0, "own": 0}
+        searcher = LinkedTeamSearcher(snap, graph, 3, 0, None, counter=counter, known_withdrawals=known)
+        evaluate(
+            graph,
+            uniform_walk(graph),
+            Sensor(),
+            3,
+            lambda s, x=searcher: x,
+            episodes=8,
+            seed=2,
+            withdraw_at=[None, 2, None],
+        )
+        counts[known] = {tuple(a.flown_for for a in team) for team in searcher.teams.values()}
+    assert counts[False] == {(3, 3, 3)} and (2, 3, 2) in counts[True]  # r2 withdrawn at t = 2
+
+
+def test_snapshot_combine_writes_one_version_with_a_team_per_size(tmp_path, capsys):
+    from shared.tools.cli import main
+
+    graph = builtin_graph("office")
+    for k in (1, 3):
+        write_snapshot(
+            tmp_path / f"N{k}",
+            graph,
+            _weights(graph, k, 8, k),
+            uniform_walk(graph),
+            Sensor(),
+            "cepg",
+            [0.5] * k,
+            {"seed": k},
+            {},
+        )
+    assert (
+        main(
+            [
+                "snapshot",
+                "combine",
+                "--env",
+                "office",
+                str(tmp_path / "N3"),
+                str(tmp_path / "N1"),
+                "--out",
+                str(tmp_path / "c"),
+            ]
+        )
+        == 0
+    )
+    snap = read_snapshot(tmp_path / "c", graph)
+    assert snap.team_sizes == [1, 3] and snap.meta["training"]["teams_from"] == [str(tmp_path / "N1")]
+    assert (
+        main(
+            [
+                "snapshot",
+                "combine",
+                "--env",
+                "office",
+                str(tmp_path / "N3"),
+                str(tmp_path / "N3"),
+                "--out",
+                str(tmp_path / "d"),
+            ]
+        )
+        == 2
+    )
+    assert "a team for 3 robots is there already" in capsys.readouterr().err and not (tmp_path / "d").exists()
