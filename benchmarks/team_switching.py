@@ -7,6 +7,11 @@ start (Fig. 13's "trained for k").
 
     python benchmarks/team_switching.py [--map office] [--robots 5] [--kill 4 2] [--missions 150]
         [--episodes 100000] [--teams DIR]
+    python benchmarks/team_switching.py --simulated [--eval-episodes 1500] [--kill 4 2] --teams DIR
+
+--simulated flies the same in the batched simulator instead (`mures evaluate`'s engine, each robot
+a TeamAgent as in the agent): the robots withdrawn at fixed steps (robot N at step 2, N-1 at 4,
+...), every setting on the same seeded episodes, so the switch's gain is a paired difference.
 
 The teams: `mures train --belief true` (CE-PG, the robots' belief on the world's own target
 model, as the training server trains on its EM model) for 1..N robots, --episodes each, combined
@@ -49,6 +54,62 @@ def fleet_sim(map_name: str, robots: int, policy: Path, missions: int, kill: int
     return res
 
 
+def simulated(args: argparse.Namespace, teams: Path, combined: Path) -> None:
+    """The settings of ``main`` in the batched simulator (module docstring)."""
+    from shared.core.graph import builtin_graph
+    from shared.core.models import Sensor, uniform_walk
+    from shared.core.snapshot_format import read_snapshot
+    from shared.engine.evaluate import evaluate
+    from shared.engine.linked_team import LinkedTeamSearcher
+
+    graph, N = builtin_graph(args.map), args.robots
+    truth, sensor = uniform_walk(graph), Sensor()
+    version = read_snapshot(combined, graph)
+    plain = read_snapshot(teams / f"{args.map}-N{N}", graph)
+    print(f"{args.map}, N = {N}, {args.eval_episodes} episodes (seed 1), robots withdrawn at steps 2, 4, ...")
+    print("| withdrawn | setting | capture time | vs the N-robot team (paired) |")
+    print("| --- | --- | --- | --- |")
+    rows = []
+    for kill in args.kill:
+        gone: list[int | None] = [None] * (N - kill) + [2 * (kill - i) for i in range(kill)]
+        times = {}
+        for name, snap, known in (("switching", version, True), (f"the {N}-robot team", plain, True)):
+            r = evaluate(
+                graph,
+                truth,
+                sensor,
+                N,
+                lambda s, snap=snap, known=known: LinkedTeamSearcher(snap, graph, N, s, None, known_withdrawals=known),
+                episodes=args.eval_episodes,
+                seed=1,
+                withdraw_at=gone,
+            )
+            times[name] = r.capture_time
+        left = N - kill
+        ref = evaluate(
+            graph,
+            truth,
+            sensor,
+            left,
+            lambda s, left=left: LinkedTeamSearcher(version, graph, left, s, None),
+            episodes=args.eval_episodes,
+            seed=1,
+        )
+        times[f"the team built for {left}, {left} robots from the start"] = ref.capture_time
+        base = times[f"the {N}-robot team"]
+        for name, ct in times.items():
+            mean, half = mean_ci95(ct)
+            paired = mean_ci95([a - b for a, b in zip(ct, base, strict=True)]) if name == "switching" else None
+            vs = f"{paired[0]:+.2f} ± {paired[1]:.2f}" if paired else ""
+            print(f"| {kill} at {gone[-kill:]} | {name} | {mean:.2f} ± {half:.2f} | {vs} |")
+            rows.append(
+                {"withdrawn_at": gone, "setting": name, "mean_capture_time": round(mean, 3), "ci95": round(half, 3)}
+            )
+    out = {"map": args.map, "robots": N, "episodes": args.eval_episodes, "seed": 1, "rows": rows}
+    out["team_training_episodes"] = args.episodes
+    (OUT / f"{args.map}-N{N}-simulated.json").write_text(json.dumps(out, indent=1) + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--map", default="office", choices=("office", "museum"))
@@ -58,6 +119,8 @@ def main() -> None:
     ap.add_argument("--missions", type=int, default=150)
     ap.add_argument("--episodes", type=int, default=100_000, help="CE-PG training episodes per team")
     ap.add_argument("--teams", help="reuse the team snapshots DIR/<map>-N<k> (trained if missing)")
+    ap.add_argument("--simulated", action="store_true", help="in the batched simulator instead of fleet-sim")
+    ap.add_argument("--eval-episodes", type=int, default=1500, help="with --simulated: episodes per setting")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     N = args.robots
@@ -76,6 +139,9 @@ def main() -> None:
             + [str(teams / f"{args.map}-N{k}") for k in range(1, N)]
             + ["--out", str(combined)]
         )
+        if args.simulated:
+            simulated(args, teams, combined)
+            return
         rows = []
         for kill in args.kill:
             left = N - kill

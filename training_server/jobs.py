@@ -300,41 +300,36 @@ class _TrainingRun:
         trained = {m: self.train(m, N, model) for m in self.p.methods()}
         figures = self.evaluate(trained, gate_model, em_info["held_out"])
         chosen = min(trained, key=lambda m: (figures[m]["mean_capture_time"], self.p.methods().index(m)))
-        gate = {"current": figures["current"], "new": figures[chosen]}
-        passed = gate["new"]["mean_capture_time"] <= gate["current"]["mean_capture_time"]
+        passed = figures[chosen]["mean_capture_time"] <= figures["current"]["mean_capture_time"]
         sizes = sorted(set(self.p.team_sizes or ()) - {N})
-        others = {k: self.train(chosen, k, model) for k in sizes}
-        new = trained[chosen]
-        team = self.team_decision(new.snapshot.policy, model, gate_model)
-        self.write_snapshot(new, others, team["team_searcher"])
-        train_keys = ("episodes", "env_steps", "wall_seconds", "episodes_per_second")
-        teams = [t for t in (*trained.values(), *others.values())]
+        others: dict[int, TrainedTeam] = {}
+        team: dict[str, Any] = {"team_searcher": None, "decided_by": "not decided: the run is gated out"}
+        if passed or not self.p.gate:  # a gated-out run trains nothing more
+            others = {k: self.train(chosen, k, model) for k in sizes}
+            team = self.team_decision(trained[chosen].snapshot.policy, model, gate_model)
+            self.write_snapshot(trained[chosen], others, team["team_searcher"])
+        gate = {
+            "current": figures["current"],
+            "new": figures[chosen],
+            "passed": passed,
+            "enforced": self.p.gate,
+            "model": f"EM on {em_info['held_out']} held-out missions" if em_info["held_out"] else "the uniform walk",
+        }
         return {
             "metrics": {
                 "em": em_info,
                 "algorithm": self.p.algorithm,
                 "chosen": chosen,
-                "train": {k: new.summary.get(k) for k in train_keys},
+                "train": _training_figures(trained[chosen]),
                 "teams": [
-                    {"method": t.method, "robots": t.robots, **{k: t.summary.get(k) for k in train_keys}}
-                    | ({"resumed": t.summary["resumed"]} if t.summary.get("resumed") else {})
-                    for t in teams
+                    {"method": t.method, "robots": t.robots, **_training_figures(t)}
+                    for t in (*trained.values(), *others.values())
                 ],
                 "candidates": [{"method": "current", **figures["current"]}]
-                + [
-                    {"method": m, **figures[m], "training": {k: t.summary.get(k) for k in ("episodes", "wall_seconds")}}
-                    for m, t in trained.items()
-                ],
-                "team_sizes": sorted({N, *sizes}),
+                + [{"method": m, **figures[m], "training": _training_figures(t)} for m, t in trained.items()],
+                "team_sizes": sorted({N, *others}),
                 "team": team,
-                "gate": {
-                    **gate,
-                    "passed": passed,
-                    "enforced": self.p.gate,
-                    "model": f"EM on {em_info['held_out']} held-out missions"
-                    if em_info["held_out"]
-                    else "the uniform walk",
-                },
+                "gate": gate,
                 "wall_seconds": round(time.perf_counter() - self.t0, 2),
             },
             "passed": passed or not self.p.gate,
@@ -589,6 +584,12 @@ class _TrainingRun:
             team_searcher=team_searcher,
             teams={k: policy_weights(t.snapshot.policy) for k, t in others.items()},
         )
+
+
+def _training_figures(team: TrainedTeam) -> dict[str, Any]:
+    """What a run's metrics say of a team's training (and ``resumed``: where a restart resumed it)."""
+    keys = ("episodes", "env_steps", "wall_seconds", "episodes_per_second", "resumed")
+    return {k: team.summary[k] for k in keys if k in team.summary}
 
 
 def split_missions(data: Any, holdout: float, seed: int) -> tuple[Any, Any]:
