@@ -359,6 +359,13 @@ def test_a_robot_flies_the_team_for_its_missions_robots_and_switches_when_a_team
     trio.withdraw("b")
     assert trio.flown_for == 1 and np.array_equal(trio.own.w2, snap.teams[1]["w2"][0])
     assert trio.summary()["teammates_dropped"] == 2 and trio.summary()["flown_for"] == 1
+    # a version that switches to the team for 1 only (its training measured the switch to 2 a loss)
+    snap.meta["switch_to"] = [1]
+    picky = TeamAgent(snap, graph, ["a", "b", "c"], "c", seed=1, searcher=None)
+    picky.withdraw("a")
+    assert picky.flown_for == 3 and np.array_equal(picky.own.w2, snap.weights["w2"][2])
+    picky.withdraw("b")
+    assert picky.flown_for == 1 and np.array_equal(picky.own.w2, snap.teams[1]["w2"][0])
     # a version without teams: the N-robot team's network i, whoever drops out
     plain = TeamAgent(_snapshot(graph, 3), graph, ["a", "b", "c"], "c", seed=1, searcher=None)
     plain.withdraw("a")

@@ -304,10 +304,12 @@ class _TrainingRun:
         sizes = sorted(set(self.p.team_sizes or ()) - {N})
         others: dict[int, TrainedTeam] = {}
         team: dict[str, Any] = {"team_searcher": None, "decided_by": "not decided: the run is gated out"}
+        switching: dict[str, Any] = {}
         if passed or not self.p.gate:  # a gated-out run trains nothing more
             others = {k: self.train(chosen, k, model) for k in sizes}
-            team = self.team_decision(trained[chosen].snapshot.policy, model, gate_model)
-            self.write_snapshot(trained[chosen], others, team["team_searcher"])
+            switching = self.switch_decision(trained[chosen], others, gate_model)
+            team = self.team_decision(trained[chosen], model, gate_model)
+            self.write_snapshot(trained[chosen], others, team["team_searcher"], switching.get("switch_to"))
         gate = {
             "current": figures["current"],
             "new": figures[chosen],
@@ -328,6 +330,7 @@ class _TrainingRun:
                 "candidates": [{"method": "current", **figures["current"]}]
                 + [{"method": m, **figures[m], "training": _training_figures(t)} for m, t in trained.items()],
                 "team_sizes": sorted({N, *others}),
+                "switching": switching,
                 "team": team,
                 "gate": gate,
                 "wall_seconds": round(time.perf_counter() - self.t0, 2),
@@ -514,7 +517,69 @@ class _TrainingRun:
             figures[name] |= {"paired_difference": round(diff, 3), "paired_ci95": round(half, 3)}
         return figures
 
-    def team_decision(self, policy: Any, model: Any, gate_model: Any) -> dict[str, Any]:
+    def switch_decision(self, new: TrainedTeam, others: dict[int, TrainedTeam], gate_model: Any) -> dict[str, Any]:
+        """For each team size k < N the version holds a team for: whether its robots left switch
+        to it when teammates drop out mid-mission (``TeamAgent.withdraw``). A network trained in
+        a team of N searches its own part of the building and a team of k divides it otherwise, so
+        a switch mid-mission can cost more than it gains (measured: benchmarks/team_switching.py).
+        The robots fly their own policies on the gate's first ``team_episodes`` episodes under its
+        model with N - k robots withdrawn (the last ones, at steps 2, 4, ...), switching and not;
+        k is switched to only if switching captures sooner, its paired 95% CI below zero. A mission
+        that starts with k robots flies the team built for k whatever this decides."""
+        from shared.core.snapshot_format import SnapshotData
+        from shared.engine.evaluate import evaluate, mean_ci95
+        from shared.engine.linked_team import LinkedTeamSearcher
+        from shared.learning.team_snapshot import policy_weights
+
+        N, p = self.current.robots, self.p
+        smaller = sorted(k for k in others if k < N)
+        if not smaller:
+            return {}
+        teams = {k: policy_weights(t.snapshot.policy) for k, t in others.items()}
+        snap = SnapshotData(
+            meta=dict(new.snapshot.meta),
+            weights=policy_weights(new.snapshot.policy),
+            model=new.snapshot.model,
+            sensor=self.sensor,
+            teams=teams,
+        )
+        self.say(
+            "gate", message=f"robots dropping out on {p.team_episodes} episodes: switching to teams {smaller} or not"
+        )
+        by_size, switch_to = {}, []
+        for k in smaller:
+            gone: list[int | None] = [None] * k + [2 * (N - k - i) for i in range(N - k)]
+            times = {}
+            for name, known in (("switch", True), ("keep", False)):
+
+                def make(seed: int, known: bool = known) -> LinkedTeamSearcher:
+                    return LinkedTeamSearcher(snap, self.graph, N, seed, None, known_withdrawals=known)
+
+                r = evaluate(
+                    self.graph,
+                    gate_model,
+                    self.sensor,
+                    N,
+                    make,
+                    episodes=p.team_episodes,
+                    seed=p.seed + 1,
+                    withdraw_at=gone,
+                )
+                times[name] = np.asarray(r.capture_time, dtype=np.float64)
+                self.check()
+            diff, half = mean_ci95(times["switch"] - times["keep"])
+            if diff + half < 0:
+                switch_to.append(k)
+            by_size[str(k)] = {
+                "withdrawn_at": gone,
+                "switch_mean_capture_time": round(float(times["switch"].mean()), 3),
+                "keep_mean_capture_time": round(float(times["keep"].mean()), 3),
+                "paired_difference": round(diff, 3),
+                "paired_ci95": round(half, 3),
+            }
+        return {"switch_to": switch_to, "episodes": p.team_episodes, "by_size": by_size}
+
+    def team_decision(self, new: TrainedTeam, model: Any, gate_model: Any) -> dict[str, Any]:
         """Step 4: whether the new version's robots fly the team's plan (FHPE-SA on the version's
         model) when their links allow. ``auto`` flies the new policy alone and as a team on the same
         episodes under the gate's model, over links that lose what the fleet's own links lost
@@ -528,8 +593,8 @@ class _TrainingRun:
         p = self.p
         if p.team_searcher == "none":
             return {"team_searcher": "none", "decided_by": "parameter", "links": self.links}
-        meta = {"variant": self.current.variant, "robots": self.current.robots}
-        snap = SnapshotData(meta=meta, weights=policy_weights(policy), model=model, sensor=self.sensor)
+        meta = {"variant": new.snapshot.variant, "robots": new.snapshot.robots}
+        snap = SnapshotData(meta=meta, weights=policy_weights(new.snapshot.policy), model=model, sensor=self.sensor)
         loss = self.links["link_loss"] or 0.0
         self.say(
             "gate",
@@ -560,9 +625,11 @@ class _TrainingRun:
             "paired_ci95": round(half, 3),
         }
 
-    def write_snapshot(self, new: TrainedTeam, others: dict[int, TrainedTeam], team_searcher: str) -> None:
+    def write_snapshot(
+        self, new: TrainedTeam, others: dict[int, TrainedTeam], team_searcher: str, switch_to: list[int] | None
+    ) -> None:
         """The new version's snapshot: the chosen method's team for N, its teams for the other
-        team sizes, the team searcher decided."""
+        team sizes, the team searcher and the switches decided."""
         from shared.core.snapshot_format import write_snapshot
         from shared.learning.team_snapshot import policy_weights
 
@@ -583,6 +650,7 @@ class _TrainingRun:
             algorithm=meta.get("algorithm", "cepg"),
             team_searcher=team_searcher,
             teams={k: policy_weights(t.snapshot.policy) for k, t in others.items()},
+            switch_to=switch_to,
         )
 
 

@@ -126,6 +126,13 @@ class SnapshotData(TeamInfo):
         """The team sizes this snapshot holds a team built for: its own N and its ``teams``."""
         return sorted({self.robots, *self.teams})
 
+    def switches_to(self, k: int) -> bool:
+        """Whether robots left k switch to the team built for k when teammates drop out
+        mid-mission: the version holds one, and its ``switch_to`` (decided when it was trained)
+        names k, or it has none (every team)."""
+        listed = self.meta.get("switch_to")
+        return k in self.teams and k != self.robots and (listed is None or k in listed)
+
     def team_for(self, k: int) -> SnapshotData:
         """The snapshot as flown by a mission of ``k`` robots: its team built for k where it holds
         one (meta's robots and hidden then k's), else itself (robot i on network i, or i mod N)."""
@@ -149,13 +156,15 @@ def write_snapshot(
     algorithm: str = "cepg",
     team_searcher: str | None = None,
     teams: dict[int, Weights] | None = None,
+    switch_to: list[int] | None = None,
 ) -> Path:
     """Write a snapshot directory atomically (an existing one at ``path`` is replaced).
     ``algorithm`` names the method that trained the team (ALGORITHMS); every one runs the same way.
     ``team_searcher`` ("fhpe-sa", "c-cepg" or "none"; shared/core/team.py) is what its robots fly
     together when their links allow; without one, a c-cepg team flies c-cepg and the others none.
     ``teams``: the weights of teams built for other team sizes k (k networks each), flown by
-    missions of k robots (``SnapshotData.team_for``)."""
+    missions of k robots (``SnapshotData.team_for``); ``switch_to``: the sizes among them that
+    robots left switch to when teammates drop out mid-mission (None: every one)."""
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}")
     if algorithm not in ALGORITHMS:
@@ -199,6 +208,10 @@ def write_snapshot(
             }
             for k, b in blobs.items()
         }
+    if switch_to is not None:
+        if not set(switch_to) <= set(blobs):
+            raise ValueError(f"switch_to {sorted(switch_to)}: a team size the snapshot holds no team for")
+        meta["switch_to"] = sorted(int(k) for k in switch_to)
     if team_searcher is not None:
         if team_searcher not in (*TEAM_SEARCHERS, "none"):
             raise ValueError(f"unknown team searcher {team_searcher!r}")
@@ -298,6 +311,9 @@ def read_snapshot(path: str | Path, graph: Graph, legacy: Callable[[bytes], Weig
     except (ModelError, KeyError, TypeError, ValueError) as exc:
         raise SnapshotError(f"{where}/{META}: bad belief model or sensor ({exc})") from None
     teams = _read_teams(path, meta, graph.n)
+    listed = meta.get("switch_to")
+    if listed is not None and (not isinstance(listed, list) or not set(listed) <= set(teams)):
+        raise SnapshotError(f"{where}/{META}: switch_to must list team sizes the snapshot holds a team for")
     return SnapshotData(meta=meta, weights={k: weights[k] for k in PARAMS}, model=model, sensor=sensor, teams=teams)
 
 
@@ -328,11 +344,14 @@ def _read_teams(path: Path, meta: dict[str, Any], n: int) -> dict[int, Weights]:
     return teams
 
 
-def combine_teams(main: str | Path, others: list[str | Path], out: str | Path, graph: Graph) -> SnapshotData:
+def combine_teams(
+    main: str | Path, others: list[str | Path], out: str | Path, graph: Graph, switch_to: list[int] | None = None
+) -> SnapshotData:
     """Write at ``out`` the snapshot ``main`` holding, besides its own team, the team of each of
     ``others`` (snapshots for other team sizes on the same map and sensor; `mures snapshot
     combine`); a SnapshotError names a snapshot that does not fit. The robots keep ``main``'s
-    belief model whatever team they fly (a team trained with its own EM estimate flies on it)."""
+    belief model whatever team they fly (a team trained with its own EM estimate flies on it).
+    ``switch_to``: the team sizes robots left switch to mid-mission (None: every one held)."""
     base = read_snapshot(main, graph)
     teams = dict(base.teams)
     for where in others:
@@ -357,6 +376,7 @@ def combine_teams(main: str | Path, others: list[str | Path], out: str | Path, g
         algorithm=m.get("algorithm", "cepg"),
         team_searcher=m.get("team_searcher"),
         teams=teams,
+        switch_to=switch_to,
     )
     return read_snapshot(out, graph)
 

@@ -23,7 +23,7 @@ collective belief is complete, with its own decentralised policy when it is not:
   when it reports. Its own policy is the version's team built for the mission's robots where the
   version holds one (``SnapshotData.team_for``); a teammate known to have dropped out (its
   liveliness token gone: ``withdraw``) leaves the plan at once, and the robot flies the team
-  built for the robots left from its next decision.
+  built for the robots left from its next decision where the version switches to it.
 
 Team searchers: ``fhpe-sa`` (FHPE-SA on the team's model, every robot computing the whole team's
 plan from its own copy of the same information, ties broken by a generator seeded by the mission
@@ -235,15 +235,15 @@ class TeamAgent:
     def withdraw(self, robot: str) -> bool:
         """Teammate ``robot`` has dropped out of the mission (its liveliness token is gone): it
         leaves the team's plan now, and this robot's own policy becomes the team built for the
-        robots left where the version holds one (same belief). False (nothing changes) for this
-        robot, a robot outside the mission or one withdrawn already."""
+        robots left where the version holds one and switches to it (``SnapshotData.switches_to``;
+        same belief). False (nothing changes) for this robot, a robot outside the mission or one
+        withdrawn already."""
         if robot == self.me or robot not in self.robots or robot in self.withdrawn:
             return False
         self.withdrawn.add(robot)
         left = [r for r in self.robots if r not in self.withdrawn]
-        team = self.snap.team_for(len(left))
-        if team is not self.snap:
-            self.own.fly(team, left.index(self.me))
+        if self.snap.switches_to(len(left)):
+            self.own.fly(self.snap.team_for(len(left)), left.index(self.me))
             self.flown_for = len(left)
         return True
 

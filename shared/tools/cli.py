@@ -48,7 +48,7 @@ def cmd_snapshot_combine(args: argparse.Namespace) -> int:
     from shared.tools.cli_args import graph_of
 
     graph = graph_of(args)
-    snap = combine_teams(args.main, args.teams, args.out, graph)
+    snap = combine_teams(args.main, args.teams, args.out, graph, args.switch_to)
     sizes = ", ".join(str(k) for k in snap.team_sizes)
     print(f"wrote {args.out}: {args.main}'s team for {snap.robots} robots, with teams for {sizes} robots")
     for where in args.teams:
@@ -91,6 +91,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("main", metavar="MAIN", help="the snapshot whose team, model and settings the result keeps")
     c.add_argument("teams", nargs="+", metavar="TEAM", help="snapshots of teams for other team sizes")
     c.add_argument("--out", required=True, metavar="DIR", help="snapshot directory to write")
+    c.add_argument(
+        "--switch-to",
+        type=int,
+        nargs="*",
+        metavar="K",
+        help="the team sizes robots left switch to when teammates drop out mid-mission (default: every team; "
+        "none given: never; a training run decides this by measurement, docs/operating.md)",
+    )
     c.set_defaults(func=cmd_snapshot_combine)
     return parser
 
