@@ -206,7 +206,9 @@ class Fleet:
                 f"mission {mid}",
                 every=0.02,
             )
-        except TimeoutError:
+        except TimeoutError:  # ended with the records there are: its robots are free for the next mission
+            if self.api.get(f"/api/v1/missions/{mid}")["status"] == "running":
+                self.api.post(f"/api/v1/missions/{mid}/stop", {})
             m = self.api.get(f"/api/v1/missions/{mid}")
         return {**m, "killed": killed}
 
