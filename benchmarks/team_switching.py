@@ -102,9 +102,13 @@ def simulated(args: argparse.Namespace, teams: Path, combined: Path) -> None:
             paired = mean_ci95([a - b for a, b in zip(ct, base, strict=True)]) if name == "switching" else None
             vs = f"{paired[0]:+.2f} ± {paired[1]:.2f}" if paired else ""
             print(f"| {kill} at {gone[-kill:]} | {name} | {mean:.2f} ± {half:.2f} | {vs} |")
-            rows.append(
-                {"withdrawn_at": gone, "setting": name, "mean_capture_time": round(mean, 3), "ci95": round(half, 3)}
-            )
+            row = {"withdrawn_at": gone, "setting": name, "mean_capture_time": round(mean, 3), "ci95": round(half, 3)}
+            if paired:
+                row |= {
+                    "paired_difference_to_the_n_robot_team": round(paired[0], 3),
+                    "paired_ci95": round(paired[1], 3),
+                }
+            rows.append(row)
     out = {"map": args.map, "robots": N, "episodes": args.eval_episodes, "seed": 1, "rows": rows}
     out["team_training_episodes"] = args.episodes
     (OUT / f"{args.map}-N{N}-simulated.json").write_text(json.dumps(out, indent=1) + "\n")

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from robot_agent.agent import mission_seed
+from shared.core.models import Sensor
+from shared.core.records import make_record
 from shared.core.snapshot_format import PolicyAgent, read_snapshot
 
 
@@ -26,3 +30,23 @@ def replay(fleet, robot, mission):
         if k + 1 < len(steps):
             assert g.labels[agent.act(p)] == steps[k + 1]["node"], f"{robot} step {k} of {mission['id']}"
     return rec
+
+
+def walk_record(graph, mission_id: str, steps: int, rng: np.random.Generator) -> dict:
+    """Robot r1's record of a mission that walked ``steps`` random moves from the start and saw
+    nothing (no capture): what a fleet's early missions look like to EM."""
+    nodes = [graph.start]
+    for _ in range(steps):
+        nodes.append(int(rng.choice(graph.closed(nodes[-1]))))
+    return make_record(
+        graph,
+        fleet="default",
+        mission_id=mission_id,
+        robot_id="r1",
+        nodes=nodes,
+        z=[0] * len(nodes),
+        sensor=Sensor(),
+        captured=False,
+        capture_time=None,
+        captured_by=None,
+    )

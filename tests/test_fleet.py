@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from fleet_checks import replay, snapshot_dir
+from fleet_checks import replay, snapshot_dir, walk_record
 from prometheus_client.parser import text_string_to_metric_families
 
 from shared.core.files import read_token
@@ -322,21 +322,7 @@ def test_server_killed_loses_no_acknowledged_episode(tmp_path, database_url):
         with zenoh.open(zenoh_config("client", connect=[endpoint])) as s:
             rng = np.random.default_rng(0)
             for k in range(200):
-                nodes = [graph.start]
-                for _ in range(30):
-                    nodes.append(int(rng.choice(graph.closed(nodes[-1]))))
-                rec = make_record(
-                    graph,
-                    fleet="default",
-                    mission_id=f"m{k}",
-                    robot_id="r1",
-                    nodes=nodes,
-                    z=[0] * len(nodes),
-                    sensor=Sensor(),
-                    captured=False,
-                    capture_time=None,
-                    captured_by=None,
-                )
+                rec = walk_record(graph, f"m{k}", 30, rng)
                 ok, _body = send_episode(s, "default", "r1", f"m{k}", json.dumps(rec).encode())
                 if ok:
                     acked.append(f"m{k}")

@@ -412,36 +412,23 @@ def test_snapshot_combine_writes_one_version_with_a_team_per_size(tmp_path, caps
             {"seed": k},
             {},
         )
-    assert (
-        main(
+
+    def combine(main_team: str, other: str, out: str) -> int:
+        return main(
             [
                 "snapshot",
                 "combine",
                 "--env",
                 "office",
-                str(tmp_path / "N3"),
-                str(tmp_path / "N1"),
+                str(tmp_path / main_team),
+                str(tmp_path / other),
                 "--out",
-                str(tmp_path / "c"),
+                str(tmp_path / out),
             ]
         )
-        == 0
-    )
+
+    assert combine("N3", "N1", "c") == 0
     snap = read_snapshot(tmp_path / "c", graph)
     assert snap.team_sizes == [1, 3] and snap.meta["training"]["teams_from"] == [str(tmp_path / "N1")]
-    assert (
-        main(
-            [
-                "snapshot",
-                "combine",
-                "--env",
-                "office",
-                str(tmp_path / "N3"),
-                str(tmp_path / "N3"),
-                "--out",
-                str(tmp_path / "d"),
-            ]
-        )
-        == 2
-    )
+    assert combine("N3", "N3", "d") == 2
     assert "a team for 3 robots is there already" in capsys.readouterr().err and not (tmp_path / "d").exists()

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from fleet_checks import walk_record
 
 from shared.core.files import read_token
 from shared.core.graph import builtin_graph
 from shared.core.http import ApiClient, ApiError
 from shared.core.models import Sensor, uniform_walk
-from shared.core.records import make_record
 from shared.core.snapshot_format import read_snapshot
 from shared.core.wire import send_episode, zenoh_config
 from shared.tools.fleetsim import launch, reap, start_server, wait_until
@@ -150,24 +150,10 @@ def test_an_unknown_hyperparameter_fails_the_run_at_once_naming_it(fleet):
 
 
 def _records(endpoint: str, graph, missions: int) -> None:
+    rng = np.random.default_rng(0)
     with zenoh.open(zenoh_config("client", connect=[endpoint])) as s:
-        rng = np.random.default_rng(0)
         for k in range(missions):
-            nodes = [graph.start]
-            for _ in range(20):
-                nodes.append(int(rng.choice(graph.closed(nodes[-1]))))
-            rec = make_record(
-                graph,
-                fleet="default",
-                mission_id=f"m{k}",
-                robot_id="r1",
-                nodes=nodes,
-                z=[0] * len(nodes),
-                sensor=Sensor(),
-                captured=False,
-                capture_time=None,
-                captured_by=None,
-            )
+            rec = walk_record(graph, f"m{k}", 20, rng)
             assert send_episode(s, "default", "r1", f"m{k}", json.dumps(rec).encode())[0]
 
 
