@@ -167,12 +167,16 @@ def test_a_run_goes_on_from_its_checkpoint_after_a_server_restart_and_a_cancelle
         api = ApiClient(base, read_token(data / "operator.token"))
         body = {"algorithm": "mappo", "episodes": 6000, "seed": 2, **{k: v for k, v in TINY.items() if k != "episodes"}}
         run = api.post("/api/v1/training-runs", body)
-        wait_until(
-            lambda: (api.get(f"/api/v1/training-runs/{run['id']}")["progress"] or {}).get("episodes", 0) >= 1000,
+        progress = wait_until(
+            lambda: (
+                (p := api.get(f"/api/v1/training-runs/{run['id']}")["progress"] or {}).get("episodes", 0) >= 1000 and p
+            ),
             300,
             "the run to train 1000 episodes",
             every=0.2,
         )
+        assert progress["method"] == "mappo" and progress["robots"] == 2 and progress["total"] == 6000
+        assert progress["eta_s"] >= 0 and len(progress["curve"]) >= 1  # the team's time left, its learning curve
         proc.send_signal(signal.SIGTERM)  # the server stops: the run pauses, its checkpoint saved
         assert reap(proc, 90) == 0
         checkpoint = data / "runs" / run["id"] / "checkpoints" / "mappo-2" / "state.pt"

@@ -454,6 +454,8 @@ class _TrainingRun:
             now = time.perf_counter()
             if now - last[0] >= 0.5 or point["episodes"] >= point["total"]:
                 last[0] = now
+                rate = float(point.get("episodes_per_second") or 0.0)
+                left = max(0, int(point["total"]) - int(point["episodes"]))
                 self.say(
                     "train",
                     method=method,
@@ -461,6 +463,7 @@ class _TrainingRun:
                     episodes=int(point["episodes"]),
                     total=int(point["total"]),
                     mean_capture_time=round(float(point.get("mean_capture_time", float("nan"))), 3),
+                    **({"eta_s": round(left / rate)} if rate > 0 else {}),  # this team's time left at its rate so far
                 )
 
         team = train_team(

@@ -832,7 +832,8 @@ pages.training = async function (ctx) {
     else if (p.phase === "em" && p.max_iter) [bar.max, bar.value] = [p.max_iter, p.iteration || 0];
     else bar.removeAttribute("value");
     const team = p.phase === "train" && p.method ? `${p.method} for ${p.robots} robots: ` : "";
-    const where = p.phase === "train" && p.total ? `${team}${p.episodes.toLocaleString()} of ${p.total.toLocaleString()} episodes` : "";
+    const eta = p.eta_s !== undefined ? `, about ${p.eta_s >= 120 ? Math.round(p.eta_s / 60) + " min" : p.eta_s + " s"} left` : "";
+    const where = p.phase === "train" && p.total ? `${team}${p.episodes.toLocaleString()} of ${p.total.toLocaleString()} episodes${eta}` : "";
     $("#run-message").textContent = `${r.status}${p.phase ? " · " + p.phase : ""}${where ? " · " + where : ""}${p.message ? " · " + p.message : ""}${r.version ? ` · published v${r.version}` : ""}`;
     const err = $("#run-error");
     err.hidden = !r.error;
