@@ -255,7 +255,8 @@ def _seed_records(srv: ServerProc, missions: int = 60) -> None:
 def fault_training(work: Path, url: str | None, repeats: int, rng: random.Random) -> dict[str, Any]:
     """kill -9 of the server during a training run (its process running: checked just before the
     kill; a kill that came after the run had ended is not counted); every second run was asked to
-    cancel first."""
+    cancel first. After the restart a cancelled run stays cancelled, and another goes on where it
+    was (the restarted server resumes it) to its end."""
     srv = ServerProc(work / "training", url)
     srv.start()
     _seed_records(srv)
@@ -294,8 +295,20 @@ def fault_training(work: Path, url: str | None, repeats: int, rng: random.Random
             srv.start()
             api = srv.api()
             r = api.get(f"/api/v1/training-runs/{run['id']}")
+            if r["cancel_requested"] is not None and r["status"] in ("queued", "running"):
+                raise AssertionError(f"a cancelled run came back {r['status']}")
+            if r["status"] in ("queued", "running"):  # resumed where it was: it goes on to its end
+                r = wait_until(
+                    lambda run=run, api=api: (
+                        (x := api.get(f"/api/v1/training-runs/{run['id']}"))["status"] not in ("queued", "running")
+                        and x
+                    ),
+                    600,
+                    "the resumed run",
+                )
+                r = {**r, "status": f"resumed, then {r['status']}"}
             staging = list((srv.data / "staging").iterdir())
-            if r["status"] in ("queued", "running") or staging:
+            if staging:
                 raise AssertionError(f"run {r['status']}, staging {staging}")
             if not versions_complete(srv):
                 raise AssertionError("a partial version is served")

@@ -19,7 +19,9 @@ pytestmark = pytest.mark.slow  # server, agent and training processes
 def test_kill_during_a_training_run(tmp_path, database_url):
     r = reliability.fault_training(tmp_path, database_url, 2, random.Random(1))
     assert r["training_process_outlived_server"] == 0 and r["versions_complete"] and r["answers"]
-    assert set(r["run_status_after"]) <= {"failed", "cancelled", "succeeded"}
+    # a cancelled run stays cancelled (or had finished); another is resumed by the restarted server
+    assert set(r["run_status_after"]) <= {"cancelled", "succeeded", "resumed, then succeeded"}
+    assert r["run_status_after"].get("resumed, then succeeded", 0) + r["run_status_after"].get("succeeded", 0) >= 1
 
 
 def test_kill_during_publication_serves_no_partial_version(tmp_path):

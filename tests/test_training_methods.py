@@ -130,10 +130,9 @@ def test_best_trains_the_candidates_and_publishes_the_one_that_captures_soonest(
     ("body", "names"),
     [
         ({"algorithm": "sac"}, "algorithm"),
-        ({"algorithm": "cepg", "candidates": ["pg"]}, "candidates are for algorithm best"),
         ({"algorithm": "best", "candidates": ["pg", "pg"]}, "must not repeat"),
-        ({"algorithm": "pg", "beta": 0.5}, "pg is CE-PG with beta = 1"),
-        ({"algorithm": "masac", "hyperparameters": {"mappo": {"lr": 0.1}}}, "does not train"),
+        ({"algorithm": "best", "candidates": []}, "candidates"),
+        ({"hyperparameters": {"sac": {"lr": 0.1}}}, "hyperparameters"),
         ({"team_sizes": [0]}, "team_sizes"),
         ({"budget_fraction": 0}, "budget_fraction"),
     ],

@@ -75,8 +75,9 @@ class TrainingParams(BaseModel):
         None,
         min_length=1,
         max_length=len(METHODS),
-        description=f"with algorithm best: the methods to train (default {', '.join(DEFAULT_CANDIDATES)}: those "
-        "best somewhere in the recorded protocol)",
+        json_schema_extra={"uniqueItems": True},
+        description=f"the methods algorithm best trains (default {', '.join(DEFAULT_CANDIDATES)}: those best "
+        "somewhere in the recorded protocol); not used by a run of one method",
     )
     episodes: Annotated[int, Field(ge=256, le=10_000_000), INTEGRAL] | None = Field(
         None,
@@ -92,7 +93,7 @@ class TrainingParams(BaseModel):
         description="the compute budget: each team trains for this fraction of its method's default episodes "
         "(without episodes); the run's record states every team's episodes and wall time",
     )
-    team_sizes: list[Annotated[int, Field(ge=1, le=MAX_TEAM_SIZES)]] | None = Field(
+    team_sizes: list[Annotated[int, Field(ge=1, le=MAX_TEAM_SIZES), INTEGRAL]] | None = Field(
         None,
         max_length=MAX_TEAM_SIZES,
         description="team sizes k to train a team for besides the fleet's N (one training each, one after "
@@ -104,11 +105,15 @@ class TrainingParams(BaseModel):
     )
     hyperparameters: dict[MarlMethod, dict[str, int | float | bool]] = Field(
         default_factory=dict,
-        description='a MARL baseline\'s hyperparameters by method, e.g. {"masac": {"lr": 0.0001}} (checked when '
-        "the run starts: an unknown name fails it at once, naming it)",
+        description='a MARL baseline\'s hyperparameters by method, e.g. {"masac": {"lr": 0.0001}}, used when the run '
+        "trains that method (checked when the run starts: an unknown name fails it at once, naming it)",
     )
     beta: float = Field(
-        train_config.default("beta")[0], ge=0.0, le=1.0, allow_inf_nan=False, description="Eq. 9's beta (1 = PG)"
+        train_config.default("beta")[0],
+        ge=0.0,
+        le=1.0,
+        allow_inf_nan=False,
+        description="Eq. 9's beta for cepg (pg is CE-PG with beta = 1, whatever this says)",
     )
     lr: float = Field(
         train_config.default("lr")[0], gt=0.0, lt=1.0, allow_inf_nan=False, description="CE-PG's Adam learning rate"
@@ -177,18 +182,9 @@ class TrainingParams(BaseModel):
     )
 
     @model_validator(mode="after")
-    def _consistent(self) -> TrainingParams:
-        if self.candidates is not None and self.algorithm != "best":
-            raise ValueError("candidates are for algorithm best")
+    def _distinct(self) -> TrainingParams:
         if len(set(self.candidates or ())) != len(self.candidates or ()):
             raise ValueError("candidates must not repeat a method")
-        if self.algorithm == "pg":
-            if "beta" in self.model_fields_set and self.beta != 1.0:
-                raise ValueError("pg is CE-PG with beta = 1: leave beta out, or use cepg")
-            self.beta = 1.0
-        unused = sorted(set(self.hyperparameters) - set(self.methods()))
-        if unused:
-            raise ValueError(f"hyperparameters for {', '.join(unused)}, which this run does not train")
         return self
 
     def hyperparameters_of(self, method: str) -> dict[str, int | float | bool]:
