@@ -8,6 +8,7 @@ from robot_agent.agent import mission_seed
 from shared.core.models import Sensor
 from shared.core.records import make_record
 from shared.core.snapshot_format import PolicyAgent, read_snapshot
+from shared.tools.fleetsim import wait_until
 
 
 def snapshot_dir(fleet, version):
@@ -50,3 +51,16 @@ def walk_record(graph, mission_id: str, steps: int, rng: np.random.Generator) ->
         capture_time=None,
         captured_by=None,
     )
+
+
+def long_mission(fleet, robots: list[str], seed0: int, steps: int = 4, max_steps: int = 60) -> str:
+    """The id of a mission of ``robots`` still running after ``steps`` steps (slow the world down
+    first): seeds from ``seed0`` on, each mission that ended sooner left to complete."""
+    world = fleet.world.missions
+    for seed in range(seed0, seed0 + 30):
+        mid = fleet.api.post("/api/v1/missions", {"robots": robots, "seed": seed, "max_steps": max_steps})["id"]
+        wait_until(lambda mid=mid: mid in world and (world[mid].t >= steps or world[mid].ended), 30, f"{steps} steps")
+        if not world[mid].ended:
+            return mid
+        wait_until(lambda mid=mid: fleet.api.get(f"/api/v1/missions/{mid}")["status"] == "completed", 30, "mission")
+    raise AssertionError(f"no mission ran past {steps} steps")

@@ -9,6 +9,7 @@ import json
 import signal
 
 import pytest
+from fleet_checks import long_mission
 
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
@@ -45,18 +46,6 @@ def _records(fleet, mission_id, robots):
     return {r: fleet.api.get(f"/api/v1/episodes/{r}/{mission_id}") for r in robots}
 
 
-def _long_mission(fleet, seed0):
-    """A mission still running after 4 steps (the world slowed down), and its id."""
-    world = fleet.world.missions
-    for seed in range(seed0, seed0 + 30):
-        mid = fleet.api.post("/api/v1/missions", {"robots": ROBOTS, "seed": seed, "max_steps": 60})["id"]
-        wait_until(lambda mid=mid: mid in world and (world[mid].t >= 4 or world[mid].ended), 30, "4 steps")
-        if not world[mid].ended:
-            return mid
-        wait_until(lambda mid=mid: fleet.api.get(f"/api/v1/missions/{mid}")["status"] == "completed", 30, "mission")
-    raise AssertionError("no mission ran past 4 steps")
-
-
 def test_with_links_up_the_robots_fly_the_teams_plan(fleet):
     steps = {"team": 0, "own": 0}
     heard = sent = 0
@@ -78,7 +67,7 @@ def test_with_links_up_the_robots_fly_the_teams_plan(fleet):
 def test_a_teammate_killed_mid_mission_holds_nobody_up(fleet):
     fleet.world.step_delay = 0.05
     try:
-        mid = _long_mission(fleet, 11)
+        mid = long_mission(fleet, ROBOTS, 11)
         # the fleet view says how each flying robot decided its last step (its telemetry)
         modes = wait_until(
             lambda: [a.get("mode") for a in fleet.api.get("/api/v1/fleet")["agents"] if a.get("mode")],
@@ -112,7 +101,7 @@ def test_a_robot_whose_link_is_cut_holds_nobody_up(fleet):
     wait_until(lambda: "r1" in fleet.online(), 60, "r1 back online")
     try:
         fleet.world.step_delay = 0.02
-        mid = _long_mission(fleet, 41)
+        mid = long_mission(fleet, ROBOTS, 41)
         wait_until(lambda: fleet.api.get(f"/api/v1/missions/{mid}")["status"] == "completed", 60, "the mission")
     finally:
         fleet.world.step_delay = 0.0

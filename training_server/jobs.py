@@ -23,6 +23,7 @@ import signal
 import threading
 import time
 import traceback
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -303,9 +304,10 @@ class _TrainingRun:
         switching: dict[str, Any] = {}
         if passed or not self.p.gate:  # a gated-out run trains nothing more
             others = {k: self.train(chosen, k, model) for k in sizes}
-            switching = self.switch_decision(trained[chosen], others, gate_model)
-            team = self.team_decision(trained[chosen], model, gate_model)
-            self.write_snapshot(trained[chosen], others, team["team_searcher"], switching.get("switch_to"))
+            version = _version_data(trained[chosen], others)
+            switching = self.switch_decision(version, gate_model)
+            team = self.team_decision(replace(version, model=model), gate_model)
+            self.write_snapshot(version, trained[chosen].summary, team["team_searcher"], switching.get("switch_to"))
         gate = {
             "current": figures["current"],
             "new": figures[chosen],
@@ -516,7 +518,7 @@ class _TrainingRun:
             figures[name] |= {"paired_difference": round(diff, 3), "paired_ci95": round(half, 3)}
         return figures
 
-    def switch_decision(self, new: TrainedTeam, others: dict[int, TrainedTeam], gate_model: Any) -> dict[str, Any]:
+    def switch_decision(self, version: Any, gate_model: Any) -> dict[str, Any]:
         """For each team size k < N the version holds a team for: whether its robots left switch
         to it when teammates drop out mid-mission (``TeamAgent.withdraw``). A network trained in
         a team of N searches its own part of the building and a team of k divides it otherwise, so
@@ -525,23 +527,13 @@ class _TrainingRun:
         model with N - k robots withdrawn (the last ones, at steps 2, 4, ...), switching and not;
         k is switched to only if switching captures sooner, its paired 95% CI below zero. A mission
         that starts with k robots flies the team built for k whatever this decides."""
-        from shared.core.snapshot_format import SnapshotData
         from shared.engine.evaluate import evaluate, mean_ci95
         from shared.engine.linked_team import LinkedTeamSearcher
-        from shared.learning.team_snapshot import policy_weights
 
-        N, p = self.current.robots, self.p
-        smaller = sorted(k for k in others if k < N)
+        N, p, snap = self.current.robots, self.p, version
+        smaller = sorted(k for k in version.teams if k < N)
         if not smaller:
             return {}
-        teams = {k: policy_weights(t.snapshot.policy) for k, t in others.items()}
-        snap = SnapshotData(
-            meta=dict(new.snapshot.meta),
-            weights=policy_weights(new.snapshot.policy),
-            model=new.snapshot.model,
-            sensor=self.sensor,
-            teams=teams,
-        )
         self.say(
             "gate", message=f"robots dropping out on {p.team_episodes} episodes: switching to teams {smaller} or not"
         )
@@ -578,22 +570,19 @@ class _TrainingRun:
             }
         return {"switch_to": switch_to, "episodes": p.team_episodes, "by_size": by_size}
 
-    def team_decision(self, new: TrainedTeam, model: Any, gate_model: Any) -> dict[str, Any]:
+    def team_decision(self, snap: Any, gate_model: Any) -> dict[str, Any]:
         """Step 4: whether the new version's robots fly the team's plan (FHPE-SA on the version's
         model) when their links allow. ``auto`` flies the new policy alone and as a team on the same
         episodes under the gate's model, over links that lose what the fleet's own links lost
         (``measured_links``; links up when no robot has flown with a team searcher yet), and takes
-        the team only if it captures sooner, its paired 95% CI below zero."""
-        from shared.core.snapshot_format import SnapshotData
+        the team only if it captures sooner, its paired 95% CI below zero. ``snap``: the new
+        version (numpy, ``_version_data``) with the run's EM model as trained under."""
         from shared.engine.evaluate import evaluate, mean_ci95
         from shared.engine.linked_team import LinkedTeamSearcher
-        from shared.learning.team_snapshot import policy_weights
 
         p = self.p
         if p.team_searcher == "none":
             return {"team_searcher": "none", "decided_by": "parameter", "links": self.links}
-        meta = {"variant": new.snapshot.variant, "robots": new.snapshot.robots}
-        snap = SnapshotData(meta=meta, weights=policy_weights(new.snapshot.policy), model=model, sensor=self.sensor)
         loss = self.links["link_loss"] or 0.0
         self.say(
             "gate",
@@ -625,32 +614,44 @@ class _TrainingRun:
         }
 
     def write_snapshot(
-        self, new: TrainedTeam, others: dict[int, TrainedTeam], team_searcher: str, switch_to: list[int] | None
+        self, version: Any, summary: dict[str, Any], team_searcher: str, switch_to: list[int] | None
     ) -> None:
-        """The new version's snapshot: the chosen method's team for N, its teams for the other
-        team sizes, the team searcher and the switches decided."""
+        """The new version's snapshot (``_version_data``: the chosen method's team for N and its
+        teams for the other team sizes) with the team searcher and the switches decided."""
         from shared.core.snapshot_format import write_snapshot
-        from shared.learning.team_snapshot import policy_weights
 
         out = Path(self.job["staging"])
         shutil.rmtree(out, ignore_errors=True)
-        meta = new.snapshot.meta
+        meta = version.meta
         config = {**meta["training"], "parent_version": self.job["parent"], "run_algorithm": self.p.algorithm}
         write_snapshot(
             out,
             self.graph,
-            policy_weights(new.snapshot.policy),
-            new.snapshot.model,
+            version.weights,
+            version.model,
             self.sensor,
             meta["variant"],
             meta["beta"],
             config,
-            new.summary,
+            summary,
             algorithm=meta.get("algorithm", "cepg"),
             team_searcher=team_searcher,
-            teams={k: policy_weights(t.snapshot.policy) for k, t in others.items()},
+            teams=version.teams,
             switch_to=switch_to,
         )
+
+
+def _version_data(new: TrainedTeam, others: dict[int, TrainedTeam]) -> Any:
+    """The new version in numpy (shared.core.snapshot_format.SnapshotData): the chosen team for N
+    with its model and sensor, and the teams for the other team sizes, as agents will fly them."""
+    from shared.core.snapshot_format import SnapshotData
+    from shared.learning.team_snapshot import policy_weights
+
+    teams = {k: policy_weights(t.snapshot.policy) for k, t in others.items()}
+    snap = new.snapshot
+    return SnapshotData(
+        meta=dict(snap.meta), weights=policy_weights(snap.policy), model=snap.model, sensor=snap.sensor, teams=teams
+    )
 
 
 def _training_figures(team: TrainedTeam) -> dict[str, Any]:
@@ -721,11 +722,11 @@ class Supervisor:
         (queued again, in the order they were created; a run's folder holds what it had done),
         except those an operator had cancelled. Returns (run, status)."""
         out = self.server.store.requeue_interrupted_runs()
-        resumed = {run_id for run_id, status in out if status == "queued"}
+        resumed = [run_id for run_id, status in out if status == "queued"]
         for stale in (self.server.data_dir / "runs").glob("*"):  # folders of runs that ended meanwhile
             if stale.name not in resumed:
                 shutil.rmtree(stale, ignore_errors=True)
-        for run_id in (run_id for run_id, status in out if status == "queued"):
+        for run_id in resumed:
             self.submit(run_id)
         return out
 

@@ -264,15 +264,19 @@ def read_meta(path: str | Path) -> dict[str, Any]:
 
 def read_weights_blob(path: str | Path, meta: dict[str, Any]) -> tuple[str, bytes]:
     """(file name, bytes) of the weights file, its sha256 checked against the metadata."""
-    path = Path(path)
     name = meta["weights"].get("file", LEGACY_WEIGHTS)
+    return name, _checked_file(Path(path), name, meta["weights"].get("sha256"))
+
+
+def _checked_file(path: Path, name: str, sha256: Any) -> bytes:
+    """The bytes of ``path``/``name``, their sha256 checked against the one policy.json gives."""
     try:
         raw = (path / name).read_bytes()
     except FileNotFoundError:
         raise SnapshotError(f"{path}: no {name}") from None
-    if sha256_hex(raw) != meta["weights"].get("sha256"):
+    if sha256_hex(raw) != sha256:
         raise SnapshotError(f"{path}/{name}: sha256 does not match {META} (corrupt or replaced file)")
-    return name, raw
+    return raw
 
 
 def read_snapshot(path: str | Path, graph: Graph, legacy: Callable[[bytes], Weights] | None = None) -> SnapshotData:
@@ -329,12 +333,7 @@ def _read_teams(path: Path, meta: dict[str, Any], n: int) -> dict[int, Weights]:
         if not 1 <= k <= MAX_TEAM or k == int(meta["robots"]) or not ok:
             raise SnapshotError(f"{path}/{META}: teams entry {key!r} is not a team size with its {team_file(k)}")
         where = f"{path}/{entry['file']}"
-        try:
-            raw = (path / entry["file"]).read_bytes()
-        except FileNotFoundError:
-            raise SnapshotError(f"{path}: no {entry['file']}") from None
-        if sha256_hex(raw) != entry.get("sha256"):
-            raise SnapshotError(f"{where}: sha256 does not match {META} (corrupt or replaced file)")
+        raw = _checked_file(path, entry["file"], entry.get("sha256"))
         try:
             weights = dict(load_safetensors(raw))
         except Exception as exc:
@@ -346,14 +345,17 @@ def _read_teams(path: Path, meta: dict[str, Any], n: int) -> dict[int, Weights]:
 
 def combine_teams(
     main: str | Path, others: list[str | Path], out: str | Path, graph: Graph, switch_to: list[int] | None = None
-) -> SnapshotData:
+) -> tuple[SnapshotData, dict[str, float]]:
     """Write at ``out`` the snapshot ``main`` holding, besides its own team, the team of each of
     ``others`` (snapshots for other team sizes on the same map and sensor; `mures snapshot
     combine`); a SnapshotError names a snapshot that does not fit. The robots keep ``main``'s
     belief model whatever team they fly (a team trained with its own EM estimate flies on it).
-    ``switch_to``: the team sizes robots left switch to mid-mission (None: every one held)."""
+    ``switch_to``: the team sizes robots left switch to mid-mission (None: every one held).
+    Returns the snapshot written, and for each of ``others`` the largest gap between its belief
+    model's Gamma_hat and ``main``'s."""
     base = read_snapshot(main, graph)
     teams = dict(base.teams)
+    gaps = {}
     for where in others:
         other = read_snapshot(where, graph)
         k = other.robots
@@ -362,6 +364,7 @@ def combine_teams(
         if other.sensor != base.sensor:
             raise SnapshotError(f"{where}: its sensor differs from {main}'s")
         teams[k] = other.weights
+        gaps[str(where)] = float(np.abs(other.model.dense() - base.model.dense()).max())
     m = base.meta
     write_snapshot(
         out,
@@ -378,7 +381,7 @@ def combine_teams(
         teams=teams,
         switch_to=switch_to,
     )
-    return read_snapshot(out, graph)
+    return read_snapshot(out, graph), gaps
 
 
 def _check_shapes(weights: Any, expected: dict[str, tuple[int, ...]], where: str) -> None:

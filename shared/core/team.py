@@ -247,6 +247,10 @@ class TeamAgent:
             self.flown_for = len(left)
         return True
 
+    def alone(self) -> bool:
+        """This robot is the mission's only one, or every teammate has dropped out."""
+        return len(self.robots) - len(self.withdrawn) == 1
+
     def _ages(self, t: int) -> dict[str, int | None]:
         """Each teammate's (not withdrawn) steps since its latest observation at or before ``t``
         (None: none yet)."""
@@ -286,7 +290,7 @@ class TeamAgent:
 
     def complete(self, t: int) -> bool:
         """Every live teammate's observation of step ``t`` is in (and some teammate is heard)."""
-        if len(self.robots) - len(self.withdrawn) == 1:  # alone, or every teammate dropped out
+        if self.alone():
             return True
         return self.heard(t) and set(self.live(t)) <= self.collective.reported(t)
 
@@ -304,8 +308,7 @@ class TeamAgent:
         self.incomplete_run = 0 if complete else self.incomplete_run + 1
         usable = complete or (self.heard(t) and self.fresh(t))
         gave_up = self.fallback_after is not None and self.incomplete_run >= self.fallback_after
-        alone = len(self.robots) - len(self.withdrawn) == 1
-        poor_links = not alone and self.link_quality() < self.link_quality_min
+        poor_links = not self.alone() and self.link_quality() < self.link_quality_min
         if not usable or gave_up or poor_links:
             return self._own(p)
         mode = "team" if complete else "partial"

@@ -18,8 +18,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-
 from shared.core.graph import GraphError
 from shared.core.models import ModelError
 from shared.core.snapshot_format import SnapshotError
@@ -44,16 +42,13 @@ def cmd_snapshot_convert(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot_combine(args: argparse.Namespace) -> int:
-    from shared.core.snapshot_format import combine_teams, read_snapshot
+    from shared.core.snapshot_format import combine_teams
     from shared.tools.cli_args import graph_of
 
-    graph = graph_of(args)
-    snap = combine_teams(args.main, args.teams, args.out, graph, args.switch_to)
+    snap, gaps = combine_teams(args.main, args.teams, args.out, graph_of(args), args.switch_to)
     sizes = ", ".join(str(k) for k in snap.team_sizes)
     print(f"wrote {args.out}: {args.main}'s team for {snap.robots} robots, with teams for {sizes} robots")
-    for where in args.teams:
-        other = read_snapshot(where, graph).model
-        gap = float(np.abs(other.dense() - snap.model.dense()).max())
+    for where, gap in gaps.items():
         if gap > 1e-9:
             print(
                 f"note: {where}'s belief model differs from {args.main}'s (largest |Gamma_hat| gap {gap:.3g}); "
