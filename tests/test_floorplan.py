@@ -115,7 +115,21 @@ def test_bad_maps_end_with_one_line_and_exit_2_writing_nothing(tmp_path):
     cases["'mode' must be one of"] = _write(d, [[254] * 4] * 4, mode="fancy")
     d = tmp_path / "resolution"
     d.mkdir()
-    cases["'resolution' must be positive"] = _write(d, [[254] * 4] * 4, resolution=0)
+    cases["'resolution' is 0 metres a pixel"] = _write(d, [[254] * 4] * 4, resolution=0)
+    for name, value, words in (("coarse", 1000, "is 1000 metres a pixel"), ("fine", "1e-9", "is 1e-09 metres")):
+        d = tmp_path / name
+        d.mkdir()
+        cases[words] = _write(d, [[254] * 40] * 40)
+        (d / "m.yaml").write_text((d / "m.yaml").read_text().replace("resolution: 0.1", f"resolution: {value}"))
+    for name, side, words in (("bomb", 100_000, "too large to read"), ("huge", 8000, "8000 x 8000 px")):
+        d = tmp_path / name  # a PGM whose header claims more pixels than it holds: refused before reading them
+        d.mkdir()
+        _write(d, [[254] * 4] * 4)
+        (d / "m.pgm").write_bytes(f"P5\n{side} {side}\n255\n".encode() + bytes(16))
+        cases[words] = d / "m.yaml"
+    d = tmp_path / "one-room"
+    d.mkdir()
+    cases["1 node and nothing to search between"] = _write(d, [[254] * 30] * 30)  # 3 x 3 m: one region
     d = tmp_path / "pieces"
     d.mkdir()
     two_rooms = np.full((60, 130), 254)
@@ -129,11 +143,31 @@ def test_bad_maps_end_with_one_line_and_exit_2_writing_nothing(tmp_path):
         last = r.stderr.strip().splitlines()[-1]
         assert last.startswith("mures: error: map import:") and fragment in last, (fragment, r.stderr)
         assert "Traceback" not in r.stderr and not out.exists()
-    r = mures("map", "import", str(pieces), "--out", str(out), "--largest-part")
-    assert r.returncode == 0, r.stderr and "1 nodes" in r.stdout
+    r = mures("map", "import", str(pieces), "--out", str(out), "--largest-part", "--max-region-m", "3")
+    assert r.returncode == 0 and "nodes" in r.stdout, r.stderr
     r = mures("map", "import", str(pieces), "--out", str(tmp_path / "o2.json"), "--largest-part", "--start", "50,50")
     assert r.returncode == 2 and "not on the building's free space" in r.stderr
     r = mures("map", "import", str(pieces), "--out", str(out), "--max-region-m", "-1")
     assert r.returncode == 2 and "a length in metres above 0" in r.stderr
     with pytest.raises(MapError, match="pieces"):
         segment(read_map(pieces))
+
+
+def test_small_pockets_apart_from_the_building_are_dropped_and_named(tmp_path):
+    """A closed closet of 1.2 m2 against the outer wall of a 12 x 6 m floor (under 5 % of it) is
+    dropped by default, its area in the note; a room of 7.2 m2 walled off is a piece (an error)."""
+    floor = np.full((62, 140), 0)
+    floor[1:61, 1:121] = 254  # 12 x 6 m of free space
+    floor[1:13, 126:136] = 254  # a closet of 1.0 x 1.2 m behind a wall, touching the outer wall
+    grid = read_map(_write(tmp_path, floor))
+    regions = segment(grid)
+    assert regions.labels[5, 130] == 0 and regions.labels[30, 60] > 0
+    assert any("1 pocket apart from it (1.2 m2; under 3.6 m2, 5% of the building)" in n for n in regions.notes), (
+        regions.notes
+    )
+    r = mures("map", "import", str(tmp_path / "m.yaml"), "--out", str(tmp_path / "g.json"))
+    assert r.returncode == 0 and "1.2 m2" in r.stderr, r.stderr
+    floor[1:61, 121:127] = 0
+    floor[1:61, 127:139] = 254  # 7.2 m2 behind a wall: not a pocket
+    with pytest.raises(MapError, match="2 pieces"):
+        segment(read_map(_write(tmp_path, floor)))

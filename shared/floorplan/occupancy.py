@@ -19,6 +19,7 @@ Arrays are (H, W) with row 0 the image's top row, as in the image file.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 from dataclasses import dataclass
@@ -33,6 +34,8 @@ from shared.core.map_frame import MapFrame
 
 MODES = ("trinary", "scale", "raw")
 SAVER_UNKNOWN = 205  # the grey map_saver writes for an unknown cell
+MAX_MAP_PIXELS = 50_000_000  # the largest image the import reads (about 7000 x 7000 px; ~2 GB while segmenting)
+RESOLUTION_RANGE_M = (0.001, 1.0)  # metres a pixel a building's map can have (Nav2's are 0.02-0.1)
 
 
 class MapError(ValueError):
@@ -106,6 +109,9 @@ def _settings(path: Path, raw: dict[str, Any]) -> dict[str, Any]:
     """The YAML's settings, checked, with map_server's defaults."""
 
     def number(key: str, v: Any) -> float:
+        if isinstance(v, str):  # YAML 1.1 (PyYAML) reads 1e-9 as a string; map_server's yaml-cpp as a number
+            with contextlib.suppress(ValueError):
+                v = float(v)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise MapError(f"{path}: '{key}' must be a number, got {v!r}")
         return float(v)
@@ -114,8 +120,12 @@ def _settings(path: Path, raw: dict[str, Any]) -> dict[str, Any]:
     if not isinstance(image, str) or not image:
         raise MapError(f"{path}: 'image' must name the map's image file")
     resolution = number("resolution", raw.get("resolution"))
-    if resolution <= 0:
-        raise MapError(f"{path}: 'resolution' must be positive (metres a pixel), got {resolution}")
+    low, high = RESOLUTION_RANGE_M
+    if not low <= resolution <= high:
+        raise MapError(
+            f"{path}: 'resolution' is {resolution:g} metres a pixel; a building's map has {low:g} to {high:g} "
+            "(Nav2's maps: 0.05)"
+        )
     origin = raw.get("origin")
     if not isinstance(origin, list) or len(origin) != 3:
         raise MapError(f"{path}: 'origin' must be [x, y, yaw], got {origin!r}")
@@ -145,6 +155,13 @@ def _pixels(image_path: Path, yaml_path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(grey value (H, W) float in [0, 255], fully opaque (H, W) bool) of the map's image."""
     try:
         with Image.open(image_path) as im:
+            width, height = im.size
+            if width * height > MAX_MAP_PIXELS:
+                raise MapError(
+                    f"{yaml_path}: its image {image_path.name} is {width} x {height} px; the import reads at most "
+                    f"{MAX_MAP_PIXELS / 1e6:g} million pixels: crop it to the building, or save it at a coarser "
+                    "resolution (and the YAML's resolution with it)"
+                )
             im.load()
             bands = im.getbands()
             alpha = np.asarray(im.getchannel("A")) if "A" in bands else None
@@ -159,6 +176,13 @@ def _pixels(image_path: Path, yaml_path: Path) -> tuple[np.ndarray, np.ndarray]:
                     value = value.mean(axis=2)
     except FileNotFoundError:
         raise MapError(f"{yaml_path}: its image {image_path.name} is missing ({image_path})") from None
+    except Image.DecompressionBombError as exc:  # its header claims more pixels than PIL opens at all
+        raise MapError(
+            f"{yaml_path}: its image {image_path.name} is too large to read ({exc}); the import reads at most "
+            f"{MAX_MAP_PIXELS / 1e6:g} million pixels"
+        ) from None
+    except MapError:
+        raise
     except (UnidentifiedImageError, OSError, ValueError) as exc:
         raise MapError(f"{yaml_path}: its image {image_path.name} cannot be read: {exc}") from None
     if value.ndim != 2 or min(value.shape) < 1:

@@ -3,8 +3,10 @@ between them, its edges.
 
 1. **Free space.** The free pixels, their specks of obstacle smaller than ``CLUTTER_M2`` filled
    (scan noise and small furniture do not split a room); their connected parts (8-neighbours):
-   the largest is the building; other parts of at least ``PIECE_M2`` make the map "in pieces"
-   (an error unless ``largest_part``), smaller ones are dropped.
+   the largest is the building. Parts enclosed by it (inside furniture outlines) are dropped, and
+   so are pockets apart from it that are small next to it (under ``POCKET_SHARE`` of its area, or
+   under ``PIECE_M2``: a closed closet, a scan's stray cells), their areas named in a note; a
+   larger part makes the map "in pieces" (an error unless ``largest_part``).
 2. **Rooms** (morphological segmentation, as in Bormann et al., "Room segmentation: survey,
    implementation, and analysis", ICRA 2016): the distance of each free pixel to the nearest
    non-free one (its clearance); the pixels with clearance above half of ``max_door_m`` are the
@@ -37,7 +39,9 @@ from shared.floorplan import MAX_DOOR_M, MAX_REGION_M, MIN_DOOR_M
 from shared.floorplan.occupancy import MapError, OccupancyGrid
 
 CLUTTER_M2 = 0.25  # obstacles smaller than this inside free space are filled (square metres)
-PIECE_M2 = 1.0  # free parts apart from the building at least this large put the map "in pieces"
+PIECE_M2 = 1.0  # free parts apart from the building under this are always dropped (square metres)
+POCKET_SHARE = 0.05  # and so are those under this share of the building's free area; larger: "in pieces"
+MAX_NODES = 10_000  # the most nodes an imported graph may have (the engine's limit)
 CORE_M2 = 0.5  # room cores smaller than this are noise
 KMEANS_SAMPLE = 4000  # pixels of a room its areas' centres are fitted to
 EIGHT = np.ones((3, 3), dtype=bool)  # pixels touch by a side or a corner
@@ -74,6 +78,15 @@ def segment(
     res = grid.resolution
     notes: list[str] = []
     free = building(grid, largest_part, notes)
+    area_m2 = float(free.sum()) * res**2
+    fewest = area_m2 / (math.pi / 4 * max_region_m**2)  # areas fitting in discs of max_region_m: at least these
+    if fewest > MAX_NODES:
+        wider = math.ceil(math.sqrt(area_m2 / (math.pi / 4 * MAX_NODES)))
+        raise MapError(
+            f"{area_m2:,.0f} m2 of free space cut into areas of at most {max_region_m:g} m gives over {MAX_NODES:,} "
+            f"nodes (at least {fewest:,.0f}), more than the engine takes: use --max-region-m {wider} or more, or check "
+            "the map's resolution"
+        )
     clearance = ndimage.distance_transform_edt(free) * res  # metres to the nearest non-free pixel
     rooms = _rooms(free, clearance, max_door_m, res)
     labels = _areas(rooms, max_region_m, res, seed)
@@ -101,29 +114,42 @@ def _centers(labels: np.ndarray) -> list[tuple[int, int]]:
 
 def building(grid: OccupancyGrid, largest_part: bool, notes: list[str]) -> np.ndarray:
     """The building's free pixels (H, W) bool: clutter filled, its largest connected part. Free
-    parts enclosed by it (inside shelving or furniture outlines) are dropped; others of at least
-    PIECE_M2 are a MapError unless ``largest_part``."""
+    parts enclosed by it (inside shelving or furniture outlines) and pockets apart from it under
+    max(PIECE_M2, POCKET_SHARE of its area) are dropped, with a note; a larger part is a MapError
+    unless ``largest_part``."""
     res2 = grid.resolution**2
     free = morphology.remove_small_holes(grid.free, max_size=max(1, int(CLUTTER_M2 / res2)))
     parts, count = ndimage.label(free, structure=EIGHT)
-    sizes = np.bincount(parts.ravel())[1:]
+    sizes = np.bincount(parts.ravel())[1:] * res2  # square metres per part
     biggest = int(np.argmax(sizes)) + 1
     main = parts == biggest
     enclosed = ndimage.binary_fill_holes(main)
     outside = [k for k in range(1, count + 1) if k != biggest and not enclosed[parts == k].all()]
-    large = sorted((sizes[k - 1] * res2 for k in outside if sizes[k - 1] * res2 >= PIECE_M2), reverse=True)
+    inside = count - 1 - len(outside)
+    pocket_m2 = max(PIECE_M2, POCKET_SHARE * sizes[biggest - 1])
+    large = sorted((sizes[k - 1] for k in outside if sizes[k - 1] >= pocket_m2), reverse=True)
+    pockets = sorted((sizes[k - 1] for k in outside if sizes[k - 1] < pocket_m2), reverse=True)
     if large and not largest_part:
         raise MapError(
-            f"the map's free space is in {len(large) + 1} pieces of at least {PIECE_M2:g} m2 "
-            f"({sizes[biggest - 1] * res2:.1f} m2 and {', '.join(f'{a:.1f}' for a in large[:5])} m2): "
-            "a robot cannot drive between them; --largest-part keeps the largest one only"
+            f"the map's free space is in {len(large) + 1} pieces of at least {pocket_m2:.1f} m2 "
+            f"({POCKET_SHARE:.0%} of the largest) ({sizes[biggest - 1]:.1f} m2 and "
+            f"{', '.join(f'{a:.1f}' for a in large[:5])} m2): a robot cannot drive between them; "
+            "--largest-part keeps the largest one only"
         )
     if count > 1:
-        notes.append(
-            f"kept the largest free part ({sizes[biggest - 1] * res2:.1f} m2); dropped {count - 1 - len(outside)} "
-            f"enclosed by it (inside obstacles) and {len(outside)} apart from it"
-            + (f", {len(large)} of at least {PIECE_M2:g} m2" if large else f", each under {PIECE_M2:g} m2")
-        )
+        dropped = [f"{inside} enclosed by it (inside obstacles)"] if inside else []
+        if pockets:
+            shown = ", ".join(f"{a:.2g}" for a in pockets[:5]) + (", ..." if len(pockets) > 5 else "")
+            dropped.append(
+                f"{len(pockets)} pocket{'s' if len(pockets) != 1 else ''} apart from it ({shown} m2; under "
+                f"{pocket_m2:.1f} m2, {POCKET_SHARE:.0%} of the building)"
+            )
+        if large:
+            dropped.append(
+                f"{len(large)} larger part{'s' if len(large) != 1 else ''} "
+                f"({', '.join(f'{a:.1f}' for a in large[:5])} m2)"
+            )
+        notes.append(f"kept the largest free part ({sizes[biggest - 1]:.1f} m2); dropped " + " and ".join(dropped))
     return main
 
 

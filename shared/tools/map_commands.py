@@ -20,6 +20,8 @@ import numpy as np
 
 from shared.tools.cli_args import BUILTIN_MAPS, CliError, graph_of, number_where
 
+LARGE_GRAPH_NODES = 200  # above this, training a graph's policy is slow and memory-hungry (warned)
+
 
 def cmd_map(args: argparse.Namespace) -> int:
     if args.map_command == "import":
@@ -74,6 +76,20 @@ def cmd_map_import(args: argparse.Namespace) -> int:
         say(f"map import: {note}")
     data = graph_dict(grid, regions, Path(args.map).stem.upper(), parameters)
     graph = graph_from_dict(data, str(args.out))  # the file loads with --graph everywhere
+    if graph.n < 2:
+        free_m2 = float((regions.labels > 0).sum()) * grid.resolution**2
+        smaller = max(0.5, round(math.sqrt(free_m2) / 3, 1))
+        raise CliError(
+            f"map import: the building's {free_m2:.1f} m2 of free space is one region of at most "
+            f"{args.max_region_m:g} m, so the graph has 1 node and nothing to search between: cut it into areas "
+            f"with a smaller --max-region-m (e.g. {smaller:g})"
+        )
+    if graph.n > LARGE_GRAPH_NODES:
+        say(
+            f"map import: warning: {graph.n} nodes. Training (mures train, the server's retraining) grows with the "
+            f"square of the nodes and above about {LARGE_GRAPH_NODES} takes hours and tens of GB on a small machine "
+            f"(docs/your-building.md); a larger --max-region-m (now {args.max_region_m:g}) gives fewer, larger nodes"
+        )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(data, indent=1) + "\n")

@@ -17,6 +17,7 @@ from shared.learning import config as train_config
 from shared.learning.config import CHECKPOINT_EVERY_S, positive_int, seconds
 from shared.learning.team_snapshot import load_snapshot, save_snapshot
 from shared.tools.cli_args import CliError, add_world_args, device_of, world_of
+from shared.tools.map_commands import LARGE_GRAPH_NODES
 
 
 class _Progress:
@@ -71,6 +72,16 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.variant == "cepg+" and args.detection == "node":
         raise CliError("cepg+ trains with a sensing range: use --detection neighbourhood or custom, or leave it out")
     graph, target, sensor = world_of(args, detection)
+    if graph.n < 2:
+        raise CliError(f"{graph.name} has {graph.n} node: there is nothing to search between (a graph needs 2 or more)")
+    if graph.n > LARGE_GRAPH_NODES:
+        print(
+            f"mures train: warning: {graph.name} has {graph.n} nodes; the policy weights and the engine arrays grow "
+            f"with the square of the nodes, and above about {LARGE_GRAPH_NODES} training takes hours and tens of GB on "
+            "a small machine (docs/your-building.md: coarsen the import with --max-region-m)",
+            file=sys.stderr,
+            flush=True,
+        )
     device = device_of(args.device)
     out = Path(args.out)
     if out.exists() and not (out / "policy.json").is_file():
