@@ -50,6 +50,7 @@ from shared.core.snapshot_format import PolicyAgent, SnapshotData, SnapshotError
 from shared.core.team import FALLBACK_AFTER, LinkHistory, TeamAgent, mission_seed, team_searcher_of
 from shared.core.wire import (
     DEFAULT_FLEET,
+    MAX_REASON_CHARS,
     add_zenoh_arguments,
     agent_key,
     check_id,
@@ -59,6 +60,8 @@ from shared.core.wire import (
     mission_key,
     parse_message,
     telemetry_key,
+    withdrawal_key,
+    withdrawal_message,
     zenoh_config,
 )
 
@@ -68,6 +71,7 @@ END_WAIT_S = 10.0  # how long to wait for the end message after the world said t
 VERDICT_WAIT_S = 3.0  # after a detection (capture "auto", or on the last step): the server's verdict, at most
 TELEMETRY_HZ = 5  # live state messages a second at most, during a mission
 IDLE_BEAT_S = 5.0  # and one every this many seconds between missions
+IDLE_CHECK_S = 30.0  # between missions, the server is asked this often for a new version (--idle-check)
 TELEMETRY_MAX_NODES = 2048  # the belief rides along on maps up to this size (a few KB a message)
 
 
@@ -225,6 +229,8 @@ class Agent:
         self.last_telemetry = 0.0
         self.last_node: int | None = None
         self.links = LinkHistory()  # what the links delivered over this agent's missions
+        self.team: Teamwork | None = None  # the mission in progress's teamwork
+        self.last_failure: dict[str, str] | None = None  # the last mission this robot withdrew from, and why
 
     # ------------------------------------------------------------------ HTTP
     def _refused(self, exc: ApiError) -> None:
@@ -319,7 +325,12 @@ class Agent:
     def report_down(self, reason: str) -> None:
         """The last live state before the agent stops on an error it cannot retry: the server keeps it,
         so the fleet view says why this robot is down. Sent reliably, whatever --telemetry says."""
-        msg = {"state": "down", "reason": reason[:500], "backend": self.args.backend, "ts": round(time.time(), 3)}
+        msg = {
+            "state": "down",
+            "reason": reason[:MAX_REASON_CHARS],
+            "backend": self.args.backend,
+            "ts": round(time.time(), 3),
+        }
         try:
             self.session.put(
                 telemetry_key(self.fleet, self.robot_id),
@@ -328,6 +339,22 @@ class Agent:
             )
         except Exception as exc:
             log.debug("down report: %s", exc)
+
+    def withdraw(self, mission_id: str, steps: int, reason: str) -> None:
+        """This robot cannot go on with the mission (its backend failed): say why, once, to the
+        server (mures/<fleet>/withdrawals/<robot>/<mission>, sent reliably), which ends this
+        robot's part of the mission at once and tells its teammates and the simulated world. The
+        agent stays up for the next mission; its idle state carries the reason."""
+        log.error("mission %s: withdrawn after %d steps: %s", mission_id, steps, reason)
+        self.last_failure = {"mission_id": mission_id, "reason": reason[:MAX_REASON_CHARS]}
+        try:
+            self.session.put(
+                withdrawal_key(self.fleet, self.robot_id, mission_id),
+                json.dumps(withdrawal_message(mission_id, self.robot_id, steps, reason)).encode(),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        except Exception as exc:  # the mission then ends at its deadline, as a robot that vanished
+            log.error("mission %s: the withdrawal could not be sent: %s", mission_id, exc)
 
     def report_detection(self, mission_id: str, t: int, node: int) -> None:
         """Tell the server that this robot read z = 1 at step t on ``node``
@@ -469,13 +496,18 @@ class Agent:
         team = Teamwork(
             self.session, self.fleet, self.graph, mid, agent, wait_s=self.args.team_wait, link_loss=self.args.link_loss
         )
+        self.team, self.last_failure = team, None
         try:
             end = self._search(backend, msg, agent, team, max_steps, auto_capture, steps, decide_us)
         except MissionOver:
             end = self._control_for(mid, wait=END_WAIT_S)
         except BackendError as exc:
-            log.error("mission %s aborted: %s", mid, exc)
+            self.withdraw(mid, len(steps), str(exc))
+        except Exception as exc:  # a fault of the agent's own: this mission ends for it, the agent stays up
+            log.exception("mission %s: the agent failed", mid)
+            self.withdraw(mid, len(steps), f"the agent failed ({type(exc).__name__}: {exc})")
         finally:
+            self.team = None
             team.close()
             self.in_mission = False
             if steps:
@@ -542,10 +574,10 @@ class Agent:
         appended to ``steps`` as it is taken."""
         assert self.graph is not None
         graph, mid = self.graph, team.mission_id
-        node = int(backend.begin(msg))
+        node = backend.begin(msg)  # a label on the map, z a 0 or 1 (CheckedBackend)
         t = 0
         while True:
-            z = int(backend.detect())  # z_t at p_t
+            z = backend.detect()  # z_t at p_t
             t0 = time.perf_counter()
             p = graph.index[node]
             # Eq. 1 (own belief; t = 0: b_0 ∝ Lambda(p_0, z_0) b0) and Eq. 6 (the team's, with the
@@ -574,9 +606,7 @@ class Agent:
                 belief=agent.own.belief,
                 team_belief=agent.collective.belief(t) if agent.searcher is not None else None,
             )
-            node = int(backend.move(goal))
-            if node not in graph.index:
-                raise BackendError(f"backend reports node {node}, which is not on the map")
+            node = backend.move(goal)  # a label on the map (CheckedBackend)
             t += 1
 
     def _finish_mission(
@@ -617,6 +647,9 @@ class Agent:
                 return None
             if msg["mission_id"] == mid and msg["type"] in ("captured", "stop"):
                 return msg
+            team, robot = self.team, msg.get("robot_id")
+            if msg["mission_id"] == mid and msg["type"] == "withdrawn" and team is not None and robot != self.robot_id:
+                team.gone.put(str(robot))  # a teammate whose backend failed: dropped from the team's plan at once
             if msg["type"] == "start" and msg["mission_id"] != mid and self._for_me(msg):
                 if self.next_start is not None:
                     log.warning(
@@ -679,11 +712,17 @@ class Agent:
                 self.report_down(str(exc))
                 raise AgentStop(str(exc)) from None
             log.info("robot %s up in fleet %r with policy version %s", self.robot_id, self.fleet, self.policies.version)
-            idle_beat = 0.0
+            idle_beat, idle_check = 0.0, time.monotonic()
             while not self.stop.is_set():
+                if time.monotonic() - idle_check >= self.args.idle_check:  # a new version, or revoked credentials
+                    idle_check = time.monotonic()
+                    self.sync_policy("idle")
                 if time.monotonic() - idle_beat >= IDLE_BEAT_S:  # between missions: alive, idle, where
                     idle_beat = time.monotonic()
-                    self.telemetry({"state": "idle", "node": self.last_node}, force=True)
+                    idle: dict[str, Any] = {"state": "idle", "node": self.last_node}
+                    if self.last_failure is not None:  # the fleet view shows why its last mission failed
+                        idle["last_failure"] = self.last_failure
+                    self.telemetry(idle, force=True)
                 msg = self.next_control(timeout=0.5)
                 if msg is None or msg["type"] != "start" or not self._for_me(msg):
                     continue
@@ -787,6 +826,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=True,
         help=f"publish live state on mures/<fleet>/telemetry/<id>: each step (at most {TELEMETRY_HZ} a second) "
         f"with the robot's belief, and every {IDLE_BEAT_S:.0f} s between missions (default on)",
+    )
+    p.add_argument(
+        "--idle-check",
+        type=positive_seconds,
+        default=IDLE_CHECK_S,
+        metavar="S",
+        help=f"between missions, ask the server every S seconds for a new policy version; revoked credentials stop "
+        f"the agent then (default {IDLE_CHECK_S:.0f})",
     )
     p.add_argument("--log-level", default="INFO")
     return p

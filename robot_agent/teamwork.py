@@ -118,7 +118,7 @@ class Teamwork:
             if self.agent.withdraw(robot):
                 left = len(self.agent.robots) - len(self.agent.withdrawn)
                 log.info(
-                    "mission %s: %s dropped out (liveliness gone); %d robots left, own policy built for %d",
+                    "mission %s: %s dropped out (liveliness gone or withdrawn); %d robots left, own policy for %d",
                     self.mission_id,
                     robot,
                     left,

@@ -491,6 +491,8 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
             "policy_version": 1,
             "backend": "sim",
             "down_reason": None,
+            "last_failure": None,
+            "revoked": None,
         },
         "r2": {"state": "idle", "node": 12, "policy_version": 1, "z": 1, "mode": "team"},
     }
@@ -511,6 +513,8 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
         "mode": "partial",
         "backend": "sim",
         "down_reason": None,
+        "last_failure": None,
+        "revoked": None,
     }
     assert by["r2"]["state"] == "idle" and by["r2"]["node"] == 12 and by["r2"]["mission_id"] is None
     assert by["r2"]["z"] is None and by["r2"]["backend"] is None  # z only within the mission it flies

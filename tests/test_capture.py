@@ -194,3 +194,110 @@ def test_within_the_capture_window_the_earliest_step_wins_then_the_robot_listed_
     bus._decide_captures()
     assert decided == [("r2", 5, "auto")]
     assert list(bus.capturing) == ["m-2"]  # its window is still open
+
+
+def _agent(api, robot, *extra, env=None):
+    cmd = [sys.executable, "-m", "robot_agent.agent", "--robot-id", robot, "--server", api.base]
+    cmd += ["--zenoh-connect", api.endpoint, "--token-file", str(api.work / "server" / "agent.token")]
+    cmd += ["--state-dir", str(api.work / robot), *extra]
+    log = open(api.work / "logs" / f"{robot}.log", "ab")  # noqa: SIM115 - owned by the process
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env or api.env)
+
+
+def test_a_backend_that_breaks_the_contract_withdraws_its_robot_and_nothing_stays_stuck(robots):
+    """A backend whose begin() returns None, or whose detect() returns the string "1", or whose
+    move() raises: the agent withdraws that robot from the mission with a one-line reason and stays
+    up; the server ends the robot's part at once, ends a mission no robot is left flying, and the
+    robot can fly the next mission."""
+    api = robots
+    env = {**api.env, "MURES_TEST_FAULT": "r5:begin-none,r6:detect-string,r7:move-raises"}
+    procs = [_agent(api, r, "--backend", BACKEND, env=env) for r in ("r5", "r6", "r7")]
+    try:
+        online = lambda: {a["robot_id"] for a in api.get("/api/v1/fleet")["agents"] if a["online"]}  # noqa: E731
+        wait_until(lambda: online() >= {"r5", "r6", "r7"}, 90, "r5-r7 online", every=0.2)
+        # r5 alone: withdrawn before z_0, so the mission ends at once, not at its deadline
+        m = api.post("/api/v1/missions", {"robots": ["r5"], "seed": 4, "max_steps": 40})
+        done = _done(api, m["id"], timeout=30)
+        assert done["event"]["type"] == "stop" and done["event"]["reason"].startswith("no robot left: r5 withdrew")
+        why = done["withdrawn"]["r5"]
+        assert why["steps"] == 0 and "begin() returned None" in why["reason"]
+        assert "expected a node label" in why["reason"]
+        r5 = wait_until(
+            lambda: next(
+                (a for a in api.get("/api/v1/fleet")["agents"] if a["robot_id"] == "r5" and a.get("last_failure")), None
+            ),
+            20,
+            "r5's failure in the fleet view",
+        )
+        assert r5["online"] and r5["state"] == "idle" and r5["last_failure"]["mission_id"] == m["id"]
+        again = api.post("/api/v1/missions", {"robots": ["r5"], "seed": 5, "max_steps": 40})  # not 409: r5 is free
+        assert _done(api, again["id"], timeout=30)["withdrawn"]["r5"]["steps"] == 0
+        # r1 flies on while r6 (detect() -> "1" from t = 2) and r7 (move() raises) withdraw
+        m = api.post("/api/v1/missions", {"robots": ["r1", "r6", "r7"], "seed": 6, "max_steps": 40})
+        done = _done(api, m["id"], timeout=60)
+        assert done["outcome"]["captured"] and done["event"]["captured_by"] == "r1"  # r1 reads z = 1 at t = 5
+        assert "detect() returned '1' (str); expected 0 or 1" in done["withdrawn"]["r6"]["reason"]
+        assert done["withdrawn"]["r6"]["steps"] == 2
+        assert "move() raised OSError: the base controller is not answering" in done["withdrawn"]["r7"]["reason"]
+        rec = api.get(f"/api/v1/episodes/r7/{m['id']}")  # the steps it flew are kept
+        assert len(rec["steps"]) == 3 and not rec["outcome"]["captured"]
+        assert all(p.poll() is None for p in procs)  # every agent is still up
+    finally:
+        for p in procs:
+            p.terminate()
+            reap(p, 20)
+    log = (api.work / "logs" / "r5.log").read_text()
+    assert "Traceback" not in log and "withdrawn after 0 steps" in log
+
+
+def test_a_backend_module_in_the_working_directory_or_a_file_path_loads(tmp_path):
+    """--backend MODULE:CLASS finds a module in the folder the agent starts from (no PYTHONPATH),
+    and --backend path/to/file.py:CLASS loads that file; a module it cannot find says where it looked."""
+    from robot_agent.backend import resolve_backend
+
+    (tmp_path / "printbot_here.py").write_text(
+        "class PrintBot:\n    def begin(self, m): return 0\n    def detect(self): return 0\n"
+        "    def move(self, g): return g\n    def end(self): pass\n"
+    )
+    assert resolve_backend(f"{tmp_path / 'printbot_here.py'}:PrintBot").__name__ == "PrintBot"
+    code = "from robot_agent.backend import resolve_backend as r; print(r('printbot_here:PrintBot').__name__)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip() == "PrintBot", out.stderr
+    with pytest.raises(ValueError, match=r"working directory .*PYTHONPATH"):
+        resolve_backend("printbot_nowhere:PrintBot")
+
+
+def test_checked_backend_refuses_what_breaks_the_contract():
+    from robot_agent.backend import BackendError, CheckedBackend, MissionOver
+    from shared.core.graph import builtin_graph
+
+    graph = builtin_graph("office")
+
+    class Bad:
+        def __init__(self, begin, z):
+            self.b, self.z = begin, z
+
+        def begin(self, mission):
+            return self.b
+
+        def detect(self):
+            if self.z == "over":
+                raise MissionOver
+            return self.z
+
+        def move(self, goal):
+            return goal
+
+        def end(self):
+            pass
+
+    ok = CheckedBackend(Bad(int(graph.labels[0]), True), graph)
+    assert ok.begin({}) == int(graph.labels[0]) and ok.detect() == 1
+    for begin, words in ((None, "returned None"), (True, "returned True"), (10**6, "not on the map"), ("3", "'3'")):
+        with pytest.raises(BackendError, match=words):
+            CheckedBackend(Bad(begin, 0), graph).begin({})
+    for z in ("1", 2, 0.5, None):
+        with pytest.raises(BackendError, match="expected 0 or 1"):
+            CheckedBackend(Bad(0, z), graph).detect()
+    with pytest.raises(MissionOver):
+        CheckedBackend(Bad(0, "over"), graph).detect()

@@ -27,13 +27,30 @@ BIN = Path(sys.executable).parent
 
 
 def read_env(path: Path) -> dict[str, str]:
-    """An EnvironmentFile: KEY=VALUE lines, # comments."""
+    """An EnvironmentFile as systemd reads it: KEY=VALUE lines, # comments, a value in double
+    quotes taken without them (backslash escapes undone)."""
     out = {}
     for line in path.read_text(encoding="utf-8").splitlines():
         if line.strip() and not line.lstrip().startswith("#"):
             key, _, value = line.partition("=")
-            out[key.strip()] = value.strip()
+            value = value.strip()
+            if len(value) >= 2 and value[0] == value[-1] == '"':
+                value = re.sub(r"\\(.)", r"\1", value[1:-1])
+            out[key.strip()] = value
     return out
+
+
+def sourced(path: Path) -> dict[str, str]:
+    """The same file as a POSIX shell's ``source`` reads it."""
+    out = subprocess.run(
+        ["env", "-i", "bash", "-c", f"set -a; source {shlex.quote(str(path))}; env -0"],
+        capture_output=True,
+        timeout=30,
+        check=True,
+    )
+    return dict(
+        x.split("=", 1) for x in out.stdout.decode().split("\0") if x and x.split("=", 1)[0].startswith("MURES")
+    )
 
 
 def exec_start(unit: Path, env: dict[str, str]) -> list[str]:
@@ -66,6 +83,10 @@ def test_a_server_and_four_robots_from_the_generated_files_only(tmp_path):
     made = kit(*common, "--robots", "r1,r2,r3,r4")
     assert made.returncode == 0, made.stderr
     assert "bundles for r1, r2, r3, r4" in made.stdout
+    assert f"no server runs on {data} now" in made.stdout  # none runs yet
+    for f in ("server/server.env", "robots/r1/robot.env"):  # systemd and a shell read the same values
+        assert sourced(out / f) == read_env(out / f), f
+    assert read_env(out / "server" / "server.env")["MURES_MAP_ARGS"] == "--env office"
     for f in ("ca/ca-key.pem", "server/tls/server-key.pem", "server/zenohd/users.txt", "robots/r3/token"):
         assert (out / f).stat().st_mode & 0o077 == 0, f  # secrets are private
     router = json.loads((out / "server" / "zenohd" / "router.json5").read_text().split("\n", 1)[1])
@@ -109,6 +130,7 @@ def test_a_server_and_four_robots_from_the_generated_files_only(tmp_path):
             renv = read_env(bundle / "robot.env")
             assert renv["MURES_ROBOT_ID"] == robot and renv["MURES_SERVER_URL"] == f"https://127.0.0.1:{http}"
             renv["MURES_ROBOT_DIR"] = str(bundle)  # where its bundle is installed
+            renv["MURES_BACKEND_ARGS"] = "--idle-check 1"  # revoked credentials stop it within a second or so
             cmd = exec_start(UNITS / "mures-robot-agent.service", renv)
             cmd[cmd.index("--state-dir") + 1] = str(tmp_path / f"state-{robot}")
             start(robot, cmd, scripted)
@@ -129,7 +151,8 @@ def test_a_server_and_four_robots_from_the_generated_files_only(tmp_path):
         # a fifth robot while the server runs: the kit again (the others keep their credentials)
         t0 = time.monotonic()
         more = kit(*common, "--robots", "r1,r2,r3,r4,r5")
-        assert more.returncode == 0 and "bundles for r5" in more.stdout and "kept the credentials of r1" in more.stdout
+        assert more.returncode == 0 and "new credentials for r5" in more.stdout, more.stdout
+        assert "kept the credentials of r1" in more.stdout and "the running server takes the change" in more.stdout
         wait_until(lambda: "router re-opened" in (logs / "server.log").read_text(), 30, "the router to re-open")
         reopened = time.monotonic() - t0
         wait_until(lambda: online() >= {"r1", "r2", "r3", "r4"}, 60, "the robots to reconnect", every=0.05)
@@ -143,6 +166,51 @@ def test_a_server_and_four_robots_from_the_generated_files_only(tmp_path):
         )
         assert done["episodes_received"] == ["r1", "r2", "r3", "r4", "r5"]
 
+        # r6 added by hand first, then named to the kit with a simulated world: the kit writes r6 a
+        # bundle (new credentials: the hand-issued token cannot be read back), and `mures world`
+        # joins the TLS router with the world's credentials and flies r6 on --backend sim
+        add = subprocess.run(
+            [
+                str(BIN / "training-server"),
+                "robots",
+                "add",
+                "r6",
+                "--data-dir",
+                str(data),
+                "--out",
+                str(tmp_path / "r6"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert add.returncode == 0, add.stderr
+        sim = kit(*common, "--robots", "r1,r2,r3,r4,r5,r6", "--world")
+        assert sim.returncode == 0 and "r6 held credentials from `robots add`" in sim.stdout, sim.stdout + sim.stderr
+        assert (out / "robots" / "r6" / "token").is_file() and (out / "world" / "zenoh-password").is_file()
+        wait_until(
+            lambda: (logs / "server.log").read_text().count("router re-opened") >= 2, 30, "the router to re-open"
+        )
+        wenv = read_env(out / "world" / "world.env")
+        world_cmd = [str(BIN / "mures"), "world", *shlex.split(wenv["MURES_MAP_ARGS"]), "--fleet", wenv["MURES_FLEET"]]
+        world_cmd += ["--zenoh-connect", wenv["MURES_ZENOH_CONNECT"], "--zenoh-ca", str(out / "world" / "ca.pem")]
+        world_cmd += ["--zenoh-password-file", str(out / "world" / "zenoh-password")]
+        start("world", world_cmd)
+        wait_until(lambda: "simulating fleet" in (logs / "world.log").read_text(), 60, "the world up")
+        r6 = read_env(out / "robots" / "r6" / "robot.env")
+        r6.update(MURES_ROBOT_DIR=str(out / "robots" / "r6"), MURES_BACKEND="sim")
+        cmd = exec_start(UNITS / "mures-robot-agent.service", r6)
+        cmd[cmd.index("--state-dir") + 1] = str(tmp_path / "state-r6")
+        start("r6", cmd)
+        wait_until(lambda: "r6" in online(), 60, "r6 online", every=0.2)
+        m = api.post("/api/v1/missions", {"robots": ["r6"], "seed": 3, "max_steps": 8})
+        done = wait_until(
+            lambda: (x := api.get(f"/api/v1/missions/{m['id']}"))["status"] == "completed" and x,
+            60,
+            "simulated mission",
+        )
+        assert done["episodes_received"] == ["r6"] and not done["withdrawn"], done
+
         # r4 revoked: the router no longer admits it; the others reconnect
         t0 = time.monotonic()
         rv = subprocess.run(
@@ -153,11 +221,15 @@ def test_a_server_and_four_robots_from_the_generated_files_only(tmp_path):
         )
         assert rv.returncode == 0, rv.stderr
         wait_until(
-            lambda: (logs / "server.log").read_text().count("router re-opened") == 2, 30, "the router to re-open"
+            lambda: (logs / "server.log").read_text().count("router re-opened") == 3, 30, "the router to re-open"
         )
-        wait_until(lambda: online() == {"r1", "r2", "r3", "r5"}, 60, "the others back, without r4", every=0.05)
-        print(f"robots revoke: 4 robots back after {time.monotonic() - t0:.2f} s")
-        time.sleep(3)
+        wait_until(lambda: online() == {"r1", "r2", "r3", "r5", "r6"}, 60, "the others back, without r4", every=0.05)
+        print(f"robots revoke: 5 robots back after {time.monotonic() - t0:.2f} s")
+        # r4 is listed as revoked, and its agent stops with status 2 (systemd does not restart it), saying why
+        r4 = next(a for a in api.get("/api/v1/fleet")["agents"] if a["robot_id"] == "r4")
+        assert r4["state"] == "revoked" and r4["revoked"] is not None
+        assert reap(procs["r4"], 30) == 2
+        assert "credentials were revoked" in (logs / "r4.log").read_text().splitlines()[-1]
         assert "r4" not in online()
     finally:
         for name, p in procs.items():

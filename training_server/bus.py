@@ -19,14 +19,17 @@ import zenoh
 
 from shared.core.records import MAX_RECORD_BYTES, RecordError, canonical_record, parse_record, unexplained
 from shared.core.wire import (
+    MAX_REASON_CHARS,
     agent_key,
     detection_key,
     episode_key,
     mission_key,
     parse_detection,
     parse_message,
+    parse_withdrawal,
     telemetry_key,
     truth_key,
+    withdrawal_key,
 )
 
 log = logging.getLogger("mures.server.bus")
@@ -52,7 +55,13 @@ def live_state(msg: dict[str, Any] | None, n: int) -> dict[str, Any] | None:
         for k in ("state", "mission_id", "t", "node", "z", "goal", "mode", "policy_version", "backend", "ts")
     }
     if msg["state"] == "down":  # the agent stopped on an error it cannot retry, and says which
-        keep["reason"] = str(msg.get("reason"))[:500]
+        keep["reason"] = str(msg.get("reason"))[:MAX_REASON_CHARS]
+    failure = msg.get("last_failure")  # the last mission it withdrew from (its backend failed)
+    if msg["state"] == "idle" and isinstance(failure, dict) and isinstance(failure.get("mission_id"), str):
+        keep["last_failure"] = {
+            "mission_id": failure["mission_id"][:200],
+            "reason": str(failure.get("reason"))[:MAX_REASON_CHARS],
+        }
     for name in ("belief", "team_belief"):
         b = msg.get(name)
         if isinstance(b, list) and len(b) == n and all(_probability(x) for x in b):
@@ -99,6 +108,9 @@ class Bus:
         self.telemetry_sub = self.session.declare_subscriber(telemetry_key(self.fleet, "*"), self._on_telemetry)
         self.truth_sub = self.session.declare_subscriber(truth_key(self.fleet, "*"), self._on_truth)
         self.detections_sub = self.session.declare_subscriber(detection_key(self.fleet, "*", "*"), self._on_detection)
+        self.withdrawals_sub = self.session.declare_subscriber(
+            withdrawal_key(self.fleet, "*", "*"), self._on_withdrawal
+        )
         # mission -> (when to decide, [(t, robot's index in the mission, detection)]): under "auto"
         self.capturing: dict[str, tuple[float, list[tuple[int, int, dict[str, Any]]]]] = {}
         self.threads = [
@@ -129,6 +141,9 @@ class Bus:
 
     def _on_detection(self, sample: zenoh.Sample) -> None:
         self.events_q.put(("detection", str(sample.key_expr), sample.payload.to_bytes()))
+
+    def _on_withdrawal(self, sample: zenoh.Sample) -> None:
+        self.events_q.put(("withdrawal", str(sample.key_expr), sample.payload.to_bytes()))
 
     # ---------------------------------------------------------------- workers
     def agents_online(self) -> dict[str, float]:
@@ -210,6 +225,9 @@ class Bus:
             if kind == "detection":
                 self._detection(key, raw)
                 continue
+            if kind == "withdrawal":
+                self._withdrawal(key, raw)
+                continue
             msg = parse_message(raw)
             if msg is None or msg["type"] not in ("captured", "stop"):
                 continue
@@ -238,6 +256,17 @@ class Bus:
                 found.append((det["t"], det["order"], det))
         except Exception:
             log.exception("handling detection %s", det)
+
+    def _withdrawal(self, key: str, raw: bytes) -> None:
+        """A robot that cannot go on with a mission: its part of the mission ends at once."""
+        msg, why = parse_withdrawal(key, raw)
+        if msg is None:
+            log.warning("ignored a withdrawal message on %s: %s", key, why)
+            return
+        try:
+            self.server.on_withdrawal(msg)
+        except Exception:
+            log.exception("handling withdrawal %s", msg)
 
     def _decide_captures(self) -> None:
         now = time.monotonic()
@@ -376,6 +405,7 @@ class Bus:
             self.telemetry_sub,
             self.truth_sub,
             self.detections_sub,
+            self.withdrawals_sub,
             self.missions_sub,
             self.queryable,
             self.publisher,

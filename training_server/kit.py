@@ -20,9 +20,16 @@ as `training-server robots add` does). It writes::
         robot.env                        the settings deploy/systemd/mures-robot-agent.service reads
         token, zenoh-password, ca.pem    its HTTP token (scoped to it), Zenoh password, the CA
     KIT/operators/ca.pem                 what operators' browsers must trust (docs: docs/deploying.md)
+    KIT/world/                           with --world: a simulated world's Zenoh password, the CA and
+                                          world.env, for `mures world` to fly --backend sim robots
+                                          through the secured router (docs/deploying.md)
 
-A robot that already holds credentials keeps them (its bundle is not rewritten: the server keeps
-only a hash of its token) unless ``--reissue`` is given. Secrets are written with mode 0600.
+Every robot named gets a bundle. A robot whose bundle is already in KIT keeps its credentials (its
+secrets are not rewritten; its settings are) unless ``--reissue`` is given; a robot that holds
+credentials but has no bundle here (issued by `training-server robots add`, or a bundle deleted)
+is issued new ones, since the server keeps only a hash of its token: the old ones stop working.
+Values in the .env files are double-quoted where they hold spaces, so that both systemd's
+EnvironmentFile= and a shell's ``source`` read them. Secrets are written with mode 0600.
 """
 
 from __future__ import annotations
@@ -149,15 +156,25 @@ def server_certificate(ca: tuple[Any, Any], hosts: list[str], days: int) -> tupl
 def _env(path: Path, values: dict[str, str], header: str) -> None:
     """An environment file for systemd's EnvironmentFile= (and docker compose's env_file)."""
     lines = [f"# {line}" if line else "#" for line in header.splitlines()]
-    lines += [f"{k}={v}" for k, v in values.items()]
+    lines += [f"{k}={_env_value(v)}" for k, v in values.items()]
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
-def zenohd_config(fleet: str, robot_ids: list[str], port: int) -> dict[str, Any]:
+def _env_value(value: str) -> str:
+    """A value as systemd's EnvironmentFile= and a POSIX shell both read it back: bare when it is
+    plain, else in double quotes (with \\, \", $ and ` escaped)."""
+    if value and all(c.isalnum() or c in "-_./:,@+=%" for c in value):
+        return value
+    for c in '\\"$`':
+        value = value.replace(c, "\\" + c)
+    return f'"{value}"'
+
+
+def zenohd_config(fleet: str, robot_ids: list[str], port: int, world: bool = False) -> dict[str, Any]:
     """A zenohd configuration (JSON, which JSON5 reads): TLS listener, user/password authentication,
     and the server's generated access control for ``robot_ids`` plus a ``server`` user that may use
     every key of the fleet."""
-    acl = credentials.access_control(fleet, robot_ids)
+    acl = credentials.access_control(fleet, robot_ids, world=world)
     acl["rules"].insert(
         0,
         {
@@ -203,6 +220,8 @@ def build_kit(args: argparse.Namespace) -> dict[str, Any]:
 
     fleet = check_id("fleet", args.fleet)
     robots = [check_id("robot id", r) for r in args.robots.split(",") if r]
+    if credentials.WORLD_USER in robots:
+        raise ValueError(f"robot id {credentials.WORLD_USER!r} is the simulated world's Zenoh user; name it otherwise")
     if not robots:
         raise ValueError("--robots must name at least one robot (r1,r2,...)")
     if len(set(robots)) != len(robots):
@@ -237,17 +256,21 @@ def build_kit(args: argparse.Namespace) -> dict[str, Any]:
     )
 
     # the robots: credentials into the server's data directory, a bundle each
-    issued, kept = [], []
+    issued, kept, replaced = [], [], []
     have = credentials.robots(data)
     for r in robots:
         bundle = out / "robots" / r
-        if r in have and not args.reissue:
+        has_bundle = (bundle / "token").is_file() and (bundle / "zenoh-password").is_file()
+        if r in have and has_bundle and not args.reissue:
             kept.append(r)
-            continue
-        token, password = credentials.issue(data, r)
-        bundle.mkdir(parents=True, exist_ok=True)
-        write_private(bundle / "token", token + "\n")
-        write_private(bundle / "zenoh-password", password + "\n")
+        else:
+            if r in have and not has_bundle and not args.reissue:
+                replaced.append(r)  # its token exists only as a hash: it cannot be written into a bundle
+            token, password = credentials.issue(data, r)
+            bundle.mkdir(parents=True, exist_ok=True)
+            write_private(bundle / "token", token + "\n")
+            write_private(bundle / "zenoh-password", password + "\n")
+            issued.append(r)
         (bundle / "ca.pem").write_text(ca_pem, encoding="utf-8")
         _env(
             bundle / "robot.env",
@@ -267,19 +290,40 @@ def build_kit(args: argparse.Namespace) -> dict[str, Any]:
             "Nav2 robot; MURES_BACKEND_ARGS: its flags, split at spaces (e.g. --nav2-connect\n"
             "tcp/127.0.0.1:7447 --nav2-regions /etc/mures/robot/regions.png --nav2-map /etc/mures/robot/map.yaml).",
         )
-        issued.append(r)
+
+    # a simulated world, for flying --backend sim robots through the secured router
+    if args.world:
+        world_dir = out / "world"
+        world_dir.mkdir(parents=True, exist_ok=True)
+        if credentials.world_password(data) is None or not (world_dir / "zenoh-password").is_file():
+            write_private(world_dir / "zenoh-password", credentials.issue_world(data) + "\n")
+        (world_dir / "ca.pem").write_text(ca_pem, encoding="utf-8")
+        _env(
+            world_dir / "world.env",
+            {
+                "MURES_FLEET": fleet,
+                "MURES_MAP_ARGS": args.map_args,
+                "MURES_ZENOH_CONNECT": f"tls/{_url_host(host)}:{args.zenoh_port}",
+            },
+            "a simulated world for robots flown with --backend sim (docs/deploying.md):\n"
+            "mures world $MURES_MAP_ARGS --fleet $MURES_FLEET --zenoh-connect $MURES_ZENOH_CONNECT \\\n"
+            "  --zenoh-ca ca.pem --zenoh-user world --zenoh-password-file zenoh-password",
+        )
+    world = credentials.world_password(data) is not None
 
     # zenohd, for a router that is not the server's own
     every = sorted(credentials.robots(data))
     (srv / "zenohd").mkdir(exist_ok=True)
     (srv / "zenohd" / "router.json5").write_text(
         "// generated by training-server kit: zenohd -c /etc/mures/server/zenohd/router.json5\n"
-        + json.dumps(zenohd_config(fleet, every, args.zenoh_port), indent=2)
+        + json.dumps(zenohd_config(fleet, every, args.zenoh_port, world=world), indent=2)
         + "\n",
         encoding="utf-8",
     )
     server_password = secrets.token_urlsafe(24)
     users = [f"server:{server_password}"] + [f"{r}:{credentials.robots(data)[r]['zenoh_password']}" for r in every]
+    if world:
+        users.append(f"{credentials.WORLD_USER}:{credentials.world_password(data)}")
     write_private(srv / "zenohd" / "users.txt", "\n".join(users) + "\n")
     (srv / "zenohd" / "server-client.json5").write_text(
         json.dumps(
@@ -300,7 +344,31 @@ def build_kit(args: argparse.Namespace) -> dict[str, Any]:
     (srv / "zenohd" / "server-client.json5").chmod(0o600)
     (out / "operators").mkdir(exist_ok=True)
     (out / "operators" / "ca.pem").write_text(ca_pem, encoding="utf-8")
-    return {"issued": issued, "kept": kept, "robots_with_credentials": every, "hosts": hosts, "out": str(out)}
+    return {
+        "issued": issued,
+        "kept": kept,
+        "replaced": replaced,
+        "robots_with_credentials": every,
+        "hosts": hosts,
+        "out": str(out),
+        "server_running": server_running(data),
+    }
+
+
+def server_running(data_dir: Path) -> bool:
+    """Whether a training-server holds ``data_dir`` now (its lock on server.lock)."""
+    import fcntl
+
+    lock = data_dir / "server.lock"
+    if not lock.exists():
+        return False
+    with open(lock, "a+", encoding="utf-8") as fh:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+    return False
 
 
 def _url_host(host: str) -> str:
@@ -339,6 +407,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--days", type=int, default=CERT_DAYS, help=f"certificates' validity (default {CERT_DAYS})")
     p.add_argument("--reissue", action="store_true", help="new credentials for robots that have them already")
+    p.add_argument(
+        "--world",
+        action="store_true",
+        help="also credentials for a simulated world (KIT/world/), so that `mures world` can fly robots whose backend "
+        "is sim through the secured router",
+    )
     return p
 
 
@@ -355,11 +429,22 @@ def kit_main(argv: list[str]) -> int:
     except (ValueError, OSError) as exc:
         print(f"training-server kit: error: {exc}", file=__import__("sys").stderr)
         return 2
+    taken = (
+        "the running server takes the change within seconds (no restart)"
+        if done["server_running"]
+        else f"no server runs on {args.data_dir} now: start it (docs/deploying.md) and it reads them"
+    )
     print(
         f"kit in {done['out']}: CA, server certificate for {', '.join(done['hosts'])}, "
-        f"bundles for {', '.join(done['issued']) or 'no robot'}"
+        f"bundles for {', '.join(sorted(done['issued'] + done['kept']))}"
+        + (f" (new credentials for {', '.join(done['issued'])})" if done["issued"] else "")
         + (f"; kept the credentials of {', '.join(done['kept'])} (--reissue for new ones)" if done["kept"] else "")
-        + f". {len(done['robots_with_credentials'])} robots hold credentials; the running server takes the change "
-        "within seconds (no restart)."
+        + (
+            f"; {', '.join(done['replaced'])} held credentials from `robots add`, which the kit cannot read back: "
+            "replaced (the old ones no longer work)"
+            if done["replaced"]
+            else ""
+        )
+        + f". {len(done['robots_with_credentials'])} robots hold credentials; {taken}."
     )
     return 0

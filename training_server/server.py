@@ -229,18 +229,48 @@ class Server:
         return True
 
     def records_complete(self, mission_id: str) -> None:
-        """Every robot's record of a running mission has arrived: the robots ended it themselves
-        (at its step limit, or a robot's own end), so the server ends it too."""
+        """No robot is left flying a running mission: each has sent its record or withdrawn
+        (docs/operating.md). The robots ended it themselves (at its step limit, or a robot's own
+        end), or their backends failed; the server ends it too, as "stopped" with the reason."""
         m = self.store.get_mission(mission_id)
         if m is None or m["status"] != "running" or mission_id in getattr(self.bus, "capturing", {}):
             return  # (a detection's verdict is due: it ends the mission)
         recs = self.store.mission_records(self.fleet, mission_id)
-        if not set(m["robots"]) <= {r for r, *_ in recs}:
+        if not set(m["robots"]) <= {r for r, *_ in recs} | set(m["withdrawn"]):
             return
         steps = self.store.mission_steps(self.fleet, mission_id)
         limit = m["params"]["max_steps"]
-        reason = "step limit" if steps >= limit + 1 else "ended by the robots"
-        self.store.mission_event(mission_id, {"type": "stop", "mission_id": mission_id, "reason": reason}, "stopped")
+        if steps >= limit + 1:
+            reason = "step limit"
+        elif m["withdrawn"]:
+            reason = "no robot left: " + "; ".join(
+                f"{r} withdrew ({w['reason']})" for r, w in sorted(m["withdrawn"].items())
+            )
+        else:
+            reason = "ended by the robots"
+        msg = {"type": "stop", "mission_id": mission_id, "reason": reason}
+        if self.store.mission_event(mission_id, msg, "stopped") and m["withdrawn"]:
+            log.warning("mission %s stopped: %s", mission_id, reason)
+            if self.bus is not None:
+                self.bus.publish_mission(msg)  # the simulated world and any robot still waiting
+
+    def on_withdrawal(self, msg: dict[str, Any]) -> bool:
+        """A robot left a running mission (wire.parse_withdrawal's message, from the bus's worker):
+        recorded, so that it is no longer busy; its teammates and the simulated world are told
+        (a "withdrawn" mission message); the mission ends when no robot is left flying it.
+        False: ignored (no such running mission, or the robot is not in it), with the reason logged."""
+        mid, robot = msg["mission_id"], msg["robot_id"]
+        mission = self.store.withdraw(mid, robot, msg["steps"], msg["reason"])
+        if mission is None:
+            log.info("withdrawal of %s from mission %s ignored: not a running mission of that robot", robot, mid)
+            return False
+        log.warning("mission %s: %s withdrew after %d steps: %s", mid, robot, msg["steps"], msg["reason"])
+        if self.bus is not None:
+            self.bus.publish_mission(
+                {"type": "withdrawn", "mission_id": mid, "robot_id": robot, "reason": msg["reason"]}
+            )
+        self.records_complete(mid)
+        return True
 
     def reopen_router_on_credentials(self, make_conf: Any, stop: threading.Event, every: float = 1.0) -> None:
         """While the server is its fleet's secured router: whenever the robots holding credentials
@@ -251,7 +281,9 @@ class Server:
         from training_server.bus import Bus
 
         def fingerprint() -> list[tuple[str, str]]:
-            return sorted((r, str(e.get("zenoh_password"))) for r, e in credentials.robots(self.data_dir).items())
+            users = [(r, str(e.get("zenoh_password"))) for r, e in credentials.robots(self.data_dir).items()]
+            world = credentials.world_password(self.data_dir)
+            return sorted(users + ([(credentials.WORLD_USER, world)] if world else []))
 
         seen = fingerprint()
         while not stop.wait(every):

@@ -471,13 +471,34 @@ class Store:
     _MISSION_KEYS = ("id", "fleet", "created", "robots", "params", "status", "policy_version", "event", "ended")
 
     def _mission(self, row: Any) -> dict[str, Any]:
-        d = dict(zip((*self._MISSION_KEYS, "deadline"), row, strict=True))
+        d = dict(zip((*self._MISSION_KEYS, "deadline", "withdrawn"), row, strict=True))
         for k in ("robots", "params", "event"):
             d[k] = _from_json(d[k])
+        d["withdrawn"] = _from_json(d["withdrawn"]) or {}
         return d
 
     def _mission_query(self) -> Any:
-        return select(*(getattr(missions.c, k) for k in (*self._MISSION_KEYS, "deadline")))
+        return select(*(getattr(missions.c, k) for k in (*self._MISSION_KEYS, "deadline", "withdrawn")))
+
+    def withdraw(self, mission_id: str, robot_id: str, steps: int, reason: str) -> dict[str, Any] | None:
+        """Record that ``robot_id`` left running mission ``mission_id`` (its first withdrawal is
+        kept); the mission as it is now, or None when it is not running or the robot not in it."""
+        m = missions.c
+        with self._tx() as conn:
+            row = conn.execute(
+                self._mission_query().where(m.id == mission_id, m.status == "running").with_for_update()
+            ).one_or_none()
+            if row is None:
+                return None
+            mission = self._mission(row)
+            if robot_id not in mission["robots"]:
+                return None
+            if robot_id not in mission["withdrawn"]:
+                mission["withdrawn"][robot_id] = {"steps": int(steps), "reason": reason, "at": time.time()}
+                conn.execute(
+                    update(missions).where(m.id == mission_id).values(withdrawn=_to_json(mission["withdrawn"]))
+                )
+        return mission
 
     def get_mission(self, mission_id: str) -> dict[str, Any] | None:
         if not _storable(mission_id):
@@ -598,10 +619,11 @@ class Store:
         return out
 
     def busy_robots(self, fleet: str) -> dict[str, str]:
-        """{robot: mission} for every robot of a running mission whose record has not arrived."""
+        """{robot: mission} for every robot of a running mission whose record has not arrived and
+        that has not withdrawn from it."""
         busy = {}
         for mission in self.running_missions(fleet):
-            done = {r for r, *_ in self.mission_records(fleet, mission["id"])}
+            done = {r for r, *_ in self.mission_records(fleet, mission["id"])} | set(mission["withdrawn"])
             busy.update({r: mission["id"] for r in mission["robots"] if r not in done})
         return busy
 

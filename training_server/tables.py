@@ -52,6 +52,8 @@ missions = Table(
     Column("event", Text),
     Column("ended", Float),
     Column("deadline", Float),  # revision 0002: the mission times out then (None: never)
+    # revision 0004: robots that left the mission, JSON {robot: {"steps", "reason", "at"}}
+    Column("withdrawn", Text),
     Index("ix_missions_status", "status"),
 )
 

@@ -17,6 +17,9 @@ Key expressions, segment by segment (``<fleet>`` defaults to ``default``; ids ma
     mures/<fleet>/observations/<robot_id>/<mission_id>  pub/sub: every step's observation for the
         robot's teammates, {"mission_id", "robot_id", "t", "node", "z"} (best effort: a lost one
         is no observation, shared/core/team.py)
+    mures/<fleet>/withdrawals/<robot_id>/<mission_id>  pub/sub: a robot that cannot go on with a
+        mission (its backend failed) says so, {"mission_id", "robot_id", "steps", "reason"} (steps: how
+        many it flew); the server ends that robot's part of the mission at once
 
 Mission-control messages (JSON objects with a ``type``):
 
@@ -26,6 +29,8 @@ Mission-control messages (JSON objects with a ``type``):
     {"type": "stop", "mission_id", "reason": str}                        (the mission is over)
     {"type": "dismissed", "mission_id", "robot_id", "t", "detection": int}  (an operator ruled a
         detection a false alarm; the search goes on)
+    {"type": "withdrawn", "mission_id", "robot_id", "reason": str}      (a robot left the mission:
+        its teammates and the simulated world go on without it)
 """
 
 from __future__ import annotations
@@ -68,6 +73,35 @@ def detection_key(fleet: str, robot: str = "*", mission: str = "*") -> str:
 
 def detection_message(mission_id: str, robot_id: str, t: int, node: int) -> dict[str, Any]:
     return {"mission_id": mission_id, "robot_id": robot_id, "t": int(t), "node": int(node)}
+
+
+def withdrawal_key(fleet: str, robot: str = "*", mission: str = "*") -> str:
+    """A robot's word that it cannot go on with a mission (its backend failed)."""
+    return f"mures/{fleet}/withdrawals/{robot}/{mission}"
+
+
+MAX_REASON_CHARS = 500  # a withdrawal's or a down agent's reason is cut to this
+
+
+def withdrawal_message(mission_id: str, robot_id: str, steps: int, reason: str) -> dict[str, Any]:
+    return {
+        "mission_id": mission_id,
+        "robot_id": robot_id,
+        "steps": int(steps),
+        "reason": str(reason)[:MAX_REASON_CHARS],
+    }
+
+
+def parse_withdrawal(key: str, payload: bytes) -> tuple[dict[str, Any] | None, str]:
+    """A withdrawal message and "" if it is well formed (``steps``: how many steps the robot
+    flew, 0 when it failed before z_0; a non-empty ``reason``) and matches its key
+    (``mures/<fleet>/withdrawals/<robot_id>/<mission_id>``), else None and what is wrong."""
+    msg, why = _step_message(key, payload, "withdrawals", ("steps",))
+    if msg is None:
+        return None, why
+    if not isinstance(msg.get("reason"), str) or not msg["reason"].strip():
+        return None, "'reason' must be a non-empty string"
+    return withdrawal_message(msg["mission_id"], msg["robot_id"], msg["steps"], msg["reason"]), ""
 
 
 def observation_key(fleet: str, robot: str = "*", mission: str = "*") -> str:
@@ -247,7 +281,7 @@ def parse_message(payload: bytes) -> dict[str, Any] | None:
         msg = json.loads(payload)
     except (ValueError, UnicodeDecodeError):
         return None
-    if not isinstance(msg, dict) or msg.get("type") not in ("start", "captured", "stop", "dismissed"):
+    if not isinstance(msg, dict) or msg.get("type") not in ("start", "captured", "stop", "dismissed", "withdrawn"):
         return None
     if not isinstance(msg.get("mission_id"), str):
         return None

@@ -13,7 +13,14 @@ from shared.core.choices import DETECTIONS
 from shared.core.wire import add_zenoh_arguments
 from shared.learning.config import positive_int, seconds, whole_number
 from shared.learning.team_snapshot import load_snapshot
-from shared.tools.cli_args import CliError, add_map_args, add_world_args, eta_arg, probability, world_of
+from shared.tools.cli_args import (
+    CliError,
+    add_map_args,
+    add_world_args,
+    eta_arg,
+    probability,
+    world_of,
+)
 
 
 def cmd_fleet_sim(args: argparse.Namespace) -> int:
@@ -114,6 +121,7 @@ def cmd_world(args: argparse.Namespace) -> int:
 
     import zenoh
 
+    from shared.core.files import read_token
     from shared.core.wire import DEFAULT_ZENOH_ENDPOINT, check_id, zenoh_config
     from shared.tools.world import World
 
@@ -121,13 +129,30 @@ def cmd_world(args: argparse.Namespace) -> int:
     for ep in args.zenoh_connect or []:
         if "/" not in ep or not ep.split("/", 1)[0].isalnum():
             raise CliError(f"world: --zenoh-connect {ep!r} is not a Zenoh endpoint such as tcp/127.0.0.1:7447")
+    connect = args.zenoh_connect or [DEFAULT_ZENOH_ENDPOINT]
     try:
         check_id("fleet", args.fleet)
-        connect = args.zenoh_connect or [DEFAULT_ZENOH_ENDPOINT]
-        conf = zenoh_config("client", connect=connect, config_file=args.zenoh_config)
+        password = read_token(args.zenoh_password_file) if args.zenoh_password_file else None
+        conf = zenoh_config(
+            "client",
+            connect=connect,
+            config_file=args.zenoh_config,
+            tls_ca=args.zenoh_ca,
+            user=args.zenoh_user if password else None,
+            password=password,
+        )
         session = zenoh.open(conf)
-    except (ValueError, zenoh.ZError) as exc:
-        raise CliError(f"world: {str(exc).split(' at /')[0]}") from None
+    except (ValueError, OSError, zenoh.ZError) as exc:
+        hint = (
+            "; a secured (TLS) router needs --zenoh-ca and the kit's world credentials (training-server kit --world: "
+            "--zenoh-user world --zenoh-password-file KIT/world/zenoh-password)"
+            if any(ep.startswith("tls/") for ep in connect) and not args.zenoh_password_file
+            else ""
+        )
+        raise CliError(f"world: {str(exc).split(' at /')[0]}{hint}") from None
+    import logging
+
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(levelname)s world: %(message)s")
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_a: stop.set())
     signal.signal(signal.SIGINT, lambda *_a: stop.set())
@@ -165,7 +190,9 @@ def add_fleet_commands(sub: Any) -> None:
         "--retrains", type=positive_int, default=None, metavar="R", help="retrain at most R times (default: no limit)"
     )
     p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")
-    p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step, seconds")
+    p.add_argument(
+        "--step-delay", type=seconds, default=0.0, help="simulated travel time per step, seconds (default 0)"
+    )
     p.add_argument(
         "--link-loss",
         type=probability,
@@ -203,12 +230,19 @@ def add_fleet_commands(sub: Any) -> None:
         "world", help="the simulated world alone (the target, the detections) for agents run by hand with --backend sim"
     )
     add_map_args(p)
-    add_zenoh_arguments(p, "the fleet's router (repeatable; default the server's own, tcp/127.0.0.1:7447)")
+    add_zenoh_arguments(p, "the fleet's router (repeatable; default the server's own, tcp/127.0.0.1:7447)", robot=True)
+    p.add_argument(
+        "--zenoh-user",
+        default="world",
+        help="the Zenoh user of --zenoh-password-file (default world: `training-server kit --world`'s)",
+    )
     p.add_argument("--fleet", default="default", help="fleet name (default 'default')")
     p.add_argument("--eta-fn", type=eta_arg, default=0.0, help="false-negative rate, in [0, 0.5] (default 0)")
     p.add_argument("--eta-fp", type=eta_arg, default=0.0, help="false-positive rate, in [0, 0.5] (default 0)")
     p.add_argument("--detection", choices=DETECTIONS, default=None, help="detection set D(p) (default node)")
     p.add_argument("--target", default="uniform", metavar="MODEL", help="uniform (default), lazy:STAY or a model.json")
-    p.add_argument("--step-timeout", type=float, default=10.0, help="withdraw a robot silent this long (s, default 10)")
-    p.add_argument("--step-delay", type=float, default=0.0, help="simulated travel time per step (s, default 0)")
+    p.add_argument(
+        "--step-timeout", type=seconds, default=10.0, help="withdraw a robot silent this long (s, default 10)"
+    )
+    p.add_argument("--step-delay", type=seconds, default=0.0, help="simulated travel time per step (s, default 0)")
     p.set_defaults(func=cmd_world)

@@ -7,9 +7,9 @@ sensor model (docs/SPEC.md section 1) and replies to every query. It only answer
 reads z = 1 reports the detection to the server as a real robot does, and the server decides the
 capture (docs/SPEC.md section 6), so every fleet-sim mission exercises that path. The world
 ends a mission when the server says it is over, or at its step limit (where the agents stop
-on their own). A robot that does not report
-within ``step_timeout`` is withdrawn from the mission and the others go on (robustness, paper
-Fig. 12). ``seen(mission, robot, t)`` tells whether e_t was in D(p_t): the truth that a simulated
+on their own). A robot that does not report within ``step_timeout``, or that the server says
+has withdrawn (its backend failed), is withdrawn from the mission and the others go on
+(robustness, paper Fig. 12). ``seen(mission, robot, t)`` tells whether e_t was in D(p_t): the truth that a simulated
 operator confirms or dismisses a detection with (fleet-sim under ``--capture confirm``).
 
 Deterministic for a mission seed: the target's path and every z are drawn from one generator
@@ -135,6 +135,14 @@ class World:
         elif msg["type"] in ("captured", "stop") and mid in self.missions:
             self.finished.setdefault(mid, msg)
             self._end(mid, publish=None)
+        elif msg["type"] == "withdrawn" and mid in self.missions:  # a robot whose backend failed
+            m = self.missions[mid]
+            robot = str(msg.get("robot_id"))
+            if robot in m.active:
+                m.active.discard(robot)
+                log.info("mission %s: %s withdrew; the others go on", mid, robot)
+                if m.reports:
+                    self._advance_if_ready(mid, m)
         elif msg["type"] == "dismissed" and mid in self.missions:
             m = self.missions[mid]
             m.undecided.discard((str(msg.get("robot_id")), msg.get("t")))
@@ -148,6 +156,8 @@ class World:
         mid, robot = parts[3], parts[4]
         m = self.missions.get(mid)
         if m is None:
+            if mid not in self.parked:  # a mission started before this world joined never answers
+                log.info("mission %s: robots ask, but its start message has not come (yet)", mid)
             self.parked.setdefault(mid, []).append(q)  # the start message may still be on its way
             return None
         if m.ended:

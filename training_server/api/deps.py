@@ -81,8 +81,14 @@ def role(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None,
         request.state.who = f"robot:{robot}"
         request.state.robot = robot
         return ROLE_AGENT
-    srv.sign_ins.failed(client, "wrong bearer token", request.url.path)
-    raise HTTPException(401, "wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
+    gone = credentials.revoked_robot_for_token(srv.data_dir, tok)
+    why = f"robot {gone}'s credentials were revoked" if gone else "wrong bearer token"
+    srv.sign_ins.failed(client, why, request.url.path)
+    raise HTTPException(
+        401,
+        f"{why} (training-server robots revoke {gone}); an operator can issue new ones" if gone else why,
+        headers={"WWW-Authenticate": "Bearer"},
+    )
 
 
 def operator(request: Request, r: Annotated[int, Depends(role)]) -> int:

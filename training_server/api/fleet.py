@@ -1,6 +1,6 @@
 """GET /api/v1/fleet: every robot heard of since the server started: online or dropped off (from
 its liveliness token), flying or idle (from the running missions), and where it is and what policy
-it runs (from its telemetry)."""
+it runs (from its telemetry); and every robot whose credentials were revoked, as revoked."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from typing import Any
 
 from fastapi import APIRouter
 
+import training_server.credentials as credentials
 from training_server.api.deps import READ, Srv, errors
 from training_server.api.models import Agent, FleetOut
 
@@ -42,6 +43,14 @@ def fleet_view(srv: Any) -> FleetOut:
                 mode=live.get("mode") if same and live.get("mode") in ("team", "partial", "own") else None,
                 backend=live.get("backend"),
                 down_reason=live.get("reason") if live.get("state") == "down" and not a["online"] else None,
+                last_failure=live.get("last_failure") if live.get("state") == "idle" and not mission else None,
             )
         )
+    for robot, entry in credentials.revoked(srv.data_dir).items():  # listed as revoked, heard of or not
+        known = next((a for a in agents if a.robot_id == robot), None)
+        if known is None:
+            known = Agent(robot_id=robot, online=False, since=None, last_seen=entry["revoked"], state="revoked")
+            agents.append(known)
+        known.state, known.revoked = "revoked", entry["revoked"]
+    agents.sort(key=lambda a: a.robot_id)
     return FleetOut(fleet=srv.fleet, online=sum(a.online for a in agents), agents=agents)

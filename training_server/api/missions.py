@@ -33,7 +33,8 @@ def mission_view(srv: Any, mid: str, m: dict[str, Any] | None = None) -> Mission
         srv.records_complete(mid)
         m = srv.store.get_mission(mid) or m
     status = m["status"]
-    if set(m["robots"]) <= set(got):
+    no_record = {r for r, w in m["withdrawn"].items() if w["steps"] == 0}  # withdrew before z_0: none comes
+    if status != "running" and set(m["robots"]) <= set(got) | no_record:
         status = "completed"
     outcome = None
     if recs:
@@ -58,6 +59,7 @@ def mission_view(srv: Any, mid: str, m: dict[str, Any] | None = None) -> Mission
         deadline=m["deadline"],
         event=m["event"],
         episodes_received=got,
+        withdrawn=m["withdrawn"],
         outcome=outcome,
     )
 

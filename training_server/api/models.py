@@ -63,13 +63,15 @@ class Agent(BaseModel):
     online: bool = Field(description="its liveliness token is declared now; false: it dropped off")
     since: float | None = Field(description="when its liveliness token appeared (Unix time); null when offline")
     last_seen: float = Field(description="when it was last heard of (token or telemetry, Unix time)")
-    state: Literal["flying", "idle", "offline"] = Field(
-        description="flying: a running mission awaits its record; idle: online and free"
+    state: Literal["flying", "idle", "offline", "revoked"] = Field(
+        description="flying: a running mission awaits its record; idle: online and free; revoked: its credentials "
+        "were taken away (training-server robots revoke)"
     )
-    mission_id: str | None = Field(description="the running mission it is flying")
-    step: int | None = Field(description="its last reported step t in that mission (telemetry)")
-    node: int | None = Field(description="its last reported node (telemetry)")
-    policy_version: int | None = Field(description="the policy version it last reported running (telemetry)")
+    mission_id: str | None = Field(None, description="the running mission it is flying")
+    step: int | None = Field(None, description="its last reported step t in that mission (telemetry)")
+    node: int | None = Field(None, description="its last reported node (telemetry)")
+    policy_version: int | None = Field(None, description="the policy version it last reported running (telemetry)")
+    revoked: float | None = Field(None, description="when its credentials were revoked (Unix time)")
     z: int | None = Field(None, description="its last observation z_t in that mission (1: it detected the target)")
     mode: Literal["team", "partial", "own"] | None = Field(
         None,
@@ -79,6 +81,11 @@ class Agent(BaseModel):
     backend: str | None = Field(None, description="its robot backend (sim, or MODULE:CLASS), from its telemetry")
     down_reason: str | None = Field(
         None, description="why its agent stopped, when it stopped on an error it cannot retry (e.g. its backend)"
+    )
+    last_failure: dict[str, str] | None = Field(
+        None,
+        description="the last mission it withdrew from and why ({mission_id, reason}: its backend failed), "
+        "while it is idle; null when its last missions went well",
     )
 
 
@@ -172,6 +179,12 @@ class DetectionList(BaseModel):
     items: list[Detection]
 
 
+class Withdrawal(BaseModel):
+    steps: int = Field(description="steps the robot flew before it left (0: it failed before its first reading)")
+    reason: str = Field(description="why, as the robot's agent reported it")
+    at: float = Field(description="when the server heard of it (Unix time)")
+
+
 class Mission(BaseModel):
     id: str
     status: Literal["running", "captured", "stopped", "timed-out", "completed"]
@@ -183,6 +196,10 @@ class Mission(BaseModel):
     deadline: float | None = Field(description="when it times out if still running (Unix time; None: never)")
     event: dict[str, Any] | None = Field(description="the captured, stop or timeout message that ended it")
     episodes_received: list[str]
+    withdrawn: dict[str, Withdrawal] = Field(
+        default_factory=dict,
+        description="robots that left it because they could not go on (their backend failed), by robot id",
+    )
     outcome: dict[str, Any] | None = Field(
         description="from the records received: captured, capture_time, steps, policy_versions, captured_by"
     )
