@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo demo-train test test-fast lint docs format bench clean
+.PHONY: install demo demo-train test test-fast lint docs reference format bench clean
 
 install: $(STAMP)
 
@@ -46,6 +46,11 @@ lint: $(STAMP)
 # page fails. The command-line and REST API pages are generated from the code (docs/hooks/).
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
+
+# The generated reference in docs/cli.md and docs/api.md, written anew from the parsers and the
+# OpenAPI document (tests/test_docs.py fails while it is stale)
+reference: $(STAMP)
+	$(PY) docs/hooks/reference.py
 
 # The suite without the multi-process tests (servers, agents, fleets, subprocess training): minutes less.
 test-fast: $(STAMP)

@@ -1,9 +1,15 @@
-"""MkDocs hook: the command-line reference and the REST API reference, generated at build time from
-the programs' own argparse parsers and the server's OpenAPI document, so that they cannot drift
-from the code. A page asks for one with a marker line:
+"""The command-line reference and the REST API reference, generated from the programs' own argparse
+parsers and the server's OpenAPI document, so that they cannot drift from the code. A page asks
+for one with a marker line; what follows it, up to the end marker, is the generated text:
 
     <!-- generated: command-line -->
     <!-- generated: rest-api -->
+    ...
+    <!-- end of generated text -->
+
+The text is kept in the page, so that docs/cli.md and docs/api.md read as plain Markdown;
+`make reference` (this file run as a script) writes it anew, tests/test_docs.py checks it is
+current, and as an MkDocs hook it fills the site's pages at build time.
 """
 
 from __future__ import annotations
@@ -15,6 +21,8 @@ from typing import Any
 
 CLI = "<!-- generated: command-line -->"
 API = "<!-- generated: rest-api -->"
+END = "<!-- end of generated text -->"
+PAGES = {"cli.md": CLI, "api.md": API}
 
 
 def _help(parser: argparse.ArgumentParser) -> str:
@@ -61,15 +69,44 @@ def rest_api() -> str:
             doc = (op.get("description") or "").split("\n\n")[0].replace("\n", " ").replace("|", "\\|")
             statuses = ", ".join(sorted(op.get("responses", {})))
             out.append(f"| {method.upper()} | `{path}` | {doc or what} | {statuses} |")
+    out.append("\n" + training_hyperparameters())
     return "\n".join(out) + "\n"
 
 
+def training_hyperparameters() -> str:
+    """`POST /api/v1/training-runs`' ``hyperparameters``: each MARL method's names and defaults."""
+    from shared.learning.marl import MARL_ALGORITHMS, hyperparameters
+
+    out = [
+        "### Hyperparameters of a training run",
+        "",
+        "`POST /api/v1/training-runs` takes `hyperparameters` as `{method: {name: value}}`, for example",
+        '`{"algorithm": "mappo", "hyperparameters": {"mappo": {"lr": 0.0003, "envs": 64}}}`; a name a method',
+        "does not have, or a value of the wrong type, fails the run at once, naming it. CE-PG and PG take",
+        "the run's own fields (`beta`, `lr`, `variant`). Each method's names, with their defaults:",
+        "",
+        "| method | hyperparameters (defaults) |",
+        "| --- | --- |",
+    ]
+    for name in MARL_ALGORITHMS:
+        pairs = ", ".join(f"`{k}` {v}" for k, v in hyperparameters(name).to_dict().items())
+        out.append(f"| {name} | {pairs} |")
+    return "\n".join(out) + "\n"
+
+
+def filled(markdown: str) -> str:
+    """``markdown`` with the text after each marker (up to END, or none yet) generated anew."""
+    for marker, make in ((CLI, command_line), (API, rest_api)):
+        if marker not in markdown:
+            continue
+        head, _, rest = markdown.partition(marker)
+        _old, found, tail = rest.partition(END)
+        markdown = head + marker + "\n\n" + make().rstrip() + "\n\n" + END + (tail if found else "\n")
+    return markdown
+
+
 def on_page_markdown(markdown: str, page: Any, config: Any, files: Any) -> str:
-    if CLI in markdown:
-        markdown = markdown.replace(CLI, command_line())
-    if API in markdown:
-        markdown = markdown.replace(API, rest_api())
-    return _results_links(markdown, page)
+    return _results_links(filled(markdown), page)
 
 
 # docs/results.md is written by `mures report` and links its figures where they live, in
@@ -94,3 +131,12 @@ def _results_links(markdown: str, page: Any) -> str:
     if page.file.src_uri == "results.md":
         markdown = markdown.replace(RESULTS_LINK, f"]({RESULTS_SITE}/")
     return markdown
+
+
+if __name__ == "__main__":  # make reference: write the generated text into docs/cli.md and docs/api.md
+    from pathlib import Path
+
+    for page in PAGES:
+        path = Path(__file__).resolve().parent.parent / page
+        path.write_text(filled(path.read_text(encoding="utf-8")), encoding="utf-8")
+        print(f"wrote {path}")
