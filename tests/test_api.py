@@ -263,7 +263,12 @@ def test_metrics_from_prometheus_client(api):
     srv, c = api
     _store_episode(srv)
     srv.store.reject(["move", "move", "json"])
-    r = c.get("/metrics")
+    assert c.get("/metrics").status_code == 401  # a fleet token, unless --metrics-without-token
+    assert c.get("/metrics", headers={"Authorization": "Bearer wrong"}).status_code == 401
+    srv.metrics_without_token = True
+    assert c.get("/metrics").status_code == 200
+    srv.metrics_without_token = False
+    r = c.get("/metrics", headers=auth(AG))
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
     samples = {
         (s.name, tuple(sorted(s.labels.items()))): s.value
@@ -295,7 +300,7 @@ def test_openapi_documents_auth_errors_on_every_protected_route(api):
     spec = c.get("/openapi.json").json()
     for path, ops in spec["paths"].items():
         for method, op in ops.items():
-            if path in ("/api/v1/health", "/metrics"):
+            if path == "/api/v1/health":
                 assert "401" not in op["responses"], (method, path)
                 continue
             assert "401" in op["responses"], (method, path)
@@ -363,10 +368,21 @@ def test_operator_actions_are_audited(api):
     c.post("/api/v1/missions", json={"mission_id": "m-audit"}, headers=auth(OP))
     c.post("/api/v1/missions/m-audit/stop", headers=auth(AG))  # refused, and recorded as an attempt
     c.get("/api/v1/missions/m-audit", headers=auth(OP))  # reading is not an action
+    # a program acting with the operator token says so (fleet-sim's simulated operator), and the
+    # audit log and the decision it made record it, not a person
+    det = srv.store.add_detection(srv.fleet, "m-audit", "r1", 0, 1, "pending")
+    sim = {**auth(OP), "X-Mures-Actor": "fleet-sim simulated operator"}
+    assert c.post(f"/api/v1/detections/{det}/dismiss", headers=sim).json()["decided_by"] == (
+        "operator (fleet-sim simulated operator)"
+    )
+    assert c.get("/api/v1/whoami", headers=sim).json()["role"] == "operator"
+    c.post("/api/v1/missions/m-audit/stop", headers={**auth(OP), "X-Mures-Actor": "a\nforged line"})  # ignored
     log = srv.audit.read()
     assert [(e["who"], e["action"], e["status"]) for e in log] == [
         ("operator", "POST /api/v1/missions", 201),
         ("agent", "POST /api/v1/missions/m-audit/stop", 403),
+        ("operator (fleet-sim simulated operator)", f"POST /api/v1/detections/{det}/dismiss", 200),
+        ("operator", "POST /api/v1/missions/m-audit/stop", 200),
     ]
     assert all(e["client"] == "testclient" and e["ts"] > 0 for e in log)
 
@@ -587,3 +603,14 @@ def test_ids_no_database_can_hold_are_not_found_not_server_errors(api):
         assert c.get(path, headers=auth(OP)).status_code == 404, path
     for path in ("/api/v1/training-runs/x%00/cancel", "/api/v1/missions/a%00b/stop"):
         assert c.post(path, headers=auth(OP)).status_code == 404, path
+
+
+def test_the_api_docs_load_from_the_server_itself_not_a_cdn(api):
+    """/docs and /redoc work on a site network with no way out: their scripts come from the server."""
+    _srv, c = api
+    for page in ("/docs", "/redoc"):
+        html = c.get(page).text
+        scripts = re.findall(r'(?:src|href)="([^"]+\.(?:js|css))"', html)
+        assert scripts and all(s.startswith("/") for s in scripts), (page, scripts)
+        for s in scripts:
+            assert c.get(s).status_code == 200, s

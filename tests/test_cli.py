@@ -4,6 +4,10 @@ import sys
 
 import pytest
 
+from shared.core.files import read_token
+from shared.core.http import ApiClient
+from shared.tools.fleetsim import wait_until
+
 
 def mures(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "shared.tools.cli", *args], capture_output=True, text=True, cwd=cwd)
@@ -111,7 +115,7 @@ def test_fleet_sim_needs_missions_or_serve(args, fragment):
 @pytest.mark.slow
 def test_fleet_sim_serve_keeps_the_console_up_until_sigterm(tmp_path):
     """`mures fleet-sim --serve`: the fleet stays up and says where the console is; SIGTERM ends it
-    cleanly with the usual summary."""
+    cleanly with the usual summary, which counts the missions an operator flew meanwhile."""
     import signal
     import time
     import urllib.request
@@ -133,9 +137,14 @@ def test_fleet_sim_serve_keeps_the_console_up_until_sigterm(tmp_path):
         assert str(tmp_path / "server" / "operator.token") in line
         with urllib.request.urlopen(url) as r:
             assert r.status == 200 and "MuRES fleet" in r.read().decode()
+        api = ApiClient(url.rstrip("/"), read_token(tmp_path / "server" / "operator.token"))
+        m = api.post("/api/v1/missions", {"seed": 7, "max_steps": 30})  # as the console's Missions page does
+        wait_until(lambda: api.get(f"/api/v1/missions/{m['id']}")["status"] == "completed", 60, "the mission")
         proc.send_signal(signal.SIGTERM)
         out, _err = proc.communicate(timeout=60)
-        assert proc.returncode == 0 and json.loads(out)["missions"] == 1
+        summary = json.loads(out)
+        assert proc.returncode == 0 and summary["missions"] == 2, summary
+        assert m["id"] in [r["mission_id"] for r in summary["results"]] and summary["mean_capture_time"] > 0
     finally:
         if proc.poll() is None:
             proc.kill()

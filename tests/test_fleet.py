@@ -300,7 +300,7 @@ def test_bad_records_and_requests_get_clear_errors_and_change_nothing(fleet):
     meta = agent.get("/api/v1/policies/current")
     status, _headers, body = agent.request("GET", meta["artifact"], headers={"If-None-Match": f'"{meta["sha256"]}"'})
     assert status == 304 and body == b""
-    _status, _headers, text = ApiClient(fleet.api.base, None).request("GET", "/metrics")
+    _status, _headers, text = agent.request("GET", "/metrics")
     samples = {
         (s.name, tuple(s.labels.items())): s.value
         for fam in text_string_to_metric_families(text.decode())

@@ -192,6 +192,12 @@ def build_parser() -> argparse.ArgumentParser:
         "auto when the current policy's sensor has no false positives (eta_fp = 0), else confirm; a mission may "
         'say otherwise (POST /api/v1/missions {"capture": ...})',
     )
+    p.add_argument(
+        "--metrics-without-token",
+        action="store_true",
+        help="serve /metrics to anyone who reaches the server (default: a fleet token is needed, as for the API; "
+        "Prometheus sends one with authorization: {credentials_file: ...})",
+    )
     p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet name (default 'default')")
     p.add_argument("--operator-token-file", help="operator bearer token (default: created in the data dir)")
     p.add_argument("--agent-token-file", help="agent bearer token (default: created in the data dir)")
@@ -287,6 +293,7 @@ def _open_server(args: argparse.Namespace) -> Server:
         sign_in_limit=args.sign_in_limit,
         capture=args.capture,
     )
+    srv.metrics_without_token = args.metrics_without_token
     srv.migrate_versions()
     srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)
     return srv

@@ -85,6 +85,7 @@ class Server:
         self.is_stopping: Any = lambda: False  # main() points it at uvicorn's should_exit
         self.started = time.time()
         self.router_reopened = 0  # times the secured router re-opened (credentials changed)
+        self.metrics_without_token = False  # `training-server --metrics-without-token`: /metrics needs no token
         map_id = self.store.get_setting("graph_id")
         if map_id is None:
             self.store.set_setting("graph_id", graph.graph_id)

@@ -25,9 +25,14 @@ class ApiClient:
     """JSON in and out, a bearer token on every request. Network failures raise OSError
     (urllib's URLError included); error statuses raise ``ApiError``."""
 
-    def __init__(self, base: str, token: str | None, timeout: float = 30.0, ca_file: str | None = None) -> None:
+    def __init__(
+        self, base: str, token: str | None, timeout: float = 30.0, ca_file: str | None = None, actor: str | None = None
+    ) -> None:
         """``ca_file``: the CA certificate (PEM) to verify an https server with, for a fleet's own
-        CA or a self-signed server certificate; the system's CAs otherwise."""
+        CA or a self-signed server certificate; the system's CAs otherwise. ``actor``: who acts
+        with the token, sent as X-Mures-Actor and kept in the server's audit log (a program acting
+        for an operator says so: fleet-sim's simulated operator)."""
+        self.actor = actor
         self.base = base.rstrip("/")
         self.token = token
         self.timeout = timeout
@@ -49,6 +54,8 @@ class ApiClient:
             req.add_header("Content-Type", "application/json")
         if self.token:
             req.add_header("Authorization", f"Bearer {self.token}")
+        if self.actor:
+            req.add_header("X-Mures-Actor", self.actor)
         try:
             with urllib.request.urlopen(req, timeout=timeout or self.timeout, context=self.context) as resp:
                 return resp.status, {k.lower(): v for k, v in resp.headers.items()}, resp.read()

@@ -89,6 +89,9 @@ def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
         f"missions: {res['missions']} on {res['map']} with {res['robots']} robots (seed {res['seed']}), "
         f"{res['wall_seconds']:.1f} s"
     )
+    if not res["missions"]:
+        print("no mission was completed: no capture time to report")
+        return 0
     print(
         f"mean capture time: {res['mean_capture_time']:.2f} (95% CI {lo:.2f}..{hi:.2f}), "
         f"censored {100 * res['censored_fraction']:.1f}%"

@@ -70,8 +70,13 @@ class SimulatedOperator:
     truth) and dismisses the others as false alarms, through the REST API as a person would in the
     console. Polls every ``every`` seconds in a thread of its own until ``close``."""
 
+    ACTOR = "fleet-sim simulated operator"  # what the audit log and the detections' decided_by say
+
     def __init__(self, api: ApiClient, world: Any, every: float = 0.02) -> None:
-        self.api, self.world, self.every = api, world, every
+        # its own client: the same token, but every decision is recorded as the simulated operator's
+        self.api = ApiClient(api.base, api.token, api.timeout, actor=self.ACTOR)
+        self.api.context = api.context
+        self.world, self.every = world, every
         self.decided: dict[str, int] = {"confirm": 0, "dismiss": 0}
         self.stopping = threading.Event()
         self.thread = threading.Thread(target=self._loop, name="simulated-operator", daemon=True)
@@ -455,7 +460,9 @@ def run_fleet_sim(
                         f"{trial.get('baseline')} for {trial.get('pairs')} pairs, then is kept or rolled back"
                     )
         if serve:
+            since = time.time()
             _serve(fleet, robots)
+            results += _missions_flown_since(fleet, since, {r["mission_id"] for r in results})
         stats = fleet.api.get("/api/v1/episodes/stats")
     finally:
         fleet.close()
@@ -482,6 +489,22 @@ def run_fleet_sim(
         "wall_seconds": round(time.perf_counter() - t0, 2),
         "results": results,
     }
+
+
+def _missions_flown_since(fleet: Fleet, since: float, known: set[str]) -> list[dict[str, Any]]:
+    """The missions started by others (the console, the REST API) since ``since`` and completed,
+    oldest first, as summary lines: under --serve the summary counts what the operator flew."""
+    out = []
+    if fleet.server is not None and fleet.server.poll() is not None:
+        return out  # the server is gone: nothing to ask
+    try:
+        items = fleet.api.get("/api/v1/missions?limit=1000")["items"]
+    except (OSError, ApiError):
+        return out
+    for m in reversed(items):
+        if m["created"] >= since and m["id"] not in known and m["status"] == "completed" and m["outcome"]:
+            out.append(_mission_result(fleet, m))
+    return out
 
 
 def _mission_result(fleet: Fleet, m: dict[str, Any]) -> dict[str, Any]:

@@ -16,6 +16,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
+from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from training_server.api import (
@@ -60,7 +61,9 @@ def _methods_of(app: FastAPI, path: str) -> list[str]:
 
 def create_app(srv: Any) -> FastAPI:
     """The API of ``srv`` (a training_server.server.Server, or a test double with its attributes)."""
-    app = FastAPI(title="MuRES fleet training server", version="1", description=__doc__)
+    # FastAPIOffline: the /docs and /redoc pages load Swagger UI and ReDoc from the server itself, not
+    # a CDN (robot sites' networks are often offline)
+    app = FastAPIOffline(title="MuRES fleet training server", version="1", description=__doc__)
     app.state.server = srv
     app.state.metrics = metrics.registry_for(srv)
     for module in (health, maps, fleet, live, missions, detections, episodes, policies, training_runs):

@@ -8,6 +8,7 @@ Bearer tokens (compared in constant time): the operator token may do everything,
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request
@@ -54,6 +55,16 @@ def _client(request: Request) -> str:
     return request.client.host if request.client else "unknown"
 
 
+ACTOR_RE = re.compile(r"[A-Za-z0-9 _.:()-]{1,64}")
+
+
+def _who(request: Request, role_name: str) -> str:
+    """The token's role, and the program acting with it when it says so (X-Mures-Actor), for the
+    audit log and the decisions it records: "operator (fleet-sim simulated operator)"."""
+    actor = request.headers.get("x-mures-actor", "")
+    return f"{role_name} ({actor})" if ACTOR_RE.fullmatch(actor) else role_name
+
+
 def role(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> int:
     """The caller's role from its bearer token. No token: 401. A wrong one is a failed sign-in,
     logged; past a limit per address (training_server/security.py) the address is refused with
@@ -71,10 +82,10 @@ def role(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None,
         )
     tok = creds.credentials.encode()
     if srv.tokens["operator"].matches(tok):
-        request.state.who = "operator"
+        request.state.who = _who(request, "operator")
         return ROLE_OPERATOR
     if srv.tokens["agent"].matches(tok):
-        request.state.who = "agent"
+        request.state.who = _who(request, "agent")
         return ROLE_AGENT
     robot = credentials.robot_for_token(srv.data_dir, tok)
     if robot is not None:  # a robot's own token: the agent's reads, its own records only

@@ -47,7 +47,7 @@ def hub_of(srv: Any) -> Hub:
 def whoami(request: Request) -> WhoAmI:
     """The caller's role: "operator" (may act) or "agent" (reads only); ``who`` as in the audit log."""
     who = getattr(request.state, "who", "agent")
-    return WhoAmI(role="operator" if who == "operator" else "agent", who=who)
+    return WhoAmI(role="operator" if who == "operator" or who.startswith("operator (") else "agent", who=who)
 
 
 @router.get("/alerts", responses=errors(401))

@@ -1,4 +1,5 @@
-"""GET /metrics: Prometheus text exposition (prometheus-client), no token.
+"""GET /metrics: Prometheus text exposition (prometheus-client). A fleet token is needed, as for
+the API's reads, unless the server was started with ``--metrics-without-token``.
 
 A collector reads the server's state at scrape time (what the store and the bus already count),
 so nothing is double-counted and a restart shows the stored totals."""
@@ -6,12 +7,15 @@ so nothing is double-counted and a restart shows the stored totals."""
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
+from fastapi.security import HTTPAuthorizationCredentials
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
+
+from training_server.api.deps import _bearer, errors, role
 
 RUN_STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
 
@@ -60,10 +64,17 @@ def registry_for(srv: Any) -> CollectorRegistry:
     return reg
 
 
+def metrics_reader(request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
+    """Any fleet token (401 without one), unless the server serves metrics without a token."""
+    if not getattr(request.app.state.server, "metrics_without_token", False):
+        role(request, creds)
+
+
 @router.get(
     "/metrics",
     response_class=Response,
-    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}, "description": "Prometheus text exposition"}},
+    dependencies=[Depends(metrics_reader)],
+    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}, "description": "Prometheus text exposition"}, **errors(401)},
 )
 def metrics(request: Request) -> Response:
     return Response(generate_latest(request.app.state.metrics), media_type=CONTENT_TYPE_LATEST)
