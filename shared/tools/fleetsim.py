@@ -494,7 +494,7 @@ def run_fleet_sim(
 def _missions_flown_since(fleet: Fleet, since: float, known: set[str]) -> list[dict[str, Any]]:
     """The missions started by others (the console, the REST API) since ``since`` and completed,
     oldest first, as summary lines: under --serve the summary counts what the operator flew."""
-    out = []
+    out: list[dict[str, Any]] = []
     if fleet.server is not None and fleet.server.poll() is not None:
         return out  # the server is gone: nothing to ask
     try:
