@@ -133,10 +133,12 @@ def test_an_operators_session(fleet, page, tmp_path):
         pg.wait_for_selector(f"#mission-robots input[value='{r}']")
     pg.fill("#mission-steps", "60")
     pg.fill("#mission-seed", "4")  # a mission of 45 steps (seeded: the same every run)
+    pg.select_option("#mission-capture", "auto")
     pg.click("#start-mission")
     pg.wait_for_selector("#notice.ok")
     mission = pg.locator("#missions-table tbody tr").first.get_attribute("data-mission")
-    assert mission and fleet.api.get(f"/api/v1/missions/{mission}")["params"]["max_steps"] == 60
+    params = fleet.api.get(f"/api/v1/missions/{mission}")["params"]
+    assert mission and params["max_steps"] == 60 and params["capture"] == "auto"
 
     # on the live map the robots appear and move; the selected robot's belief colours the map
     for r in ("r1", "r2", "r3"):
