@@ -158,3 +158,60 @@ def test_the_server_keeps_a_robots_beliefs_only_when_they_are_n_probabilities():
         live = live_state(msg, n)
         assert live is not None and live["belief"] == good and ("team_belief" in live) is kept
     assert live_state({"state": "flying"}, n) is None and live_state(None, n) is None
+
+
+def test_the_automatic_layout_draws_no_node_over_another():
+    """The built-in maps have no positions: their force-directed layout keeps every two nodes at
+    least two of the console's node radii apart, so neither nodes nor their labels overlap."""
+    from shared.core.graph import builtin_graph
+    from training_server.console.layout import node_layout, node_radius
+
+    for name in ("office", "museum", "ward"):
+        graph = builtin_graph(name)
+        layout = node_layout(graph)
+        xy = np.array([layout.positions[int(v)] for v in graph.labels])
+        dist = np.linalg.norm(xy[:, None] - xy[None], axis=-1) + np.eye(graph.n) * 9
+        assert layout.source == "automatic" and dist.min() >= 2 * node_radius(graph.n), name
+        assert xy.min() >= 0 and xy.max() <= 1 and node_layout(graph) == layout  # the same picture every time
+
+
+def test_an_imported_maps_picture_lies_under_its_graph(tmp_path):
+    """`training-server --map-image`: GET /api/v1/map/layout places the map's picture so that each
+    node, drawn at its map-frame position, lies on its own pixel of the picture; a map that is not
+    the graph's is refused in one line."""
+    from types import SimpleNamespace
+
+    import pytest
+    from PIL import Image
+
+    from shared.core.graph import graph_from_dict
+    from shared.floorplan.graph_file import graph_dict, map_picture
+    from shared.floorplan.occupancy import MapError, read_map
+    from shared.floorplan.rooms import segment
+    from training_server.api.maps import map_image, map_layout
+
+    floor = np.full((80, 120), 0, dtype=np.uint8)
+    floor[5:75, 5:55] = 254  # two halls joined by a door
+    floor[5:75, 60:115] = 254
+    floor[35:45, 55:60] = 254
+    Image.fromarray(floor).save(tmp_path / "m.pgm")
+    (tmp_path / "m.yaml").write_text("image: m.pgm\nresolution: 0.1\norigin: [-3.0, 2.0, 0.0]\n")
+    grid = read_map(tmp_path / "m.yaml")
+    data = graph_dict(grid, segment(grid, max_region_m=3.0), "M", {})
+    graph = graph_from_dict(data)
+    srv = SimpleNamespace(graph=graph, map_picture=map_picture(tmp_path / "m.yaml", data["source"]))
+    layout = map_layout(srv)
+    img = layout.image
+    assert img is not None and img.url == "/api/v1/map/image"
+    h, w = floor.shape
+    for label, (x, y) in layout.positions.items():
+        col = (x - img.x) / img.width * w
+        row = (y - img.y) / img.height * h
+        assert floor[int(row), int(col)] == 254, label  # on the free space it was placed on
+        assert (int(row), int(col)) == tuple(int(v) for v in grid.to_pixel(*data["positions"][label]))
+    png = map_image(srv)
+    assert png.media_type == "image/png" and png.body.startswith(b"\x89PNG")
+    floor[40, 40] = 0  # another image: refused
+    Image.fromarray(floor).save(tmp_path / "m.pgm")
+    with pytest.raises(MapError, match="not the one this graph was imported from"):
+        map_picture(tmp_path / "m.yaml", data["source"])

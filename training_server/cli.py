@@ -149,6 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--env", choices=BUILTIN_MAPS, help="a built-in map")
     g.add_argument("--graph", metavar="FILE", help="a JSON graph file (docs/SPEC.md section 7)")
     p.add_argument(
+        "--map-image",
+        metavar="MAP.yaml",
+        help="with --graph from `mures map import`: the map it was imported from, drawn under the graph on the "
+        "console's live map (checked against the graph's image sha256)",
+    )
+    p.add_argument(
         "--data-dir", default="mures-data", help="where the database and policies live (default ./mures-data)"
     )
     p.add_argument(
@@ -266,6 +272,20 @@ def _run(args: argparse.Namespace) -> int:
     return _serve(srv, args, conf, secured_conf)
 
 
+def _map_picture(args: argparse.Namespace) -> Any:
+    """--map-image: the imported graph's map as the console draws it (ValueError: one line)."""
+    if not args.graph:
+        raise ValueError("--map-image goes with --graph (a graph made by `mures map import` from that map)")
+    try:
+        from shared.floorplan.graph_file import map_picture
+    except ImportError as exc:
+        raise ValueError(f"--map-image needs the maps extra (pip install 'mures-fleet[maps]'): {exc}") from None
+    source = json.loads(Path(args.graph).read_text(encoding="utf-8")).get("source")
+    picture = map_picture(args.map_image, source if isinstance(source, dict) else None)
+    log.info("map image %s: %d bytes, map frame %s", args.map_image, len(picture.png), picture.bounds)
+    return picture
+
+
 def _open_server(args: argparse.Namespace) -> Server:
     """The Server of the data directory, its policy versions migrated, an initial policy made if
     there is none, and training runs a restart interrupted ended."""
@@ -278,6 +298,7 @@ def _open_server(args: argparse.Namespace) -> Server:
     if args.sign_in_limit < 1:
         raise ValueError("--sign-in-limit must be at least 1")
     graph = builtin_graph(args.env) if args.env else load_graph_file(args.graph)
+    picture = _map_picture(args) if args.map_image else None
     sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection)
     data_dir = Path(args.data_dir)
     os.umask(0o077)  # everything the server writes (database, policies, logs of runs) is private
@@ -294,6 +315,7 @@ def _open_server(args: argparse.Namespace) -> Server:
         capture=args.capture,
     )
     srv.metrics_without_token = args.metrics_without_token
+    srv.map_picture = picture
     srv.migrate_versions()
     srv.ensure_initial_policy(args.robots, args.init_policy, sensor, args.seed)
     return srv

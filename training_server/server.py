@@ -86,6 +86,7 @@ class Server:
         self.started = time.time()
         self.router_reopened = 0  # times the secured router re-opened (credentials changed)
         self.metrics_without_token = False  # `training-server --metrics-without-token`: /metrics needs no token
+        self.map_picture: Any = None  # `training-server --map-image`: the building's map under the console's graph
         map_id = self.store.get_setting("graph_id")
         if map_id is None:
             self.store.set_setting("graph_id", graph.graph_id)

@@ -3,13 +3,14 @@ image, and a preview to check the segmentation by eye."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from PIL import Image, ImageDraw
 
-from shared.floorplan.occupancy import OccupancyGrid
+from shared.floorplan.occupancy import MapError, OccupancyGrid, read_map
 from shared.floorplan.rooms import Regions
 
 
@@ -33,6 +34,50 @@ def graph_dict(grid: OccupancyGrid, regions: Regions, name: str, parameters: dic
             "notes": regions.notes,
         },
     }
+
+
+PICTURE_MAX_PX = 2048  # the longest side of the picture the console draws (larger maps are shrunk)
+
+
+@dataclass(frozen=True)
+class MapPicture:
+    """A map as the console draws it under its graph: ``png`` (free white, occupied black, unknown
+    grey, at most PICTURE_MAX_PX a side) and the map-frame ``bounds`` it covers (x_min, y_min,
+    x_max, y_max, metres)."""
+
+    png: bytes
+    bounds: tuple[float, float, float, float]
+
+
+def map_picture(yaml_path: str | Path, graph_source: dict[str, Any] | None) -> MapPicture:
+    """The picture of the map ``yaml_path``; MapError when it cannot be read or its image is not
+    the one the graph was imported from (``graph_source``: the graph file's "source")."""
+    import io
+
+    grid = read_map(yaml_path)
+    if grid.origin[2] != 0:
+        raise MapError(f"{yaml_path}: its origin's yaw is {grid.origin[2]:g}; the console draws maps of yaw 0 only")
+    want = (graph_source or {}).get("image_sha256")
+    if want and want != grid.source["image_sha256"]:
+        raise MapError(
+            f"{yaml_path}: its image is not the one this graph was imported from "
+            f"(sha256 {grid.source['image_sha256'][:12]}..., the graph's {str(want)[:12]}...)"
+        )
+    grey = np.full(grid.shape, 205, dtype=np.uint8)
+    grey[grid.free] = 255
+    grey[grid.occupied] = 0
+    im = Image.fromarray(grey)
+    scale = PICTURE_MAX_PX / max(grid.shape)
+    if scale < 1:
+        im = im.resize(
+            (max(1, round(grid.shape[1] * scale)), max(1, round(grid.shape[0] * scale))), Image.Resampling.BOX
+        )
+    buf = io.BytesIO()
+    im.save(buf, format="PNG", optimize=True)
+    h, w = grid.shape
+    x_min, y_min = grid.to_map_frame(h - 0.5, -0.5)  # the lower-left pixel's outer corner
+    x_max, y_max = grid.to_map_frame(-0.5, w - 0.5)  # the upper-right pixel's outer corner
+    return MapPicture(buf.getvalue(), (x_min, y_min, x_max, y_max))
 
 
 def write_regions(path: str | Path, labels: np.ndarray) -> None:

@@ -53,9 +53,20 @@ class MapOut(BaseModel):
     graph_id: str
 
 
+class MapImage(BaseModel):
+    url: str = Field(description="the PNG (GET, with a fleet token)")
+    x: float = Field(description="its left edge, in the layout's coordinates")
+    y: float = Field(description="its top edge, in the layout's coordinates (y down)")
+    width: float
+    height: float
+
+
 class MapLayout(BaseModel):
     positions: dict[str, list[float]] = Field(description="node label -> [x, y] in [0, 1], y down (screen)")
     source: Literal["file", "automatic"] = Field(description="the graph file's positions, or a force-directed layout")
+    image: MapImage | None = Field(
+        None, description="where to draw the building's map under the nodes (training-server --map-image); null: none"
+    )
 
 
 class Agent(BaseModel):

@@ -1,18 +1,39 @@
 """Node positions for drawing a map: the graph file's own, or an automatic layout when it has none.
 
 The automatic layout is Fruchterman-Reingold (force-directed: edges pull, all pairs push) started
-from the Laplacian's spectral embedding, so the same graph always gets the same picture.
+from the Laplacian's spectral embedding, so the same graph always gets the same picture; then nodes
+closer than ``GAP`` node radii (the console draws a node with radius ``node_radius(n)``) are pushed
+apart, so that no two nodes or their labels overlap.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from shared.core.graph import Graph
 
 
-def node_layout(graph: Graph, iterations: int = 300) -> tuple[dict[int, tuple[float, float]], str]:
-    """({label: (x, y)} with x, y in [0, 1] (aspect kept), "file" | "automatic") for ``graph``."""
+@dataclass(frozen=True)
+class Layout:
+    """Where to draw each node: ``positions`` {label: (x, y)} with x, y in [0, 1] (aspect kept, y
+    down); ``source`` "file" (the graph file's map-frame positions) or "automatic"; for "file", the
+    map frame's place on screen: a map-frame point (x, y) is drawn at ((x - x0) / span, (-y - y0) / span)."""
+
+    positions: dict[int, tuple[float, float]]
+    source: str
+    x0: float = 0.0
+    y0: float = 0.0
+    span: float = 1.0
+
+    def to_screen(self, x: float, y: float) -> tuple[float, float]:
+        return (x - self.x0) / self.span, (-y - self.y0) / self.span
+
+
+def node_layout(graph: Graph, iterations: int = 300) -> Layout:
+    """The layout of ``graph`` (Layout)."""
     n = graph.n
     if graph.positions and len(graph.positions) == n:
         xy = np.array([graph.positions[i] for i in range(n)], dtype=float)
@@ -20,11 +41,41 @@ def node_layout(graph: Graph, iterations: int = 300) -> tuple[dict[int, tuple[fl
         source = "file"
     else:
         xy = _force_directed(graph, iterations if n <= 600 else 60)
+        xy = _separated(xy, node_radius(n) * GAP)
         source = "automatic"
-    xy -= xy.min(axis=0)
+    x0, y0 = (float(v) for v in xy.min(axis=0))
+    xy -= (x0, y0)
     span = float(xy.max()) or 1.0
     xy /= span
-    return {int(graph.labels[i]): (round(float(xy[i, 0]), 5), round(float(xy[i, 1]), 5)) for i in range(n)}, source
+    positions = {int(graph.labels[i]): (round(float(xy[i, 0]), 5), round(float(xy[i, 1]), 5)) for i in range(n)}
+    return Layout(positions, source, x0, y0, span)
+
+
+GAP = 2.6  # the least distance between two nodes' centres, in node radii (a gap of 0.6 r between them)
+
+
+def node_radius(n: int) -> float:
+    """The radius the console draws a node with on a map of ``n`` nodes (layout units, console.js)."""
+    return min(0.018, 0.3 / math.sqrt(n))
+
+
+def _separated(xy: np.ndarray, gap: float, rounds: int = 200) -> np.ndarray:
+    """(n, 2) positions scaled to a span of 1, with every pair closer than ``gap`` pushed apart
+    (each by half the shortfall, along the line between them) until none is, or ``rounds`` passes."""
+    if len(xy) < 2:
+        return xy
+    for _ in range(rounds):
+        xy = xy - xy.min(axis=0)
+        xy = xy / (float(xy.max()) or 1.0)
+        delta = xy[:, None, :] - xy[None, :, :]
+        dist = np.linalg.norm(delta, axis=-1)
+        np.fill_diagonal(dist, np.inf)
+        short = np.maximum(gap * 1.02 - dist, 0.0)  # a little past the gap: renormalising shrinks it back
+        if not (dist < gap).any():
+            break
+        push = (delta / np.maximum(dist, 1e-9)[..., None] * (short / 2)[..., None]).sum(axis=1)
+        xy = xy + push
+    return xy
 
 
 def _force_directed(graph: Graph, iterations: int) -> np.ndarray:

@@ -192,11 +192,15 @@ class MapView {
     const xs = map.nodes.map((l) => this.pos[l][0]);
     const ys = map.nodes.map((l) => this.pos[l][1]);
     const pad = 0.05;
-    const [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+    let [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+    const img = layout.image; // the building's map under the graph (training-server --map-image)
+    if (img) [x0, x1, y0, y1] = [Math.min(x0, img.x), Math.max(x1, img.x + img.width), Math.min(y0, img.y), Math.max(y1, img.y + img.height)];
     svg.setAttribute("viewBox", `${x0 - pad} ${y0 - pad} ${x1 - x0 + 2 * pad} ${y1 - y0 + 2 * pad}`);
     svg.setAttribute("preserveAspectRatio", "xMidYMid meet");
-    this.r = Math.min(0.018, 0.3 / Math.sqrt(map.nodes.length));
+    this.r = Math.min(0.018, 0.3 / Math.sqrt(map.nodes.length)); // layout.py's node_radius
     svg.replaceChildren();
+    this.gMap = svg.appendChild(sv("g", { class: "building" }));
+    if (img) this.drawBuilding(img);
     this.gEdges = svg.appendChild(sv("g"));
     this.gFlows = svg.appendChild(sv("g"));
     this.gNodes = svg.appendChild(sv("g"));
@@ -226,6 +230,18 @@ class MapView {
     this.onRobotClick = null;
   }
 
+  // the building's map image, fetched with the token (an <image href> would go without it)
+  async drawBuilding(img) {
+    try {
+      const blob = await (await api(img.url, { raw: true })).blob();
+      const im = sv("image", { x: img.x, y: img.y, width: img.width, height: img.height, preserveAspectRatio: "none", class: "building-map" });
+      im.setAttribute("href", URL.createObjectURL(blob));
+      this.gMap.replaceChildren(im);
+    } catch (_e) {
+      /* no picture: the graph alone, as for a graph without a map */
+    }
+  }
+
   // values: n numbers in the map's node order (null: plain), from their minimum (white) to their
   // maximum (red): a uniform belief, which says nothing, stays white
   setHeat(values, titleOf) {
@@ -238,7 +254,8 @@ class MapView {
     });
   }
 
-  // robots: [{id, node, detect, falseAlarm, selected}]; robots on one node are spread around it
+  // robots: [{id, node, detect, falseAlarm, selected}]; drawn beside their node (up and to the
+  // right, so that its label stays readable), robots on one node spread around it
   setRobots(robots) {
     const byNode = {};
     for (const r of robots) (byNode[r.node] = byNode[r.node] || []).push(r);
@@ -246,13 +263,13 @@ class MapView {
     for (const group of Object.values(byNode)) {
       group.forEach((r, k) => {
         const [x, y] = this.pos[r.node];
-        const a = (2 * Math.PI * k) / group.length;
-        const off = group.length > 1 ? this.r * 1.2 : 0;
+        const a = -Math.PI / 4 + (2 * Math.PI * k) / group.length;
+        const off = this.r * 2.0;
         let g = this.robotEls[r.id];
         if (!g) {
           g = sv("g", { class: "robot", "data-robot": r.id });
-          g.append(sv("circle", { class: "ring", r: this.r * 1.7 }), sv("circle", { r: this.r * 1.15 }));
-          const t = sv("text", { "font-size": this.r * 1.1 });
+          g.append(sv("circle", { class: "ring", r: this.r * 1.45 }), sv("circle", { r: this.r }));
+          const t = sv("text", { "font-size": this.r * 0.95 });
           t.textContent = r.id.length > 3 ? r.id.slice(-3) : r.id;
           g.append(t);
           const title = sv("title");
@@ -448,12 +465,23 @@ pages.fleet = async function (ctx) {
     };
     set(0, a.robot_id);
     const mode = a.mode ? ` · ${a.mode === "own" ? "on its own" : a.mode === "partial" ? "team (partial)" : "team"}` : "";
-    set(1, a.online ? `online · ${a.state}${mode}` : a.down_reason ? `down: ${a.down_reason}` : "offline (lost)", `state-${a.online ? "online" : "offline"}`);
+    const failed = a.last_failure ? ` · last mission failed: ${a.last_failure.reason}` : "";
+    const state =
+      a.state === "revoked"
+        ? "revoked: its credentials were taken away"
+        : a.online
+          ? `online · ${a.state}${mode}${failed}`
+          : a.down_reason
+            ? `down: ${a.down_reason}`
+            : "offline (lost)";
+    set(1, state, `state-${a.state === "revoked" ? "revoked" : a.online ? "online" : "offline"}`);
     cells[2].dataset.ts = a.last_seen;
     set(2, fmtAgo(a.last_seen));
     if ((cells[3].dataset.mission || "") !== (a.mission_id || "")) {
       cells[3].dataset.mission = a.mission_id || "";
-      cells[3].replaceChildren(a.mission_id ? el("a", { href: `/missions/${encodeURIComponent(a.mission_id)}` }, a.mission_id) : "—");
+      // a long id is shown shortened on one line; the link's title holds it whole
+      const link = a.mission_id ? el("a", { href: `/missions/${encodeURIComponent(a.mission_id)}`, class: "mission-id", title: a.mission_id }, a.mission_id) : "—";
+      cells[3].replaceChildren(link);
     }
     set(4, a.step ?? "—");
     set(5, a.node ?? "—");
