@@ -122,11 +122,11 @@ class SimBackend:
         waited = time.monotonic() - start
         if self.t == 0:
             raise BackendError(
-                f"no simulated world answers on {key} (waited {waited:.0f} s): the sim backend needs one; "
+                f"no simulated world answers on {key} (waited {round(waited, 1):g} s): the sim backend needs one; "
                 "start it with `mures world` (with the kit's --zenoh-* flags on a secured fleet), or run the "
                 "whole fleet with `mures fleet-sim`"
             )
-        raise BackendError(f"the simulated world did not answer step t={self.t} within {waited:.0f} s")
+        raise BackendError(f"the simulated world did not answer step t={self.t} within {round(waited, 1):g} s")
 
     def end(self) -> None:
         self.mission = ""

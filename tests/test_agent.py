@@ -190,3 +190,27 @@ def test_a_start_that_comes_during_a_mission_is_flown_after_it(tmp_path):
     agent.control.put({"type": "start", "mission_id": "m4", "robots": ["r1"]})
     agent.control.put({"type": "stop", "mission_id": "m4"})
     assert agent._control_for("m1") is None and agent.next_start is None
+
+
+def test_the_sim_backend_waits_its_whole_timeout_for_a_world_that_is_not_there():
+    """With no simulated world on the bus a Zenoh query ends at once (nothing matches it): the sim
+    backend asks again until its timeout, and then says how long it waited."""
+    import time
+
+    import zenoh
+
+    from robot_agent.backend import SimBackend
+    from shared.core.wire import zenoh_config
+    from shared.tools.fleetsim import free_port
+
+    port = free_port()
+    with zenoh.open(zenoh_config("peer", listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        graph = builtin_graph("office")
+        backend = SimBackend(graph, "r1", session, "default", timeout=1.5)
+        backend.begin({"mission_id": "m-1"})
+        t0 = time.monotonic()
+        with pytest.raises(
+            BackendError, match=r"no simulated world answers on mures/default/sim/m-1/r1 \(waited [12](\.\d)? s\)"
+        ):
+            backend.detect()
+        assert time.monotonic() - t0 >= 1.4
