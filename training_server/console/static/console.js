@@ -264,12 +264,12 @@ class MapView {
       group.forEach((r, k) => {
         const [x, y] = this.pos[r.node];
         const a = -Math.PI / 4 + (2 * Math.PI * k) / group.length;
-        const off = this.r * 2.0;
+        const off = this.r * 1.45;
         let g = this.robotEls[r.id];
         if (!g) {
           g = sv("g", { class: "robot", "data-robot": r.id });
-          g.append(sv("circle", { class: "ring", r: this.r * 1.45 }), sv("circle", { r: this.r }));
-          const t = sv("text", { "font-size": this.r * 0.95 });
+          g.append(sv("circle", { class: "ring", r: this.r * 1.0 }), sv("circle", { r: this.r * 0.72 }));
+          const t = sv("text", { "font-size": this.r * 0.7 });
           t.textContent = r.id.length > 3 ? r.id.slice(-3) : r.id;
           g.append(t);
           const title = sv("title");
@@ -454,7 +454,7 @@ pages.fleet = async function (ctx) {
     if (!tr) {
       tr = el("tr", { class: "clickable", "data-robot": a.robot_id });
       // last seen, policy and backend: columns a phone hides (console.css)
-      tr.append(...Array.from({ length: 8 }, (_, i) => el("td", { class: [2, 6, 7].includes(i) ? "opt" : null })));
+      tr.append(...Array.from({ length: 8 }, (_, i) => el("td", { class: [2, 6].includes(i) ? "opt" : i === 7 ? "opt wide" : null })));
       tr.addEventListener("click", (ev) => ev.target.tagName !== "A" && select(a.robot_id));
       rowOf[a.robot_id] = tr;
     }
