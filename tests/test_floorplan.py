@@ -171,3 +171,20 @@ def test_small_pockets_apart_from_the_building_are_dropped_and_named(tmp_path):
     floor[1:61, 127:139] = 254  # 7.2 m2 behind a wall: not a pocket
     with pytest.raises(MapError, match="2 pieces"):
         segment(read_map(_write(tmp_path, floor)))
+
+
+def test_every_example_map_imports_with_default_flags_or_says_in_one_line_why_not(tmp_path):
+    """The Nav2 maps shipped in examples/maps: warehouse (and depot, above) import with default
+    flags; tb3_sandbox, 20 m2 of free space, is one region at the default --max-region-m, so the
+    import refuses it in one line that names the flag, and with that flag it imports."""
+    r = mures("map", "import", str(NAV2 / "warehouse.yaml"), "--out", str(tmp_path / "w.json"))
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert json.loads((tmp_path / "w.json").read_text())["source"]["map"] == "warehouse.yaml"
+    r = mures("map", "import", str(NAV2 / "tb3_sandbox.yaml"), "--out", str(tmp_path / "t.json"))
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2 and "1 node and nothing to search between" in last and "--max-region-m" in last
+    assert not (tmp_path / "t.json").exists()
+    r = mures(
+        "map", "import", str(NAV2 / "tb3_sandbox.yaml"), "--out", str(tmp_path / "t.json"), "--max-region-m", "1.5"
+    )
+    assert r.returncode == 0 and json.loads((tmp_path / "t.json").read_text())["edges"], r.stderr
