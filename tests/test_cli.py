@@ -148,3 +148,25 @@ def test_fleet_sim_serve_keeps_the_console_up_until_sigterm(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_a_graph_of_one_node_is_refused_in_one_line_by_every_command_that_searches(tmp_path):
+    """A building imported as a single region gives a graph of one node: valid as a file, but there
+    is nothing to search between, so train, evaluate and the server say so instead of failing deep
+    inside (train used to end in torch.cat() on an empty list)."""
+    one = tmp_path / "one.json"
+    one.write_text(json.dumps({"name": "ONE", "nodes": [0], "edges": [], "start_node": 0}))
+    for args in (
+        ["train", "--graph", str(one), "--robots", "2", "--episodes", "10", "--out", str(tmp_path / "t")],
+        ["evaluate", "--graph", str(one), "--robots", "2", "--searcher", "random", "--episodes", "10"],
+    ):
+        r = mures(*args)
+        assert r.returncode == 2 and r.stderr.strip().endswith("cuts a building into more)"), r.stderr
+        assert "nothing to search between" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run(
+        [sys.executable, "-m", "training_server", "--graph", str(one), "--data-dir", str(tmp_path / "data")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2 and "nothing to search between" in r.stderr and not (tmp_path / "data").exists()

@@ -29,7 +29,7 @@ from typing import Any
 import training_server.credentials as credentials
 from shared.core.choices import BUILTIN_MAPS, DETECTIONS
 from shared.core.files import read_token, write_private
-from shared.core.graph import GraphError, builtin_graph, load_graph_file
+from shared.core.graph import GraphError, builtin_graph, check_searchable, load_graph_file
 from shared.core.wire import DEFAULT_FLEET, DEFAULT_HTTP, DEFAULT_ZENOH_ENDPOINT, add_zenoh_arguments, check_id
 from training_server.security import MAX_FAILURES, ROLES, WINDOW_S, AuditLog, endpoint_host, is_loopback, rotate
 from training_server.server import CAPTURE_MODES, MISSION_TIMEOUT_S, Server
@@ -297,7 +297,7 @@ def _open_server(args: argparse.Namespace) -> Server:
         raise ValueError("--mission-timeout must be more than 0 and at most a week (604800 s)")
     if args.sign_in_limit < 1:
         raise ValueError("--sign-in-limit must be at least 1")
-    graph = builtin_graph(args.env) if args.env else load_graph_file(args.graph)
+    graph = check_searchable(builtin_graph(args.env) if args.env else load_graph_file(args.graph))
     picture = _map_picture(args) if args.map_image else None
     sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection)
     data_dir = Path(args.data_dir)

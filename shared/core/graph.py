@@ -295,6 +295,17 @@ def _parse_label_key(key: str, index: dict[int, int], source: str, table: str) -
     return lab
 
 
+def check_searchable(graph: Graph) -> Graph:
+    """``graph`` if a team can search it (2 nodes or more), else GraphError saying why: a graph of
+    one node is valid as a file but leaves nothing to move to."""
+    if graph.n < 2:
+        raise GraphError(
+            f"{graph.name} has {graph.n} node: there is nothing to search between (a search needs 2 nodes or more; "
+            "`mures map import --max-region-m` cuts a building into more)"
+        )
+    return graph
+
+
 def load_graph_file(path: str | Path) -> Graph:
     """Read and validate a JSON graph file (docs/SPEC.md section 7)."""
     p = Path(path)

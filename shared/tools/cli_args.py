@@ -7,7 +7,7 @@ from collections.abc import Callable
 from typing import Any
 
 from shared.core.choices import BUILTIN_MAPS, DETECTIONS
-from shared.core.graph import Graph, builtin_graph, load_graph_file
+from shared.core.graph import Graph, builtin_graph, check_searchable, load_graph_file
 from shared.core.models import Sensor, TargetModel, parse_target
 from shared.learning.config import positive_int
 
@@ -90,7 +90,7 @@ def graph_of(args: argparse.Namespace) -> Graph:
 
 def world_of(args: argparse.Namespace, detection: str = "node") -> tuple[Graph, TargetModel, Sensor]:
     """The map, the true target model and the sensor; ``detection`` when --detection is not given."""
-    graph = graph_of(args)
+    graph = check_searchable(graph_of(args))
     target = parse_target(graph, args.target)
     sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection or detection)
     if sensor.detection == "custom":

@@ -72,8 +72,6 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.variant == "cepg+" and args.detection == "node":
         raise CliError("cepg+ trains with a sensing range: use --detection neighbourhood or custom, or leave it out")
     graph, target, sensor = world_of(args, detection)
-    if graph.n < 2:
-        raise CliError(f"{graph.name} has {graph.n} node: there is nothing to search between (a graph needs 2 or more)")
     if graph.n > LARGE_GRAPH_NODES:
         print(
             f"mures train: warning: {graph.name} has {graph.n} nodes; the policy weights and the engine arrays grow "
