@@ -24,7 +24,7 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     "shared.floorplan": ("shared.core", "shared.floorplan"),
     "shared.tools": ("shared",),
     "robot_agent": ("shared.core", "robot_agent"),
-    "training_server": ("shared.core", "shared.engine", "shared.learning", "training_server"),
+    "training_server": ("shared.core", "shared.engine", "shared.learning", "shared.floorplan", "training_server"),
 }
 HEAVY = ("torch", "scipy", "matplotlib", "fastapi", "starlette", "uvicorn", "pydantic")
 FORBIDDEN: dict[str, tuple[str, ...]] = {
