@@ -125,7 +125,7 @@ def robots_main(argv: list[str]) -> int:
             return 2
         audit.write(who="admin", client="local", action=f"robots revoke {robot}", status="done")
         print(
-            f"revoked {robot}: its HTTP token is refused now (\"credentials were revoked\"), the fleet lists it as "
+            f'revoked {robot}: its HTTP token is refused now ("credentials were revoked"), the fleet lists it as '
             "revoked, a running server's router re-opens without it within seconds, and its agent stops at its next "
             "check with the server (robot-agent --idle-check, 30 s by default)"
         )
