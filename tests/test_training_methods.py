@@ -182,7 +182,8 @@ def test_a_run_goes_on_from_its_checkpoint_after_a_server_restart_and_a_cancelle
         assert done["status"] == "succeeded", done
         team = done["metrics"]["teams"][0]
         assert team["episodes"] >= 6000 and team["resumed"][0]["episodes"] >= 1000, team
-        assert not (data / "runs" / run["id"]).exists()  # the run's folder goes with its end
+        # the run's folder goes with its end (removed just after the run is marked succeeded)
+        wait_until(lambda: not (data / "runs" / run["id"]).exists(), 30, "the run's folder to go")
         # cancelled: it stops, and a restart keeps it cancelled
         run = api.post("/api/v1/training-runs", {**body, "episodes": 1_000_000})
         wait_until(lambda: api.get(f"/api/v1/training-runs/{run['id']}")["status"] == "running", 60, "running")
