@@ -188,3 +188,40 @@ def test_every_example_map_imports_with_default_flags_or_says_in_one_line_why_no
         "map", "import", str(NAV2 / "tb3_sandbox.yaml"), "--out", str(tmp_path / "t.json"), "--max-region-m", "1.5"
     )
     assert r.returncode == 0 and json.loads((tmp_path / "t.json").read_text())["edges"], r.stderr
+
+
+def test_edge_lengths_follow_the_free_space_and_the_nav2_route_graph_has_them(tmp_path):
+    """Two rooms joined by a door at the far end of their shared wall: the edge between their nodes
+    is as long as the path through the door, not the straight line through the wall; the graph file
+    carries the lengths, and --nav2-route writes the graph as Nav2's route server reads it."""
+    from shared.core.graph import GraphError, graph_from_dict, load_graph_file
+
+    floor = np.full((62, 122), 0, dtype=np.uint8)
+    floor[1:61, 1:60] = 254  # two 6 x 5.9 m rooms side by side
+    floor[1:61, 62:121] = 254
+    floor[1:13, 60:62] = 254  # the door: 1.2 m wide, at the top of the wall
+    grid = read_map(_write(tmp_path, floor, resolution=0.1))
+    regions = segment(grid, max_region_m=10)  # a node a room
+    assert len(regions.centers) == 2 and len(regions.edges) == 1
+    out = tmp_path / "g.json"
+    r = mures(
+        "map", "import", str(tmp_path / "m.yaml"), "--out", str(out), "--max-region-m", "10",
+        "--nav2-route", str(tmp_path / "g.geojson"),
+    )  # fmt: skip
+    assert r.returncode == 0 and "along free space" in r.stderr, r.stderr
+    data = json.loads(out.read_text())
+    (a, b), (length,) = data["edges"][0], data["edge_lengths_m"]
+    straight = float(np.hypot(*np.subtract(data["positions"][str(a)], data["positions"][str(b)])))
+    (ra, ca), (rb, cb) = regions.centers
+    via_door = 0.1 * (np.hypot(ra - 6, ca - 61) + np.hypot(rb - 6, cb - 61))  # centre, door, centre
+    assert length > 1.2 * straight and length == pytest.approx(via_door, rel=0.08)
+    assert load_graph_file(out).edge_lengths.tolist() == [length]
+    route = json.loads((tmp_path / "g.geojson").read_text())
+    points = [f for f in route["features"] if f["geometry"]["type"] == "Point"]
+    lines = [f["properties"] for f in route["features"] if f["geometry"]["type"] == "MultiLineString"]
+    assert [p["properties"]["id"] for p in points] == data["nodes"]
+    assert sorted((e["startid"], e["endid"]) for e in lines) == sorted([(a, b), (b, a)])
+    assert all(e["cost"] == length for e in lines) and len({e["id"] for e in lines} | {a, b}) == 4
+    for bad, words in ((["x"], "edge_lengths_m\\[0\\]"), ([1.0, 2.0], "one length per edge"), ([-1], "above 0")):
+        with pytest.raises(GraphError, match=words):
+            graph_from_dict({**data, "edge_lengths_m": bad})

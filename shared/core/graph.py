@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -59,6 +60,8 @@ class Graph:
         nbr:        (n, d_max + 1) int64 table of N[p], padded by repeating p.
         deg_closed: (n,) |N[p]|.
         sensing:    optional CSR (ptr, idx) of custom detection sets delta(p) (CE-PG+).
+        edge_lengths: optional (m,) float64 metres along free space of each edge (row-aligned with
+                    ``edges``), from `mures map import`; None: a graph of unit steps.
     """
 
     name: str
@@ -67,6 +70,7 @@ class Graph:
     start: int
     positions: dict[int, tuple[float, float]] = field(default_factory=dict)
     sensing_sets: dict[int, list[int]] | None = None
+    edge_lengths: np.ndarray | None = None
     index: dict[int, int] = field(init=False)
     closed_ptr: np.ndarray = field(init=False)
     closed_idx: np.ndarray = field(init=False)
@@ -181,6 +185,8 @@ class Graph:
             out["sensing"] = {
                 str(int(self.labels[k])): [int(self.labels[j]) for j in v] for k, v in self.sensing_sets.items()
             }
+        if self.edge_lengths is not None:
+            out["edge_lengths_m"] = [round(float(x), 3) for x in self.edge_lengths]
         return out
 
 
@@ -275,6 +281,7 @@ def graph_from_dict(data: Any, source: str = "graph") -> Graph:
     name = data.get("name", source)
     if not isinstance(name, str):
         raise GraphError(f"{source}: 'name' must be a string")
+    lengths = _edge_lengths(data.get("edge_lengths_m"), len(edges), source)
     return Graph(
         name=name,
         labels=np.array(nodes, dtype=np.int64),
@@ -282,7 +289,20 @@ def graph_from_dict(data: Any, source: str = "graph") -> Graph:
         start=index[start_label],
         positions=positions,
         sensing_sets=sensing,
+        edge_lengths=lengths,
     )
+
+
+def _edge_lengths(raw: Any, m: int, source: str) -> np.ndarray | None:
+    """'edge_lengths_m': one length in metres (> 0, finite) per edge, in the order of 'edges'."""
+    if raw is None:
+        return None
+    if not isinstance(raw, list) or len(raw) != m:
+        raise GraphError(f"{source}: 'edge_lengths_m' must list one length per edge ({m}), in the order of 'edges'")
+    for k, x in enumerate(raw):
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x <= 0:
+            raise GraphError(f"{source}: edge_lengths_m[{k}] must be a length in metres above 0, got {str(x)[:40]}")
+    return np.asarray(raw, dtype=np.float64)
 
 
 def _parse_label_key(key: str, index: dict[int, int], source: str, table: str) -> int:

@@ -12,17 +12,21 @@ from PIL import Image, ImageDraw
 
 from shared.floorplan.occupancy import MapError, OccupancyGrid, read_map
 from shared.floorplan.rooms import Regions
+from shared.floorplan.travel import edge_lengths
 
 
 def graph_dict(grid: OccupancyGrid, regions: Regions, name: str, parameters: dict[str, Any]) -> dict[str, Any]:
-    """The graph file: node k for region k (labels 0..n-1), an edge per passage, each node's
-    position in the map frame (metres), the start node, and where it came from ("source": the
-    map, its image's sha256, the import's parameters, each edge's passage width)."""
+    """The graph file: node k for region k (labels 0..n-1), an edge per passage and its length
+    along free space (metres, shared/floorplan/travel.py), each node's position in the map frame
+    (metres), the start node, and where it came from ("source": the map, its image's sha256, the
+    import's parameters, each edge's passage width)."""
     positions = {str(k): [round(v, 3) for v in grid.to_map_frame(*c)] for k, c in enumerate(regions.centers)}
+    pairs = [(i, j) for i, j, _w in regions.edges]
     return {
         "name": name,
         "nodes": list(range(len(regions.centers))),
-        "edges": [[i, j] for i, j, _w in regions.edges],
+        "edges": [[i, j] for i, j in pairs],
+        "edge_lengths_m": edge_lengths(regions.labels, regions.centers, pairs, grid.resolution),
         "start_node": regions.start,
         "positions": positions,
         "source": {
@@ -34,6 +38,40 @@ def graph_dict(grid: OccupancyGrid, regions: Regions, name: str, parameters: dic
             "notes": regions.notes,
         },
     }
+
+
+def route_geojson(data: dict[str, Any]) -> dict[str, Any]:
+    """The graph file ``data`` (graph_dict's) as Nav2's route server reads a graph (nav2_route's
+    GeoJSON): a FeatureCollection of a Point feature per node (its id, frame "map", its position)
+    and a MultiLineString feature per direction of each edge (its own id, startid, endid, and its
+    length along free space as its cost); node ids are the graph's labels, edge ids follow the
+    largest node id, so that every id is unique."""
+    positions = data["positions"]
+    lengths = data.get("edge_lengths_m") or [None] * len(data["edges"])
+    features: list[dict[str, Any]] = [
+        {
+            "type": "Feature",
+            "properties": {"id": int(v), "frame": "map"},
+            "geometry": {"type": "Point", "coordinates": list(positions[str(v)])},
+        }
+        for v in data["nodes"]
+    ]
+    next_id = max(int(v) for v in data["nodes"]) + 1
+    for (u, v), length in zip(data["edges"], lengths, strict=True):
+        for a, b in ((u, v), (v, u)):  # the route server's edges are directed: both ways
+            props: dict[str, Any] = {"id": next_id, "startid": int(a), "endid": int(b)}
+            if length is not None:
+                props["cost"] = length
+                props["metadata"] = {"length_m": length}
+            features.append(
+                {
+                    "type": "Feature",
+                    "properties": props,
+                    "geometry": {"type": "MultiLineString", "coordinates": [[positions[str(a)], positions[str(b)]]]},
+                }
+            )
+            next_id += 1
+    return {"type": "FeatureCollection", "name": data.get("name", "graph"), "features": features}
 
 
 PICTURE_MAX_PX = 2048  # the longest side of the picture the console draws (larger maps are shrunk)

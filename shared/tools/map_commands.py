@@ -2,7 +2,7 @@
 (map_server's map.yaml and its image) turned into the fleet's graph of rooms (docs/your-building.md).
 
     mures map (--env NAME | --graph FILE)
-    mures map import MAP.yaml --out GRAPH.json [--regions REGIONS.png] [--preview PREVIEW.png]
+    mures map import MAP.yaml --out GRAPH.json [--regions REGIONS.png] [--preview PREVIEW.png] [--nav2-route G.geojson]
         [--start X,Y] [--max-region-m M] [--min-door-m W] [--max-door-m D] [--largest-part]
 """
 
@@ -45,7 +45,8 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 def cmd_map_import(args: argparse.Namespace) -> int:
     from shared.core.graph import graph_from_dict
-    from shared.floorplan.graph_file import graph_dict, write_preview, write_regions
+    from shared.floorplan.graph_file import graph_dict, route_geojson, write_preview, write_regions
+    from shared.floorplan.travel import length_summary
     from shared.floorplan.occupancy import MapError, read_map
     from shared.floorplan.rooms import segment
 
@@ -100,6 +101,10 @@ def cmd_map_import(args: argparse.Namespace) -> int:
     if args.preview:
         write_preview(args.preview, grid, regions)
         written.append(str(args.preview))
+    if args.nav2_route:
+        Path(args.nav2_route).write_text(json.dumps(route_geojson(data), indent=1) + "\n")
+        written.append(str(args.nav2_route))
+    say(f"map import: {length_summary(data['edge_lengths_m'])}")
     rooms = len(np.unique(regions.rooms)) - 1
     start = data["positions"][str(regions.start)]
     print(
@@ -149,6 +154,12 @@ def add_map_commands(sub: Any) -> None:
         "--regions", metavar="REGIONS.png", help="a 16-bit PNG of the map's size: node index + 1 per free pixel"
     )
     imp.add_argument("--preview", metavar="PREVIEW.png", help="the regions, nodes and edges drawn over the map")
+    imp.add_argument(
+        "--nav2-route",
+        metavar="GRAPH.geojson",
+        help="also the graph as Nav2's route server reads one (nav2_route GeoJSON: nodes, both directions of each "
+        "edge, its length along free space as its cost)",
+    )
     imp.add_argument(
         "--start", type=point, metavar="X,Y", help="the start node's point in the map frame (default: the origin, "
         "where SLAM began, when it is free; else the point of largest clearance)"

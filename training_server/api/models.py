@@ -50,6 +50,9 @@ class MapOut(BaseModel):
     edges: list[list[int]]
     positions: dict[str, list[float]] | None = None
     sensing: dict[str, list[int]] | None = None
+    edge_lengths_m: list[float] | None = Field(
+        None, description="each edge's length along free space in metres, in the order of edges (imported maps)"
+    )
     graph_id: str
 
 
