@@ -46,9 +46,9 @@ def cmd_map(args: argparse.Namespace) -> int:
 def cmd_map_import(args: argparse.Namespace) -> int:
     from shared.core.graph import graph_from_dict
     from shared.floorplan.graph_file import graph_dict, route_geojson, write_preview, write_regions
-    from shared.floorplan.travel import length_summary
     from shared.floorplan.occupancy import MapError, read_map
     from shared.floorplan.rooms import segment
+    from shared.floorplan.travel import length_summary
 
     t0 = time.perf_counter()
     say = (lambda _t: None) if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
