@@ -214,3 +214,23 @@ def test_the_sim_backend_waits_its_whole_timeout_for_a_world_that_is_not_there()
         ):
             backend.detect()
         assert time.monotonic() - t0 >= 1.4
+
+
+def test_the_minimal_backend_of_the_docs_loads_and_flies(tmp_path):
+    """docs/connecting-a-robot.md's minimal backend, as a user would save it: loaded by file path,
+    constructed as the agent constructs it, and every value it returns passes the agent's checks."""
+    import re
+    from pathlib import Path
+
+    from robot_agent.backend import load_backend
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "connecting-a-robot.md").read_text(encoding="utf-8")
+    code = re.search(r"```python\n(.*?)```", doc, re.S)
+    assert code is not None, "the page shows a backend"
+    (tmp_path / "printbot.py").write_text(code.group(1))
+    graph = builtin_graph("office")
+    backend = load_backend(f"{tmp_path / 'printbot.py'}:PrintBot", graph=graph, robot_id="r1", session=None, fleet="f")
+    node = backend.begin({"mission_id": "m-1", "start_node": int(graph.labels[graph.start])})
+    assert node == int(graph.labels[graph.start]) and backend.detect() == 0
+    assert backend.move(int(graph.labels[graph.closed(graph.start)[1]])) == node
+    backend.end()

@@ -191,6 +191,7 @@ def test_a_server_and_four_robots_from_the_generated_files_only(tmp_path):
         wait_until(
             lambda: (logs / "server.log").read_text().count("router re-opened") >= 2, 30, "the router to re-open"
         )
+        assert sourced(out / "world" / "world.env") == read_env(out / "world" / "world.env")
         wenv = read_env(out / "world" / "world.env")
         world_cmd = [str(BIN / "mures"), "world", *shlex.split(wenv["MURES_MAP_ARGS"]), "--fleet", wenv["MURES_FLEET"]]
         world_cmd += ["--zenoh-connect", wenv["MURES_ZENOH_CONNECT"], "--zenoh-ca", str(out / "world" / "ca.pem")]
