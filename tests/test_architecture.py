@@ -22,6 +22,7 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     "shared.planners": ("shared.core", "shared.engine", "shared.planners"),
     "shared.registry": ("shared.core", "shared.engine", "shared.planners", "shared.learning", "shared.registry"),
     "shared.floorplan": ("shared.core", "shared.floorplan"),
+    "shared.world": ("shared.core", "shared.floorplan", "shared.world"),
     "shared.tools": ("shared",),
     "robot_agent": ("shared.core", "robot_agent"),
     "training_server": ("shared.core", "shared.engine", "shared.learning", "shared.floorplan", "training_server"),
@@ -35,6 +36,7 @@ FORBIDDEN: dict[str, tuple[str, ...]] = {
     "shared.learning": ("scipy", "matplotlib", "fastapi"),
     "shared.planners": ("matplotlib", "fastapi"),
     "shared.floorplan": ("torch", "matplotlib", "fastapi"),
+    "shared.world": ("torch", "matplotlib", "fastapi"),
 }
 
 

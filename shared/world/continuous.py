@@ -1,0 +1,276 @@
+"""A continuous world to measure search in: a building's occupancy map, robots that drive between
+the graph's node poses along free space at a speed, a target that walks between them at its own
+speed and dwells, detection by range and line of sight, capture time in seconds. Batched: B
+missions side by side in numpy, advanced in ticks of ``dt`` seconds.
+
+The geometry (``Building``), built once per map and graph:
+- each directed edge's path along free space (the shortest 8-connected path between the two node
+  poses, skimage ``MCP_Geometric``), sampled every ``SAMPLE_M`` metres, and its length;
+- per node, the pixels a robot standing on its pose sees: within ``sensor_range_m`` and in line of
+  sight (rays cast with skimage ``draw.line`` until the first pixel that is not free).
+
+A mission (``fly``):
+- the target starts on a node drawn from b0 (uniform), dwells there an exponential time of mean
+  ``target_dwell_s``, then walks to a uniformly drawn neighbouring node at ``target_speed`` along
+  the edge's path (the uniform walk of the paper, in continuous time);
+- every robot starts on the start node; each time it reaches a node it senses: z = 1 with
+  probability 1 - eta_fn when the target is in its view, eta_fp otherwise; a z = 1 with the target
+  in view captures it (the capture time is that moment); then its searcher picks the next node in
+  N[p] and it drives there (length / speed; staying takes ``dwell_s``). Robots decide each on its
+  own clock, when it arrives.
+
+Searchers (``decide``): ``random`` (uniform over N[p]) and ``greedy`` (each robot's own belief on
+the paper's step model: updated with each of its readings as if D(p) = {p}, predicted once per own
+step with Gamma, the most likely node of N[p] next), the step fleet's decision rule flown in time.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from skimage.draw import line
+from skimage.graph import MCP_Geometric
+
+from shared.core.graph import Graph
+from shared.core.models import Sensor, uniform_walk
+from shared.floorplan.occupancy import MapError, OccupancyGrid
+
+SAMPLE_M = 0.1  # a path is sampled every this many metres
+WINDOW_MARGIN_M = 3.0  # a path is first searched in the box of its two poses widened by this
+
+
+@dataclass
+class Building:
+    """A map and its graph, as the continuous world moves in them (module docstring).
+
+    graph:     the graph (rows 0..n-1).
+    node_px:   (n, 2) int64 (row, col) pixel of each node's pose.
+    edge_of:   {(u, v): e} the directed edge index of every ordered pair of neighbours.
+    edge_end:  (E,) int64 the node each directed edge leads to.
+    paths:     per directed edge e, (k_e, 2) int64 pixels along its path from u to v, one every SAMPLE_M.
+    length_m:  (E,) float64 metres along each directed edge's path.
+    views:     per node, (row0, col0, (h, w) bool): the pixels its robot sees, in a window at row0, col0.
+    """
+
+    graph: Graph
+    resolution: float
+    node_px: np.ndarray
+    edge_of: dict[tuple[int, int], int]
+    edge_end: np.ndarray
+    paths: list[np.ndarray]
+    length_m: np.ndarray
+    views: list[tuple[int, int, np.ndarray]] = field(repr=False)
+
+    def sees(self, node: np.ndarray, px: np.ndarray) -> np.ndarray:
+        """(k,) bool: whether a robot on ``node`` (k,) sees pixel ``px`` (k, 2)."""
+        out = np.zeros(len(node), dtype=bool)
+        for i, (p, (r, c)) in enumerate(zip(node.tolist(), px.tolist(), strict=True)):
+            r0, c0, win = self.views[p]
+            rr, cc = r - r0, c - c0
+            out[i] = 0 <= rr < win.shape[0] and 0 <= cc < win.shape[1] and bool(win[rr, cc])
+        return out
+
+
+def building(grid: OccupancyGrid, graph: Graph, sensor_range_m: float) -> Building:
+    """The Building of ``graph`` (imported from ``grid`` by `mures map import`: its positions are
+    poses in the map frame). MapError when a pose is off the free space or two neighbours' poses
+    are not joined by it."""
+    if len(graph.positions) != graph.n:
+        raise MapError(f"{graph.name} has no position for every node: import it with `mures map import`")
+    free = grid.free
+    node_px = np.array([grid.to_pixel(*graph.positions[p]) for p in range(graph.n)], dtype=np.int64)
+    for p, (r, c) in enumerate(node_px.tolist()):
+        if not (0 <= r < free.shape[0] and 0 <= c < free.shape[1] and free[r, c]):
+            raise MapError(f"node {int(graph.labels[p])}'s pose is not on the map's free space")
+    edge_of: dict[tuple[int, int], int] = {}
+    paths: list[np.ndarray] = []
+    for u, v in graph.edges.tolist():
+        pixels = _path(free, node_px[u], node_px[v], grid.resolution)
+        for a, b, pts in ((u, v, pixels), (v, u, pixels[::-1])):
+            edge_of[a, b] = len(paths)
+            paths.append(pts)
+    length = np.array([_arc_m(p, grid.resolution) for p in paths])
+    sampled = [_resample(p, grid.resolution) for p in paths]
+    views = [_view(free, tuple(px), sensor_range_m, grid.resolution) for px in node_px.tolist()]
+    edge_end = np.zeros(len(paths), dtype=np.int64)
+    for (_u, v), e in edge_of.items():
+        edge_end[e] = v
+    return Building(graph, grid.resolution, node_px, edge_of, edge_end, sampled, length, views)
+
+
+def _path(free: np.ndarray, a: np.ndarray, b: np.ndarray, res: float) -> np.ndarray:
+    """(k, 2) pixels of the shortest free path from a to b: first in a window around them, else the whole map."""
+    margin = math.ceil(WINDOW_MARGIN_M / res)
+    r0, c0 = max(0, min(a[0], b[0]) - margin), max(0, min(a[1], b[1]) - margin)
+    r1, c1 = min(free.shape[0], max(a[0], b[0]) + margin + 1), min(free.shape[1], max(a[1], b[1]) + margin + 1)
+    for box in (((r0, c0), (r1, c1)), ((0, 0), (free.shape[0], free.shape[1]))):
+        (y0, x0), (y1, x1) = box
+        cost = np.where(free[y0:y1, x0:x1], 1.0, np.inf)
+        mcp = MCP_Geometric(cost, fully_connected=True)
+        start, end = (int(a[0] - y0), int(a[1] - x0)), (int(b[0] - y0), int(b[1] - x0))
+        costs, _tb = mcp.find_costs([start], [end])
+        if np.isfinite(costs[end]):
+            return np.array(mcp.traceback(end), dtype=np.int64) + np.array([y0, x0])
+    raise MapError(f"no free path between the poses at pixels {tuple(a)} and {tuple(b)}")
+
+
+def _arc_m(pixels: np.ndarray, res: float) -> float:
+    if len(pixels) < 2:
+        return res
+    return float(np.linalg.norm(np.diff(pixels, axis=0), axis=1).sum()) * res
+
+
+def _resample(pixels: np.ndarray, res: float) -> np.ndarray:
+    """The path's pixels one every SAMPLE_M metres along it (its last pixel last)."""
+    if len(pixels) < 2:
+        return pixels
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pixels, axis=0), axis=1))]) * res
+    at = np.searchsorted(arc, np.arange(0.0, arc[-1], SAMPLE_M))
+    return np.concatenate([pixels[at], pixels[-1:]])
+
+
+def _view(free: np.ndarray, px: tuple[int, int], range_m: float, res: float) -> tuple[int, int, np.ndarray]:
+    """What a robot on pixel ``px`` sees: rays to every pixel of the window's border, each until its
+    first pixel that is not free, within ``range_m``."""
+    radius = max(1, math.ceil(range_m / res))
+    r0, c0 = max(0, px[0] - radius), max(0, px[1] - radius)
+    r1, c1 = min(free.shape[0], px[0] + radius + 1), min(free.shape[1], px[1] + radius + 1)
+    win = np.zeros((r1 - r0, c1 - c0), dtype=bool)
+    border = [(r, c) for r in (r0, r1 - 1) for c in range(c0, c1)] + [
+        (r, c) for c in (c0, c1 - 1) for r in range(r0, r1)
+    ]
+    for r, c in border:
+        rr, cc = line(px[0], px[1], r, c)
+        inside = (rr - px[0]) ** 2 + (cc - px[1]) ** 2 <= radius**2
+        ok = free[rr, cc] & inside
+        stop = int(np.argmin(ok)) if not ok.all() else len(ok)
+        win[rr[:stop] - r0, cc[:stop] - c0] = True
+    return r0, c0, win
+
+
+@dataclass
+class Flight:
+    """What ``fly`` measured: per mission its capture time in seconds (``max_s`` when not
+    captured) and whether it was captured; the decisions made; the wall time."""
+
+    capture_s: np.ndarray
+    captured: np.ndarray
+    decisions: int
+    ticks: int
+    wall_s: float
+
+
+def fly(
+    world: Building,
+    searcher: str,
+    robots: int,
+    missions: int,
+    sensor: Sensor = Sensor(),  # noqa: B008 - frozen dataclass
+    speed: float = 0.5,
+    dwell_s: float = 1.0,
+    target_speed: float = 0.5,
+    target_dwell_s: float = 10.0,
+    dt: float = 0.1,
+    max_s: float = 1800.0,
+    seed: int = 0,
+) -> Flight:
+    """B = ``missions`` missions of ``robots`` robots with ``searcher`` (random or greedy)."""
+    if searcher not in ("random", "greedy"):
+        raise ValueError(f"searcher must be random or greedy, got {searcher!r}")
+    g, b_n, r_n = world.graph, missions, robots
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    deg, nbr = g.deg_closed, g.nbr
+    gamma = uniform_walk(g).dense()  # the step model's Gamma, for the greedy robots' beliefs
+    (in0, in1), (out0, out1) = sensor.likelihoods()
+    # the target: on node t_at dwelling (t_edge -1) or on edge t_edge at t_prog metres
+    t_at = rng.integers(0, g.n, size=b_n)
+    t_edge = np.full(b_n, -1)
+    t_prog = np.zeros(b_n)
+    t_left = rng.exponential(target_dwell_s, size=b_n)
+    # the robots: heading to (or on) r_at, arriving in r_left seconds; their beliefs (greedy)
+    r_at = np.full((b_n, r_n), g.start)
+    r_left = np.zeros((b_n, r_n))
+    belief = np.full((b_n, r_n, g.n), 1.0 / g.n)
+    done = np.zeros(b_n, dtype=bool)
+    capture_s = np.full(b_n, max_s)
+    decisions = ticks = 0
+    now = 0.0
+    while now < max_s and not done.all():
+        # the target's move over this tick
+        walking = (t_edge >= 0) & ~done
+        t_prog[walking] += target_speed * dt
+        arrived = walking & (t_prog >= world.length_m[np.maximum(t_edge, 0)])
+        t_at[arrived] = world.edge_end[t_edge[arrived]]
+        t_edge[arrived], t_prog[arrived] = -1, 0.0
+        t_left[arrived] = rng.exponential(target_dwell_s, size=int(arrived.sum()))
+        dwelling = (t_edge < 0) & ~done & ~arrived
+        t_left[dwelling] -= dt
+        leaving = dwelling & (t_left <= 0)
+        for b in np.flatnonzero(leaving):
+            u = int(t_at[b])
+            v = int(nbr[u, 1 + rng.integers(0, deg[u] - 1)]) if deg[u] > 1 else u
+            t_edge[b] = world.edge_of.get((u, v), -1)
+            if t_edge[b] < 0:
+                t_left[b] = rng.exponential(target_dwell_s)
+        # the robots that reach a node now: sense, then decide and go on
+        r_left[~done] -= dt
+        bs, rs = np.nonzero((r_left <= 0) & ~done[:, None])
+        if len(bs):
+            here = r_at[bs, rs]
+            seen = world.sees(here, _target_px(world, t_at[bs], t_edge[bs], t_prog[bs]))
+            z = rng.random(len(bs)) < np.where(seen, in1, out1)
+            for b in np.unique(bs[z & seen]):
+                done[b], capture_s[b] = True, now
+            go = ~done[bs]
+            bs, rs, here, z = bs[go], rs[go], here[go], z[go]
+            nxt = _decide(searcher, rng, g, gamma, belief, bs, rs, here, z, (in0, in1, out0, out1))
+            decisions += len(bs)
+            moves = zip(here.tolist(), nxt.tolist(), strict=True)
+            travel = np.array([world.length_m[world.edge_of[p, q]] / speed if p != q else dwell_s for p, q in moves])
+            r_at[bs, rs] = nxt
+            r_left[bs, rs] += travel
+        now += dt
+        ticks += 1
+    return Flight(capture_s, done, decisions, ticks, time.perf_counter() - t0)
+
+
+def _target_px(world: Building, at: np.ndarray, edge: np.ndarray, prog: np.ndarray) -> np.ndarray:
+    """(k, 2) the target's pixel: its node's pose while it dwells, its path's sample while it walks."""
+    out = world.node_px[at].copy()
+    for i in np.flatnonzero(edge >= 0):
+        pts = world.paths[int(edge[i])]
+        out[i] = pts[min(int(prog[i] / SAMPLE_M), len(pts) - 1)]
+    return out
+
+
+def _decide(
+    searcher: str,
+    rng: np.random.Generator,
+    g: Graph,
+    gamma: np.ndarray,
+    belief: np.ndarray,
+    bs: np.ndarray,
+    rs: np.ndarray,
+    here: np.ndarray,
+    z: np.ndarray,
+    lam: tuple[float, float, float, float],
+) -> np.ndarray:
+    """The next node (k,) of each deciding robot (bs, rs) on node ``here`` having read ``z``."""
+    deg, nbr = g.deg_closed[here], g.nbr[here]
+    if searcher == "random":
+        return nbr[np.arange(len(here)), (rng.random(len(here)) * deg).astype(np.int64)]
+    in0, in1, out0, out1 = lam
+    b = belief[bs, rs]  # (k, n): the step model, D(p) = {p}
+    like = np.where(z[:, None], out1, out0) * np.ones_like(b)
+    like[np.arange(len(here)), here] = np.where(z, in1, in0)
+    b = b * like  # Eq. 1's update with this reading
+    b /= np.maximum(b.sum(axis=1, keepdims=True), 1e-300)
+    pred = b @ gamma  # one step of the model per own step
+    belief[bs, rs] = pred
+    score = np.where(np.arange(nbr.shape[1])[None, :] < deg[:, None], pred[np.arange(len(here))[:, None], nbr], -1.0)
+    score = score + rng.random(score.shape) * 1e-12  # ties broken at random
+    return nbr[np.arange(len(here)), score.argmax(axis=1)]

@@ -1,0 +1,64 @@
+"""The continuous world (shared/world/continuous.py): paths along free space, what a robot sees
+through walls and doors, and missions whose capture times are in seconds, reproducible by seed."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from shared.core.graph import graph_from_dict
+from shared.core.models import Sensor
+from shared.floorplan.graph_file import graph_dict
+from shared.floorplan.occupancy import read_map
+from shared.floorplan.rooms import segment
+from shared.world.continuous import building, fly
+
+
+def _two_rooms(tmp_path):
+    """Two 6 x 5.9 m rooms side by side, a 1.2 m door at the top of the wall between them; the
+    graph a node a room, as `mures map import --max-region-m 10` makes it."""
+    floor = np.full((62, 122), 0, dtype=np.uint8)
+    floor[1:61, 1:60] = 254
+    floor[1:61, 62:121] = 254
+    floor[1:13, 60:62] = 254
+    Image.fromarray(floor).save(tmp_path / "m.pgm")
+    (tmp_path / "m.yaml").write_text("image: m.pgm\nresolution: 0.1\norigin: [0.0, 0.0, 0.0]\n")
+    grid = read_map(tmp_path / "m.yaml")
+    data = graph_dict(grid, segment(grid, max_region_m=10), "TWO", {})
+    return grid, graph_from_dict(json.loads(json.dumps(data)))
+
+
+def test_paths_follow_the_free_space_and_walls_block_the_view(tmp_path):
+    grid, graph = _two_rooms(tmp_path)
+    world = building(grid, graph, sensor_range_m=20.0)
+    (u, v) = graph.edges[0].tolist()
+    there, back = world.edge_of[u, v], world.edge_of[v, u]
+    assert world.length_m[there] == pytest.approx(world.length_m[back])
+    assert world.length_m[there] == pytest.approx(graph.edge_lengths[0], rel=0.05)  # the import's length
+    assert world.edge_end[there] == v and world.edge_end[back] == u
+    path = world.paths[there]
+    assert grid.free[path[:, 0], path[:, 1]].all() and (path[-1] == world.node_px[v]).all()
+    assert path[:, 0].min() <= 12  # through the door, at the top
+    # a robot in one room sees its own room's far corner, and nothing of the other room behind the wall
+    left = int(np.argmin(world.node_px[:, 1]))
+    assert world.sees(np.array([left, left]), np.array([[55, 5], [55, 100]])).tolist() == [True, False]
+
+
+def test_missions_capture_in_seconds_and_repeat_by_seed(tmp_path):
+    grid, graph = _two_rooms(tmp_path)
+    world = building(grid, graph, sensor_range_m=20.0)
+    a = fly(world, "random", robots=2, missions=50, seed=3)
+    b = fly(world, "random", robots=2, missions=50, seed=3)
+    assert np.array_equal(a.capture_s, b.capture_s) and a.captured.all()
+    # a robot that sees its whole room captures a target there at once (t = 0), and one in the
+    # other room only once one of them or the target has gone through the door
+    assert (a.capture_s == 0).any() and (a.capture_s > 0).any()
+    start_room = world.sees(np.array([graph.start]), world.node_px[[1 - graph.start]])[0]
+    assert not start_room  # the other room's pose is out of sight from the start
+    blind = fly(world, "greedy", robots=2, missions=20, sensor=Sensor(eta_fn=0.5), seed=3)
+    assert blind.decisions > 0 and (blind.capture_s >= 0).all()
+    with pytest.raises(ValueError, match="random or greedy"):
+        fly(world, "cepg", robots=2, missions=1)
