@@ -62,3 +62,45 @@ def test_missions_capture_in_seconds_and_repeat_by_seed(tmp_path):
     assert blind.decisions > 0 and (blind.capture_s >= 0).all()
     with pytest.raises(ValueError, match="random or greedy"):
         fly(world, "cepg", robots=2, missions=1)
+
+
+def test_mures_evaluate_flies_a_searcher_in_the_continuous_world(tmp_path):
+    """`mures evaluate --graph G.json --world MAP.yaml ... --json` prints the capture time in
+    seconds with its CI; a map that is not the graph's, a searcher that cannot fly there yet and a
+    graph given without its map are refused in one line."""
+    import subprocess
+    import sys
+
+    def mures(*args):
+        return subprocess.run(
+            [sys.executable, "-m", "shared.tools.cli", *args], capture_output=True, text=True, timeout=300
+        )
+
+    _two_rooms(tmp_path)
+    graph = tmp_path / "g.json"
+    assert mures("map", "import", str(tmp_path / "m.yaml"), "--out", str(graph), "--max-region-m", "10").returncode == 0
+    common = ["evaluate", "--graph", str(graph), "--world", str(tmp_path / "m.yaml"), "--robots", "2"]
+    r = mures(*common, "--searcher", "greedy", "--episodes", "40", "--seed", "2", "--range", "20", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["episodes"] == 40 and out["captured_fraction"] == 1.0 and out["continuous"]["sensor_range_m"] == 20
+    assert out["mean_capture_time_s"] >= 0 and out["ci95_halfwidth_s"] >= 0
+    again = mures(*common, "--searcher", "greedy", "--episodes", "40", "--seed", "2", "--range", "20", "--json")
+    assert json.loads(again.stdout)["mean_capture_time_s"] == out["mean_capture_time_s"]  # the same seed, the same
+    other = tmp_path / "other"
+    other.mkdir()
+    floor = np.asarray(Image.open(tmp_path / "m.pgm")).copy()
+    floor[30, 30] = 0
+    Image.fromarray(floor).save(other / "m.pgm")
+    (other / "m.yaml").write_text((tmp_path / "m.yaml").read_text())
+    for args, words in (
+        (["--world", str(other / "m.yaml"), "--searcher", "random"], "was not imported from"),
+        (["--searcher", "fhpe"], "flies random and greedy only"),
+        (["--searcher", "random", "--speed", "0"], "a number above 0"),
+    ):
+        r = mures(*common, *args, "--episodes", "5")
+        assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr, r.stderr
+    r = mures(
+        "evaluate", "--env", "office", "--world", str(tmp_path / "m.yaml"), "--robots", "2", "--searcher", "random"
+    )
+    assert r.returncode == 2 and "--world goes with --graph" in r.stderr

@@ -40,6 +40,11 @@ def positive_hours(text: str) -> float:
     return number_where(text, lambda v: 0.0 < v < float("inf"), "a number of hours above 0")
 
 
+def positive_number(text: str) -> float:
+    """A finite number above 0 (argparse type): a speed, a range, a time."""
+    return number_where(text, lambda v: 0.0 < v < float("inf"), "a number above 0")
+
+
 def map_names(text: str) -> tuple[str, ...]:
     """``office,museum``: comma-separated names (argparse type; `mures experiment` checks them)."""
     names = tuple(t.strip().lower() for t in text.split(",") if t.strip())

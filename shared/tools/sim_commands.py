@@ -21,7 +21,7 @@ from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
 from shared.learning.config import positive_int, whole_number
 from shared.registry import TeamFlight, searcher_factory
-from shared.tools.cli_args import CliError, add_world_args, device_of, probability, world_of
+from shared.tools.cli_args import CliError, add_world_args, device_of, positive_number, probability, world_of
 
 
 def _searcher_factory(
@@ -76,6 +76,8 @@ def _team_flight(args: argparse.Namespace, graph: Graph) -> TeamFlight | None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    if args.world:
+        return _evaluate_continuous(args)
     graph, target, sensor = world_of(args, _snapshot_detection(args))
     device = device_of(args.device)
     team = _team_flight(args, graph)
@@ -149,6 +151,82 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+CONTINUOUS_SEARCHERS = ("random", "greedy")
+
+
+def _evaluate_continuous(args: argparse.Namespace) -> int:
+    """`mures evaluate --world MAP.yaml`: the searcher flown in the continuous world of the map the
+    --graph was imported from (shared/world/continuous.py); capture time in seconds."""
+    from shared.engine.evaluate import mean_ci95
+    from shared.floorplan.occupancy import MapError, read_map
+    from shared.world.continuous import building, fly
+
+    if not args.graph:
+        raise CliError("--world goes with --graph: the graph `mures map import` made from that map")
+    if args.searcher not in CONTINUOUS_SEARCHERS:
+        raise CliError(
+            f"--world flies {' and '.join(CONTINUOUS_SEARCHERS)} only (the trained policies do not fly in the "
+            f"continuous world yet), got {args.searcher!r}"
+        )
+    if args.target != "uniform":
+        raise CliError("--world's target is the uniform walk in continuous time (--target-dwell, --target-speed)")
+    graph, _target, sensor = world_of(args)
+    source = json.loads(Path(args.graph).read_text(encoding="utf-8")).get("source") or {}
+    try:
+        grid = read_map(args.world)
+        if source.get("image_sha256") and source["image_sha256"] != grid.source["image_sha256"]:
+            raise CliError(f"--graph {args.graph} was not imported from {args.world} (its image differs)")
+        world = building(grid, graph, args.range)
+    except MapError as exc:
+        raise CliError(f"--world {args.world}: {exc}") from None
+    flight = fly(
+        world,
+        args.searcher,
+        args.robots,
+        args.episodes,
+        sensor=sensor,
+        speed=args.speed,
+        dwell_s=args.stay_seconds,
+        target_speed=args.target_speed,
+        target_dwell_s=args.target_dwell,
+        max_s=args.max_seconds,
+        seed=args.seed,
+    )
+    mean, half = mean_ci95(flight.capture_s)
+    summary = {
+        "map": graph.name,
+        "graph_id": graph.graph_id,
+        "world": str(args.world),
+        "robots": args.robots,
+        "searcher": args.searcher,
+        "sensor": {**sensor.to_json(), "detection": f"within {args.range:g} m in line of sight"},
+        "continuous": {
+            "speed_m_s": args.speed,
+            "stay_s": args.stay_seconds,
+            "sensor_range_m": args.range,
+            "target_speed_m_s": args.target_speed,
+            "target_dwell_s": args.target_dwell,
+            "max_seconds": args.max_seconds,
+        },
+        "episodes": args.episodes,
+        "seed": args.seed,
+        "mean_capture_time_s": mean,
+        "ci95_halfwidth_s": half,
+        "captured_fraction": float(flight.captured.mean()),
+        "decisions_per_episode": flight.decisions / args.episodes,
+        "wall_seconds": round(flight.wall_s, 3),
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"{args.searcher} on {graph.name} in the continuous world, N={args.robots}, {args.episodes} episodes: "
+            f"mean capture time {mean:.1f} s ± {half:.1f} (95% CI), captured {100 * summary['captured_fraction']:.1f}% "
+            f"within {args.max_seconds:g} s"
+        )
+    return 0
+
+
 def add_sim_commands(sub: Any) -> None:
     """`mures evaluate` and `mures simulate`, each with its parser."""
     p = sub.add_parser("evaluate", help="evaluate a searcher in simulation and print capture-time statistics")
@@ -184,6 +262,22 @@ def add_sim_commands(sub: Any) -> None:
         metavar="K",
         help="incomplete steps in a row before a robot flies its own policy (default: never while a teammate is "
         "heard: the team's plan on what has come)",
+    )
+    world = p.add_argument_group(
+        "continuous world",
+        "fly random or greedy in the building's map instead of the step model (docs/continuous-world.md): robots and "
+        "target move along free space in metres and seconds, a robot sees within --range in line of sight",
+    )
+    world.add_argument("--world", metavar="MAP.yaml", help="the map the --graph was imported from")
+    world.add_argument("--speed", type=positive_number, default=0.5, metavar="M_PER_S", help="robots' speed (0.5)")
+    world.add_argument("--stay-seconds", type=positive_number, default=1.0, metavar="S", help="a step that stays (1)")
+    world.add_argument("--range", type=positive_number, default=4.0, metavar="M", help="sensor range, metres (4)")
+    world.add_argument("--target-speed", type=positive_number, default=0.5, metavar="M_PER_S", help="(0.5)")
+    world.add_argument(
+        "--target-dwell", type=positive_number, default=10.0, metavar="S", help="target's mean stay on a node (10)"
+    )
+    world.add_argument(
+        "--max-seconds", type=positive_number, default=1800.0, metavar="S", help="a mission's end (1800)"
     )
     p.set_defaults(func=cmd_evaluate)
 
