@@ -7,8 +7,9 @@ and team size, and how fast the world runs.
 Maps: Nav2's depot and warehouse (examples/maps/nav2) and AWS's bookstore and small house
 (shared/reference/maps/aws, when present), each imported with `mures map import`'s defaults. Robots
 drive at 0.5 m/s and take 1 s to stay; the target walks at 0.5 m/s and dwells 10 s on average; a
-robot sees 4 m in line of sight; eta_fn = eta_fp = 0; missions end at 1800 s. Searchers: random and
-greedy (each robot's own belief on the step model, flown on its own clock). Prints the mean capture
+robot sees 4 m in line of sight; eta_fn = eta_fp = 0; missions end at 1800 s. Searchers: random,
+greedy (each robot's own belief on the step model, flown on its own clock) and sweep (a shortest
+tour cut into one arc a robot). Prints the mean capture
 time with its 95 % CI half-width over the missions, the share captured, the decisions a mission, and
 the world's speed: ticks of 0.1 s a wall second, each advancing all --missions missions at once (a
 mission captured early still ticks along until the slowest one ends).
@@ -27,7 +28,7 @@ from shared.core.graph import load_graph_file
 from shared.engine.evaluate import mean_ci95
 from shared.floorplan.occupancy import read_map
 from shared.tools.cli import main as mures_main
-from shared.world.continuous import building, fly
+from shared.world.continuous import SEARCHERS, building, fly
 
 ROOT = Path(__file__).resolve().parents[1]
 MAPS = {
@@ -62,7 +63,7 @@ def main() -> None:
             world = building(read_map(path), load_graph_file(out), args.range)
             built_s = time.perf_counter() - t0
             for robots in args.robots:
-                for searcher in ("random", "greedy"):
+                for searcher in SEARCHERS:
                     f = fly(world, searcher, robots, args.missions, seed=args.seed)
                     mean, half = mean_ci95(f.capture_s)
                     row = {

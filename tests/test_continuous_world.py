@@ -60,7 +60,7 @@ def test_missions_capture_in_seconds_and_repeat_by_seed(tmp_path):
     assert not start_room  # the other room's pose is out of sight from the start
     blind = fly(world, "greedy", robots=2, missions=20, sensor=Sensor(eta_fn=0.5), seed=3)
     assert blind.decisions > 0 and (blind.capture_s >= 0).all()
-    with pytest.raises(ValueError, match="random or greedy"):
+    with pytest.raises(ValueError, match="random, greedy, sweep"):
         fly(world, "cepg", robots=2, missions=1)
 
 
@@ -95,7 +95,7 @@ def test_mures_evaluate_flies_a_searcher_in_the_continuous_world(tmp_path):
     (other / "m.yaml").write_text((tmp_path / "m.yaml").read_text())
     for args, words in (
         (["--world", str(other / "m.yaml"), "--searcher", "random"], "was not imported from"),
-        (["--searcher", "fhpe"], "flies random and greedy only"),
+        (["--searcher", "fhpe"], "flies random, greedy, sweep only"),
         (["--searcher", "random", "--speed", "0"], "a number above 0"),
     ):
         r = mures(*common, *args, "--episodes", "5")
@@ -104,3 +104,27 @@ def test_mures_evaluate_flies_a_searcher_in_the_continuous_world(tmp_path):
         "evaluate", "--env", "office", "--world", str(tmp_path / "m.yaml"), "--robots", "2", "--searcher", "random"
     )
     assert r.returncode == 2 and "--world goes with --graph" in r.stderr
+
+
+def test_the_sweep_covers_every_node_with_one_arc_a_robot():
+    """The sweep's tour visits every node once; its arcs, one a robot, cover the tour; each robot
+    moves along shortest paths towards its arc's next node."""
+    from shared.world.continuous import _arcs, _nearest_tour, _two_opt
+
+    rng = np.random.default_rng(0)
+    pts = rng.random((12, 2)) * 10
+    dist = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    tour = _two_opt(_nearest_tour(dist, 0), dist)
+    assert sorted(tour) == list(range(12)) and tour[0] == 0
+    length = lambda t: sum(dist[t[k], t[(k + 1) % len(t)]] for k in range(len(t)))  # noqa: E731
+    assert length(tour) <= length(_nearest_tour(dist, 0)) + 1e-9
+    for robots in (1, 3, 5):
+        arcs = _arcs(tour, dist, robots)
+        assert len(arcs) == robots and set().union(*map(set, arcs)) == set(range(12))
+
+
+def test_sweeping_robots_capture_in_the_two_rooms(tmp_path):
+    grid, graph = _two_rooms(tmp_path)
+    world = building(grid, graph, sensor_range_m=3.0)
+    f = fly(world, "sweep", robots=1, missions=30, seed=4)
+    assert f.captured.all() and f.decisions > 0

@@ -151,7 +151,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-CONTINUOUS_SEARCHERS = ("random", "greedy")
+CONTINUOUS_SEARCHERS = ("random", "greedy", "sweep")
 
 
 def _evaluate_continuous(args: argparse.Namespace) -> int:
@@ -165,7 +165,7 @@ def _evaluate_continuous(args: argparse.Namespace) -> int:
         raise CliError("--world goes with --graph: the graph `mures map import` made from that map")
     if args.searcher not in CONTINUOUS_SEARCHERS:
         raise CliError(
-            f"--world flies {' and '.join(CONTINUOUS_SEARCHERS)} only (the trained policies do not fly in the "
+            f"--world flies {', '.join(CONTINUOUS_SEARCHERS)} only (the trained policies do not fly in the "
             f"continuous world yet), got {args.searcher!r}"
         )
     if args.target != "uniform":
@@ -265,8 +265,8 @@ def add_sim_commands(sub: Any) -> None:
     )
     world = p.add_argument_group(
         "continuous world",
-        "fly random or greedy in the building's map instead of the step model (docs/continuous-world.md): robots and "
-        "target move along free space in metres and seconds, a robot sees within --range in line of sight",
+        "fly random, greedy or sweep in the building's map instead of the step model (docs/continuous-world.md): "
+        "robots and target move along free space in metres and seconds, a robot sees within --range in line of sight",
     )
     world.add_argument("--world", metavar="MAP.yaml", help="the map the --graph was imported from")
     world.add_argument("--speed", type=positive_number, default=0.5, metavar="M_PER_S", help="robots' speed (0.5)")

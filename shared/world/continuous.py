@@ -19,9 +19,12 @@ A mission (``fly``):
   N[p] and it drives there (length / speed; staying takes ``dwell_s``). Robots decide each on its
   own clock, when it arrives.
 
-Searchers (``decide``): ``random`` (uniform over N[p]) and ``greedy`` (each robot's own belief on
+Searchers (``SEARCHERS``): ``random`` (uniform over N[p]); ``greedy`` (each robot's own belief on
 the paper's step model: updated with each of its readings as if D(p) = {p}, predicted once per own
-step with Gamma, the most likely node of N[p] next), the step fleet's decision rule flown in time.
+step with Gamma, the most likely node of N[p] next), the step fleet's decision rule flown in time;
+``sweep`` (a closed tour of every node, shortest by nearest neighbour and 2-opt over the lengths
+along free space, cut into N arcs of equal length: each robot sweeps its arc back and forth along
+shortest paths, whatever it reads), the planner a robotics team would write first.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from shared.core.graph import Graph
 from shared.core.models import Sensor, uniform_walk
 from shared.floorplan.occupancy import MapError, OccupancyGrid
 
+SEARCHERS = ("random", "greedy", "sweep")
 SAMPLE_M = 0.1  # a path is sampled every this many metres
 WINDOW_MARGIN_M = 3.0  # a path is first searched in the box of its two poses widened by this
 
@@ -178,8 +182,8 @@ def fly(
     seed: int = 0,
 ) -> Flight:
     """B = ``missions`` missions of ``robots`` robots with ``searcher`` (random or greedy)."""
-    if searcher not in ("random", "greedy"):
-        raise ValueError(f"searcher must be random or greedy, got {searcher!r}")
+    if searcher not in SEARCHERS:
+        raise ValueError(f"searcher must be one of {', '.join(SEARCHERS)}, got {searcher!r}")
     g, b_n, r_n = world.graph, missions, robots
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
@@ -195,6 +199,8 @@ def fly(
     r_at = np.full((b_n, r_n), g.start)
     r_left = np.zeros((b_n, r_n))
     belief = np.full((b_n, r_n, g.n), 1.0 / g.n)
+    plan = Sweep(world, r_n) if searcher == "sweep" else None
+    waypoint = np.zeros((b_n, r_n), dtype=np.int64)  # (sweep) the index of each robot's next waypoint
     done = np.zeros(b_n, dtype=bool)
     capture_s = np.full(b_n, max_s)
     decisions = ticks = 0
@@ -227,7 +233,10 @@ def fly(
                 done[b], capture_s[b] = True, now
             go = ~done[bs]
             bs, rs, here, z = bs[go], rs[go], here[go], z[go]
-            nxt = _decide(searcher, rng, g, gamma, belief, bs, rs, here, z, (in0, in1, out0, out1))
+            if plan is not None:
+                nxt = plan.next_nodes(waypoint, bs, rs, here)
+            else:
+                nxt = _decide(searcher, rng, g, gamma, belief, bs, rs, here, z, (in0, in1, out0, out1))
             decisions += len(bs)
             moves = zip(here.tolist(), nxt.tolist(), strict=True)
             travel = np.array([world.length_m[world.edge_of[p, q]] / speed if p != q else dwell_s for p, q in moves])
@@ -236,6 +245,85 @@ def fly(
         now += dt
         ticks += 1
     return Flight(capture_s, done, decisions, ticks, time.perf_counter() - t0)
+
+
+class Sweep:
+    """The sweep searcher's plan (module docstring): per robot its arc of a shortest closed tour,
+    and the next hop of every shortest path along free space."""
+
+    def __init__(self, world: Building, robots: int) -> None:
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import shortest_path
+
+        g = world.graph
+        rows = [u for (u, _v) in world.edge_of]
+        cols = [v for (_u, v) in world.edge_of]
+        weights = [world.length_m[e] for e in world.edge_of.values()]
+        lengths = coo_matrix((weights, (rows, cols)), shape=(g.n, g.n)).tocsr()
+        dist, pred = shortest_path(lengths, return_predecessors=True)
+        self.next_hop = pred.T.copy()  # next_hop[u, v]: the node after u on a shortest path to v (pred[v, u])
+        np.fill_diagonal(self.next_hop, np.arange(g.n))
+        tour = _two_opt(_nearest_tour(dist, g.start), dist)
+        self.arcs = _arcs(tour, dist, robots)
+
+    def next_nodes(self, waypoint: np.ndarray, bs: np.ndarray, rs: np.ndarray, here: np.ndarray) -> np.ndarray:
+        """The next node of each deciding robot; a robot on its waypoint moves on to the next one."""
+        out = np.empty(len(bs), dtype=np.int64)
+        for i, (b, r, p) in enumerate(zip(bs.tolist(), rs.tolist(), here.tolist(), strict=True)):
+            arc = self.arcs[r]
+            if arc[waypoint[b, r] % len(arc)] == p:
+                waypoint[b, r] += 1
+            goal = arc[waypoint[b, r] % len(arc)]
+            out[i] = self.next_hop[p, goal]
+        return out
+
+
+def _nearest_tour(dist: np.ndarray, start: int) -> list[int]:
+    """A closed tour of every node from ``start``, always to the nearest node not yet visited."""
+    tour, left = [start], set(range(len(dist))) - {start}
+    while left:
+        here = tour[-1]
+        nxt = min(left, key=lambda v: dist[here, v])
+        tour.append(nxt)
+        left.remove(nxt)
+    return tour
+
+
+def _two_opt(tour: list[int], dist: np.ndarray, rounds: int = 20) -> list[int]:
+    """``tour`` shortened by reversing stretches while that helps (2-opt), at most ``rounds`` passes."""
+    t = list(tour)
+    n = len(t)
+    for _ in range(rounds):
+        better = False
+        for i in range(1, n - 1):
+            for j in range(i + 1, n):
+                a, b, c, d = t[i - 1], t[i], t[j], t[(j + 1) % n]
+                if dist[a, c] + dist[b, d] < dist[a, b] + dist[c, d] - 1e-9:
+                    t[i : j + 1] = t[i : j + 1][::-1]
+                    better = True
+        if not better:
+            break
+    return t
+
+
+def _arcs(tour: list[int], dist: np.ndarray, robots: int) -> list[list[int]]:
+    """The closed ``tour`` cut into ``robots`` arcs of about equal length (each at least one node);
+    a robot sweeps its arc forth and back (its waypoints: the arc, then the arc reversed)."""
+    legs = [dist[tour[k], tour[(k + 1) % len(tour)]] for k in range(len(tour))]
+    total = float(sum(legs)) or 1.0
+    cuts, acc = [0], 0.0
+    for k, leg in enumerate(legs[:-1]):
+        acc += leg
+        if len(cuts) < robots and acc >= total * len(cuts) / robots:
+            cuts.append(k + 1)
+    while len(cuts) < robots:  # fewer nodes than robots: the last ones share the last node
+        cuts.append(min(cuts[-1] + 1, len(tour) - 1))
+    bounds = [*cuts, len(tour)]
+    out = []
+    for i in range(robots):
+        arc = tour[bounds[i] : max(bounds[i + 1], bounds[i] + 1)]
+        out.append(arc + arc[-2:0:-1] if len(arc) > 2 else arc)
+    return out
 
 
 def _target_px(world: Building, at: np.ndarray, edge: np.ndarray, prog: np.ndarray) -> np.ndarray:
