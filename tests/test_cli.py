@@ -170,3 +170,20 @@ def test_a_graph_of_one_node_is_refused_in_one_line_by_every_command_that_search
         timeout=120,
     )
     assert r.returncode == 2 and "nothing to search between" in r.stderr and not (tmp_path / "data").exists()
+
+
+def test_fleet_sim_passes_the_map_image_to_its_server_which_checks_it(tmp_path):
+    """fleet-sim --graph G --map-image MAP.yaml: the server draws that map under the graph, and
+    refuses, in one line, a map the graph was not imported from (before any agent starts)."""
+    from pathlib import Path
+
+    nav2 = Path(__file__).resolve().parents[1] / "examples" / "maps" / "nav2"
+    graph = tmp_path / "depot.json"
+    assert mures("map", "import", str(nav2 / "depot.yaml"), "--out", str(graph), "--quiet").returncode == 0
+    r = mures("fleet-sim", "--graph", str(graph), "--map-image", str(nav2 / "warehouse.yaml"), "--robots", "2",
+              "--missions", "1", "--workdir", str(tmp_path / "w"))  # fmt: skip
+    assert r.returncode == 2 and "not the one this graph was imported from" in r.stderr, r.stderr
+    r = mures(
+        "fleet-sim", "--env", "office", "--map-image", str(nav2 / "depot.yaml"), "--robots", "2", "--missions", "1"
+    )
+    assert r.returncode == 2 and "--map-image goes with --graph" in r.stderr

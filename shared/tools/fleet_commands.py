@@ -38,7 +38,11 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
     if args.server and not (args.zenoh_connect and args.token_file):
         raise CliError("--server needs --zenoh-connect ENDPOINT and --token-file FILE (the operator token)")
     retrain = {"episodes": args.retrain_episodes}
-    server_extra = ["--init-policy", str(Path(args.init_policy).resolve())] if args.init_policy else None
+    server_extra = ["--init-policy", str(Path(args.init_policy).resolve())] if args.init_policy else []
+    if args.map_image:  # the server checks it against the graph, in one line, before the fleet starts
+        if not args.graph:
+            raise CliError("fleet-sim: --map-image goes with --graph (a graph made by `mures map import`)")
+        server_extra += ["--map-image", str(Path(args.map_image).resolve())]
     if args.init_policy:
         load_snapshot(args.init_policy, graph)  # a clear error before anything starts
     if args.step_timeout <= 0:
@@ -68,7 +72,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             step_timeout=args.step_timeout,
             kill=args.kill,
             kill_by=args.kill_by,
-            server_extra=server_extra,
+            server_extra=server_extra or None,
             agent_extra=["--link-loss", str(args.link_loss)] if args.link_loss else None,
         )
     except (ValueError, TimeoutError, RuntimeError, ApiError) as exc:
@@ -193,6 +197,11 @@ def add_fleet_commands(sub: Any) -> None:
         "--retrains", type=positive_int, default=None, metavar="R", help="retrain at most R times (default: no limit)"
     )
     p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")
+    p.add_argument(
+        "--map-image",
+        metavar="MAP.yaml",
+        help="with --graph from `mures map import`: the map it came from, drawn under the graph on the console's map",
+    )
     p.add_argument(
         "--step-delay", type=seconds, default=0.0, help="simulated travel time per step, seconds (default 0)"
     )
