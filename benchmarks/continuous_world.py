@@ -24,19 +24,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from shared.core.graph import load_graph_file
+from shipped_maps import MAPS, imported  # benchmarks/shipped_maps.py, beside this script
+
 from shared.engine.evaluate import mean_ci95
 from shared.floorplan.occupancy import read_map
-from shared.tools.cli import main as mures_main
 from shared.world.continuous import SEARCHERS, building, fly
-
-ROOT = Path(__file__).resolve().parents[1]
-MAPS = {
-    "depot": ROOT / "examples" / "maps" / "nav2" / "depot.yaml",
-    "warehouse": ROOT / "examples" / "maps" / "nav2" / "warehouse.yaml",
-    "bookstore": ROOT.parent / "shared" / "reference" / "maps" / "aws" / "bookstore.yaml",
-    "small-house": ROOT.parent / "shared" / "reference" / "maps" / "aws" / "small-house.yaml",
-}
 
 
 def main() -> None:
@@ -56,11 +48,9 @@ def main() -> None:
             if not path.exists():
                 print(f"{name}: {path} not here; skipped")
                 continue
-            out = Path(tmp) / f"{name}.json"
-            if mures_main(["map", "import", str(path), "--out", str(out), "--quiet"]) != 0:
-                raise SystemExit(f"importing {path} failed")
+            graph = imported(path, Path(tmp))
             t0 = time.perf_counter()
-            world = building(read_map(path), load_graph_file(out), args.range)
+            world = building(read_map(path), graph, args.range)
             built_s = time.perf_counter() - t0
             for robots in args.robots:
                 for searcher in SEARCHERS:

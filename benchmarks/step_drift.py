@@ -30,27 +30,11 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from shipped_maps import MAPS, imported  # benchmarks/shipped_maps.py, beside this script
 
 from robot_agent.teamwork import TEAM_WAIT_S
-from shared.core.graph import Graph, load_graph_file
+from shared.core.graph import Graph
 from shared.engine.evaluate import mean_ci95
-from shared.tools.cli import main as mures_main
-
-ROOT = Path(__file__).resolve().parents[1]
-MAPS = {
-    "depot": ROOT / "examples" / "maps" / "nav2" / "depot.yaml",
-    "warehouse": ROOT / "examples" / "maps" / "nav2" / "warehouse.yaml",
-    "bookstore": ROOT.parent / "shared" / "reference" / "maps" / "aws" / "bookstore.yaml",
-    "small-house": ROOT.parent / "shared" / "reference" / "maps" / "aws" / "small-house.yaml",
-}
-
-
-def imported(yaml_path: Path, workdir: Path) -> Graph:
-    """The map imported with default flags (its graph has edge lengths)."""
-    out = workdir / f"{yaml_path.stem}.json"
-    if mures_main(["map", "import", str(yaml_path), "--out", str(out), "--quiet"]) != 0:
-        raise SystemExit(f"importing {yaml_path} failed")
-    return load_graph_file(out)
 
 
 def move_seconds(graph: Graph, dwell: float, speed: float) -> np.ndarray:

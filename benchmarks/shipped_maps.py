@@ -1,0 +1,26 @@
+"""The maps the benchmarks measure on: Nav2's depot and warehouse (examples/maps/nav2) and AWS's
+bookstore and small house (shared/reference/maps/aws, beside the repository, when present), each
+imported with `mures map import`'s defaults."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from shared.core.graph import Graph, load_graph_file
+from shared.tools.cli import main as mures_main
+
+ROOT = Path(__file__).resolve().parents[1]
+MAPS = {
+    "depot": ROOT / "examples" / "maps" / "nav2" / "depot.yaml",
+    "warehouse": ROOT / "examples" / "maps" / "nav2" / "warehouse.yaml",
+    "bookstore": ROOT.parent / "shared" / "reference" / "maps" / "aws" / "bookstore.yaml",
+    "small-house": ROOT.parent / "shared" / "reference" / "maps" / "aws" / "small-house.yaml",
+}
+
+
+def imported(yaml_path: Path, workdir: Path) -> Graph:
+    """The map imported with default flags into ``workdir`` (its graph has edge lengths)."""
+    out = workdir / f"{yaml_path.stem}.json"
+    if mures_main(["map", "import", str(yaml_path), "--out", str(out), "--quiet"]) != 0:
+        raise SystemExit(f"importing {yaml_path} failed")
+    return load_graph_file(out)
