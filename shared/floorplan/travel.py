@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-from skimage.graph import MCP_Geometric
+from skimage.graph import MCP_Geometric  # shortest paths over a cost image
 
 from shared.floorplan.occupancy import MapError
 
@@ -33,23 +33,34 @@ def edge_lengths(
     out = []
     for i, j in edges:
         near = {i, j} | neighbours[i] | neighbours[j]
-        px = _path_px(labels, _union(boxes, near), [k + 1 for k in near], centers[i], centers[j])
-        if not np.isfinite(px):
-            whole = ((0, 0), labels.shape)
-            px = _path_px(labels, whole, list(range(1, n + 1)), centers[i], centers[j])
-        if not np.isfinite(px):
+        (r0, c0), (r1, c1) = _union(boxes, near)
+        path = window_path(np.isin(labels[r0:r1, c0:c1], [k + 1 for k in near]), (r0, c0), centers[i], centers[j])
+        if path is None:  # the whole building
+            path = window_path(labels > 0, (0, 0), centers[i], centers[j])
+        if path is None:
             raise MapError(f"no free path between node {i} and node {j}, which share a passage")
-        out.append(round(max(px, 1.0) * resolution, 3))
+        out.append(round(max(path_length_px(path), 1.0) * resolution, 3))
     return out
 
 
-def _path_px(labels: np.ndarray, box: tuple, regions: list[int], a: tuple[int, int], b: tuple[int, int]) -> float:
-    """Pixels along the shortest 8-connected path from ``a`` to ``b`` within ``regions`` inside ``box``."""
-    (r0, c0), (r1, c1) = box
-    cost = np.where(np.isin(labels[r0:r1, c0:c1], regions), 1.0, np.inf)
-    start, end = (a[0] - r0, a[1] - c0), (b[0] - r0, b[1] - c0)
-    costs, _traceback = MCP_Geometric(cost, fully_connected=True).find_costs([start], [end])
-    return float(costs[end])
+def window_path(
+    passable: np.ndarray, origin: tuple[int, int], a: tuple[int, int], b: tuple[int, int]
+) -> np.ndarray | None:
+    """(k, 2) int64 pixels, in the map's coordinates, of the shortest 8-connected path from ``a`` to
+    ``b`` over ``passable`` (a window of the map whose top-left pixel is ``origin``, diagonal steps
+    sqrt(2) long: skimage MCP_Geometric); None when ``passable`` joins them nowhere."""
+    cost = np.where(passable, 1.0, np.inf)
+    start, end = (a[0] - origin[0], a[1] - origin[1]), (b[0] - origin[0], b[1] - origin[1])
+    mcp = MCP_Geometric(cost, fully_connected=True)
+    costs, _traceback = mcp.find_costs([start], [end])
+    if not np.isfinite(costs[end]):
+        return None
+    return np.asarray(mcp.traceback(end), dtype=np.int64) + np.asarray(origin, dtype=np.int64)
+
+
+def path_length_px(pixels: np.ndarray) -> float:
+    """The length of a pixel path (k, 2), in pixels (0 for a single pixel)."""
+    return float(np.linalg.norm(np.diff(pixels, axis=0), axis=1).sum()) if len(pixels) > 1 else 0.0
 
 
 def _boxes(labels: np.ndarray, n: int) -> list[tuple[tuple[int, int], tuple[int, int]]]:

@@ -35,11 +35,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from skimage.draw import line
-from skimage.graph import MCP_Geometric
 
 from shared.core.graph import Graph
 from shared.core.models import Sensor, uniform_walk
 from shared.floorplan.occupancy import MapError, OccupancyGrid
+from shared.floorplan.travel import path_length_px, window_path
 
 SEARCHERS = ("random", "greedy", "sweep")
 SAMPLE_M = 0.1  # a path is sampled every this many metres
@@ -96,7 +96,7 @@ def building(grid: OccupancyGrid, graph: Graph, sensor_range_m: float) -> Buildi
         for a, b, pts in ((u, v, pixels), (v, u, pixels[::-1])):
             edge_of[a, b] = len(paths)
             paths.append(pts)
-    length = np.array([_arc_m(p, grid.resolution) for p in paths])
+    length = np.array([max(path_length_px(p), 1.0) * grid.resolution for p in paths])
     sampled = [_resample(p, grid.resolution) for p in paths]
     views = [_view(free, tuple(px), sensor_range_m, grid.resolution) for px in node_px.tolist()]
     edge_end = np.zeros(len(paths), dtype=np.int64)
@@ -110,21 +110,13 @@ def _path(free: np.ndarray, a: np.ndarray, b: np.ndarray, res: float) -> np.ndar
     margin = math.ceil(WINDOW_MARGIN_M / res)
     r0, c0 = max(0, min(a[0], b[0]) - margin), max(0, min(a[1], b[1]) - margin)
     r1, c1 = min(free.shape[0], max(a[0], b[0]) + margin + 1), min(free.shape[1], max(a[1], b[1]) + margin + 1)
-    for box in (((r0, c0), (r1, c1)), ((0, 0), (free.shape[0], free.shape[1]))):
-        (y0, x0), (y1, x1) = box
-        cost = np.where(free[y0:y1, x0:x1], 1.0, np.inf)
-        mcp = MCP_Geometric(cost, fully_connected=True)
-        start, end = (int(a[0] - y0), int(a[1] - x0)), (int(b[0] - y0), int(b[1] - x0))
-        costs, _tb = mcp.find_costs([start], [end])
-        if np.isfinite(costs[end]):
-            return np.array(mcp.traceback(end), dtype=np.int64) + np.array([y0, x0])
-    raise MapError(f"no free path between the poses at pixels {tuple(a)} and {tuple(b)}")
-
-
-def _arc_m(pixels: np.ndarray, res: float) -> float:
-    if len(pixels) < 2:
-        return res
-    return float(np.linalg.norm(np.diff(pixels, axis=0), axis=1).sum()) * res
+    ends = (int(a[0]), int(a[1])), (int(b[0]), int(b[1]))
+    path = window_path(free[r0:r1, c0:c1], (int(r0), int(c0)), *ends)
+    if path is None:
+        path = window_path(free, (0, 0), *ends)
+    if path is None:
+        raise MapError(f"no free path between the poses at pixels {ends[0]} and {ends[1]}")
+    return path
 
 
 def _resample(pixels: np.ndarray, res: float) -> np.ndarray:
