@@ -225,3 +225,20 @@ def test_edge_lengths_follow_the_free_space_and_the_nav2_route_graph_has_them(tm
     for bad, words in ((["x"], "edge_lengths_m\\[0\\]"), ([1.0, 2.0], "one length per edge"), ([-1], "above 0")):
         with pytest.raises(GraphError, match=words):
             graph_from_dict({**data, "edge_lengths_m": bad})
+
+
+def test_a_graph_too_large_to_train_easily_is_warned_of_by_import_and_train(tmp_path):
+    """A 60 x 60 m open hall imports as over 200 nodes: the import says so, with the figure and the
+    flag that coarsens it, and `mures train` on the graph says so before it starts."""
+    hall = np.zeros((302, 302), dtype=np.uint8)
+    hall[1:301, 1:301] = 254
+    graph = tmp_path / "hall.json"
+    r = mures("map", "import", str(_write(tmp_path, hall, resolution=0.2)), "--out", str(graph))
+    nodes = len(json.loads(graph.read_text())["nodes"])
+    assert r.returncode == 0 and nodes > 200, r.stderr
+    assert f"map import: warning: {nodes} nodes." in r.stderr and "--max-region-m` gives fewer" in r.stderr
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "notes.txt").write_text("not a policy snapshot\n")  # train stops there, after its warning
+    r = mures("train", "--graph", str(graph), "--robots", "2", "--out", str(taken))
+    assert r.returncode == 2 and f"warning: {nodes} nodes." in r.stderr and "refusing to replace it" in r.stderr

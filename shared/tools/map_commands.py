@@ -23,6 +23,18 @@ from shared.tools.cli_args import BUILTIN_MAPS, CliError, graph_of, number_where
 LARGE_GRAPH_NODES = 200  # above this, training a graph's policy is slow and memory-hungry (warned)
 
 
+def large_graph_warning(n: int) -> str | None:
+    """What `mures map import` and `mures train` say of a graph of ``n`` nodes above LARGE_GRAPH_NODES."""
+    if n <= LARGE_GRAPH_NODES:
+        return None
+    return (
+        f"warning: {n} nodes. A policy's weights and the engine's arrays grow with the square of the nodes, and "
+        f"above about {LARGE_GRAPH_NODES} training (mures train, the server's retraining) takes hours and tens of GB "
+        "on a small machine (docs/your-building.md); a larger `mures map import --max-region-m` gives fewer, "
+        "larger nodes"
+    )
+
+
 def cmd_map(args: argparse.Namespace) -> int:
     if args.map_command == "import":
         return cmd_map_import(args)
@@ -85,12 +97,9 @@ def cmd_map_import(args: argparse.Namespace) -> int:
             f"{args.max_region_m:g} m, so the graph has 1 node and nothing to search between: cut it into areas "
             f"with a smaller --max-region-m (e.g. {smaller:g})"
         )
-    if graph.n > LARGE_GRAPH_NODES:
-        say(
-            f"map import: warning: {graph.n} nodes. Training (mures train, the server's retraining) grows with the "
-            f"square of the nodes and above about {LARGE_GRAPH_NODES} takes hours and tens of GB on a small machine "
-            f"(docs/your-building.md); a larger --max-region-m (now {args.max_region_m:g}) gives fewer, larger nodes"
-        )
+    warning = large_graph_warning(graph.n)
+    if warning:
+        say(f"map import: {warning} (now {args.max_region_m:g} m)")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(data, indent=1) + "\n")

@@ -17,7 +17,7 @@ from shared.learning import config as train_config
 from shared.learning.config import CHECKPOINT_EVERY_S, positive_int, seconds
 from shared.learning.team_snapshot import load_snapshot, save_snapshot
 from shared.tools.cli_args import CliError, add_world_args, device_of, world_of
-from shared.tools.map_commands import LARGE_GRAPH_NODES
+from shared.tools.map_commands import large_graph_warning
 
 
 class _Progress:
@@ -72,14 +72,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.variant == "cepg+" and args.detection == "node":
         raise CliError("cepg+ trains with a sensing range: use --detection neighbourhood or custom, or leave it out")
     graph, target, sensor = world_of(args, detection)
-    if graph.n > LARGE_GRAPH_NODES:
-        print(
-            f"mures train: warning: {graph.name} has {graph.n} nodes; the policy weights and the engine arrays grow "
-            f"with the square of the nodes, and above about {LARGE_GRAPH_NODES} training takes hours and tens of GB on "
-            "a small machine (docs/your-building.md: coarsen the import with --max-region-m)",
-            file=sys.stderr,
-            flush=True,
-        )
+    warning = large_graph_warning(graph.n)
+    if warning:
+        print(f"mures train: {graph.name}: {warning}", file=sys.stderr, flush=True)
     device = device_of(args.device)
     out = Path(args.out)
     if out.exists() and not (out / "policy.json").is_file():
