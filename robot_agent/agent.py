@@ -54,6 +54,7 @@ from shared.core.wire import (
     add_zenoh_arguments,
     agent_key,
     check_id,
+    client_config,
     detection_key,
     detection_message,
     episode_key,
@@ -62,7 +63,6 @@ from shared.core.wire import (
     telemetry_key,
     withdrawal_key,
     withdrawal_message,
-    zenoh_config,
 )
 
 log = logging.getLogger("mures.agent")
@@ -378,15 +378,7 @@ class Agent:
             self.control.put(msg)
 
     def open_session(self) -> None:
-        password = read_token(self.args.zenoh_password_file) if self.args.zenoh_password_file else None
-        conf = zenoh_config(
-            "client",
-            connect=self.args.zenoh_connect,
-            config_file=self.args.zenoh_config,
-            tls_ca=self.args.zenoh_ca,
-            user=self.robot_id if password else None,  # the robot's Zenoh user is its id
-            password=password,
-        )
+        conf = client_config(self.args, self.robot_id)  # the robot's Zenoh user is its id
         while not self.stop.is_set():
             try:
                 self.session = zenoh.open(conf)

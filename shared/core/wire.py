@@ -234,6 +234,23 @@ def zenoh_config(
     return conf
 
 
+def client_config(args: argparse.Namespace, user: str, connect: list[str] | None = None) -> Any:
+    """A client session's zenoh.Config from the flags ``add_zenoh_arguments(..., robot=True)`` adds
+    (``connect`` in place of --zenoh-connect when given), authenticated as ``user`` when
+    --zenoh-password-file is given (a robot's user is its id, a simulated world's ``world``)."""
+    from shared.core.files import read_token
+
+    password = read_token(args.zenoh_password_file) if args.zenoh_password_file else None
+    return zenoh_config(
+        "client",
+        connect=connect or args.zenoh_connect,
+        config_file=args.zenoh_config,
+        tls_ca=args.zenoh_ca,
+        user=user if password else None,
+        password=password,
+    )
+
+
 def add_zenoh_arguments(
     parser: argparse.ArgumentParser,
     connect_help: str,

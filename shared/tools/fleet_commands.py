@@ -128,8 +128,7 @@ def cmd_world(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from shared.core.files import read_token
-    from shared.core.wire import DEFAULT_ZENOH_ENDPOINT, check_id, zenoh_config
+    from shared.core.wire import DEFAULT_ZENOH_ENDPOINT, check_id, client_config
     from shared.tools.world import World
 
     graph, target, sensor = world_of(args, "node")
@@ -139,15 +138,7 @@ def cmd_world(args: argparse.Namespace) -> int:
     connect = args.zenoh_connect or [DEFAULT_ZENOH_ENDPOINT]
     try:
         check_id("fleet", args.fleet)
-        password = read_token(args.zenoh_password_file) if args.zenoh_password_file else None
-        conf = zenoh_config(
-            "client",
-            connect=connect,
-            config_file=args.zenoh_config,
-            tls_ca=args.zenoh_ca,
-            user=args.zenoh_user if password else None,
-            password=password,
-        )
+        conf = client_config(args, args.zenoh_user, connect)
         session = zenoh.open(conf)
     except (ValueError, OSError, zenoh.ZError) as exc:
         hint = (
