@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from shipped_maps import MAPS, imported  # benchmarks/shipped_maps.py, beside this script
+from shipped_maps import shipped_graphs  # benchmarks/shipped_maps.py, beside this script
 
 from shared.engine.evaluate import mean_ci95
 from shared.floorplan.occupancy import read_map
@@ -44,11 +44,7 @@ def main() -> None:
         f"map          n    N  searcher  capture time (s)   captured  decisions/mission  ticks/s ({args.missions} missions)"
     )
     with tempfile.TemporaryDirectory() as tmp:
-        for name, path in MAPS.items():
-            if not path.exists():
-                print(f"{name}: {path} not here; skipped")
-                continue
-            graph = imported(path, Path(tmp))
+        for name, path, graph in shipped_graphs(Path(tmp)):
             t0 = time.perf_counter()
             world = building(read_map(path), graph, args.range)
             built_s = time.perf_counter() - t0

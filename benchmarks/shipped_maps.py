@@ -4,6 +4,7 @@ imported with `mures map import`'s defaults."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 from shared.core.graph import Graph, load_graph_file
@@ -24,3 +25,13 @@ def imported(yaml_path: Path, workdir: Path) -> Graph:
     if mures_main(["map", "import", str(yaml_path), "--out", str(out), "--quiet"]) != 0:
         raise SystemExit(f"importing {yaml_path} failed")
     return load_graph_file(out)
+
+
+def shipped_graphs(workdir: Path) -> Iterator[tuple[str, Path, Graph]]:
+    """(name, map YAML, its graph) of each map in MAPS that is here, imported into ``workdir``; a map
+    that is not here is said so and skipped."""
+    for name, path in MAPS.items():
+        if not path.exists():
+            print(f"{name}: {path} not here; skipped")
+            continue
+        yield name, path, imported(path, workdir)

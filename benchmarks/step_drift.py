@@ -30,7 +30,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from shipped_maps import MAPS, imported  # benchmarks/shipped_maps.py, beside this script
+from shipped_maps import shipped_graphs  # benchmarks/shipped_maps.py, beside this script
 
 from robot_agent.teamwork import TEAM_WAIT_S
 from shared.core.graph import Graph
@@ -100,11 +100,7 @@ def main() -> None:
     args = p.parse_args()
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for name, path in MAPS.items():
-            if not path.exists():
-                print(f"{name}: {path} not here; skipped")
-                continue
-            graph = imported(path, Path(tmp))
+        for name, _path, graph in shipped_graphs(Path(tmp)):
             seconds = move_seconds(graph, args.dwell, args.speed)
             if args.equal_steps:
                 seconds = np.full(seconds.shape, float(np.median(graph.edge_lengths)) / args.speed)
