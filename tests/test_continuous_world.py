@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 from PIL import Image
+from test_floorplan import two_rooms_floor
 
 from shared.core.graph import graph_from_dict
 from shared.core.models import Sensor
@@ -20,11 +21,7 @@ from shared.world.continuous import building, fly
 def _two_rooms(tmp_path):
     """Two 6 x 5.9 m rooms side by side, a 1.2 m door at the top of the wall between them; the
     graph a node a room, as `mures map import --max-region-m 10` makes it."""
-    floor = np.full((62, 122), 0, dtype=np.uint8)
-    floor[1:61, 1:60] = 254
-    floor[1:61, 62:121] = 254
-    floor[1:13, 60:62] = 254
-    Image.fromarray(floor).save(tmp_path / "m.pgm")
+    Image.fromarray(two_rooms_floor()).save(tmp_path / "m.pgm")
     (tmp_path / "m.yaml").write_text("image: m.pgm\nresolution: 0.1\norigin: [0.0, 0.0, 0.0]\n")
     grid = read_map(tmp_path / "m.yaml")
     data = graph_dict(grid, segment(grid, max_region_m=10), "TWO", {})

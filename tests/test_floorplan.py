@@ -71,6 +71,16 @@ def test_generated_office_floors_segment_into_their_rooms(tmp_path, seed):
     assert len(seen) == regions.labels.max()
 
 
+def two_rooms_floor() -> np.ndarray:
+    """(62, 122) map_saver grey at 0.1 m a pixel: two 6 x 5.9 m rooms side by side, walled, joined
+    by a 1.2 m door at the top of the wall between them."""
+    floor = np.full((62, 122), 0, dtype=np.uint8)
+    floor[1:61, 1:60] = 254
+    floor[1:61, 62:121] = 254
+    floor[1:13, 60:62] = 254  # the door
+    return floor
+
+
 def _write(tmp_path, pixels, **yaml_extra):
     Image.fromarray(np.asarray(pixels, dtype=np.uint8)).save(tmp_path / "m.pgm")
     settings = {"image": "m.pgm", "resolution": 0.1, "origin": [-1.0, -2.0, 0.0], "negate": 0,
@@ -196,11 +206,7 @@ def test_edge_lengths_follow_the_free_space_and_the_nav2_route_graph_has_them(tm
     carries the lengths, and --nav2-route writes the graph as Nav2's route server reads it."""
     from shared.core.graph import GraphError, graph_from_dict, load_graph_file
 
-    floor = np.full((62, 122), 0, dtype=np.uint8)
-    floor[1:61, 1:60] = 254  # two 6 x 5.9 m rooms side by side
-    floor[1:61, 62:121] = 254
-    floor[1:13, 60:62] = 254  # the door: 1.2 m wide, at the top of the wall
-    grid = read_map(_write(tmp_path, floor, resolution=0.1))
+    grid = read_map(_write(tmp_path, two_rooms_floor(), resolution=0.1))
     regions = segment(grid, max_region_m=10)  # a node a room
     assert len(regions.centers) == 2 and len(regions.edges) == 1
     out = tmp_path / "g.json"
