@@ -148,6 +148,56 @@ def _view(free: np.ndarray, px: tuple[int, int], range_m: float, res: float) -> 
 
 
 @dataclass
+class Targets:
+    """B targets in a Building, each on node ``at`` dwelling (``edge`` -1, ``left`` seconds more) or
+    walking directed edge ``edge``, ``prog`` metres along it (module docstring): the uniform walk
+    in continuous time. All (B,)."""
+
+    at: np.ndarray
+    edge: np.ndarray
+    prog: np.ndarray
+    left: np.ndarray
+
+    @classmethod
+    def start(cls, world: Building, b: int, rng: np.random.Generator, dwell_s: float) -> Targets:
+        """B targets on nodes drawn uniformly (b0), each dwelling an exponential time of mean ``dwell_s``."""
+        at = rng.integers(0, world.graph.n, size=b)
+        return cls(at, np.full(b, -1), np.zeros(b), rng.exponential(dwell_s, size=b))
+
+    def advance(
+        self, world: Building, dt: float, moving: np.ndarray, rng: np.random.Generator, speed: float, dwell_s: float
+    ) -> None:
+        """One tick of ``dt`` seconds for the targets where ``moving`` (B,) bool: a walking target
+        goes on (arriving: it dwells anew), a dwelling one waits, and one whose dwell is over sets
+        off to a uniformly drawn neighbour (one with no neighbour dwells again)."""
+        g = world.graph
+        walking = (self.edge >= 0) & moving
+        self.prog[walking] += speed * dt
+        arrived = walking & (self.prog >= world.length_m[np.maximum(self.edge, 0)])
+        self.at[arrived] = world.edge_end[self.edge[arrived]]
+        self.edge[arrived], self.prog[arrived] = -1, 0.0
+        self.left[arrived] = rng.exponential(dwell_s, size=int(arrived.sum()))
+        dwelling = (self.edge < 0) & moving & ~arrived
+        self.left[dwelling] -= dt
+        for b in np.flatnonzero(dwelling & (self.left <= 0)):
+            u = int(self.at[b])
+            v = int(g.nbr[u, 1 + rng.integers(0, g.deg_closed[u] - 1)]) if g.deg_closed[u] > 1 else u
+            self.edge[b] = world.edge_of.get((u, v), -1)
+            if self.edge[b] < 0:
+                self.left[b] = rng.exponential(dwell_s)
+
+    def pixels(self, world: Building, which: np.ndarray) -> np.ndarray:
+        """(k, 2) the pixel of each target ``which`` (k,): its node's pose while it dwells, its
+        path's sample while it walks."""
+        out = world.node_px[self.at[which]].copy()
+        for i, b in enumerate(np.asarray(which).tolist()):
+            if self.edge[b] >= 0:
+                pts = world.paths[int(self.edge[b])]
+                out[i] = pts[min(int(self.prog[b] / SAMPLE_M), len(pts) - 1)]
+        return out
+
+
+@dataclass
 class Flight:
     """What ``fly`` measured: per mission its capture time in seconds (``max_s`` when not
     captured) and whether it was captured; the decisions made; the wall time."""
@@ -179,14 +229,9 @@ def fly(
     g, b_n, r_n = world.graph, missions, robots
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    deg, nbr = g.deg_closed, g.nbr
     gamma = uniform_walk(g).dense()  # the step model's Gamma, for the greedy robots' beliefs
     (in0, in1), (out0, out1) = sensor.likelihoods()
-    # the target: on node t_at dwelling (t_edge -1) or on edge t_edge at t_prog metres
-    t_at = rng.integers(0, g.n, size=b_n)
-    t_edge = np.full(b_n, -1)
-    t_prog = np.zeros(b_n)
-    t_left = rng.exponential(target_dwell_s, size=b_n)
+    target = Targets.start(world, b_n, rng, target_dwell_s)
     # the robots: heading to (or on) r_at, arriving in r_left seconds; their beliefs (greedy)
     r_at = np.full((b_n, r_n), g.start)
     r_left = np.zeros((b_n, r_n))
@@ -198,28 +243,13 @@ def fly(
     decisions = ticks = 0
     now = 0.0
     while now < max_s and not done.all():
-        # the target's move over this tick
-        walking = (t_edge >= 0) & ~done
-        t_prog[walking] += target_speed * dt
-        arrived = walking & (t_prog >= world.length_m[np.maximum(t_edge, 0)])
-        t_at[arrived] = world.edge_end[t_edge[arrived]]
-        t_edge[arrived], t_prog[arrived] = -1, 0.0
-        t_left[arrived] = rng.exponential(target_dwell_s, size=int(arrived.sum()))
-        dwelling = (t_edge < 0) & ~done & ~arrived
-        t_left[dwelling] -= dt
-        leaving = dwelling & (t_left <= 0)
-        for b in np.flatnonzero(leaving):
-            u = int(t_at[b])
-            v = int(nbr[u, 1 + rng.integers(0, deg[u] - 1)]) if deg[u] > 1 else u
-            t_edge[b] = world.edge_of.get((u, v), -1)
-            if t_edge[b] < 0:
-                t_left[b] = rng.exponential(target_dwell_s)
+        target.advance(world, dt, ~done, rng, target_speed, target_dwell_s)
         # the robots that reach a node now: sense, then decide and go on
         r_left[~done] -= dt
         bs, rs = np.nonzero((r_left <= 0) & ~done[:, None])
         if len(bs):
             here = r_at[bs, rs]
-            seen = world.sees(here, _target_px(world, t_at[bs], t_edge[bs], t_prog[bs]))
+            seen = world.sees(here, target.pixels(world, bs))
             z = rng.random(len(bs)) < np.where(seen, in1, out1)
             for b in np.unique(bs[z & seen]):
                 done[b], capture_s[b] = True, now
@@ -315,15 +345,6 @@ def _arcs(tour: list[int], dist: np.ndarray, robots: int) -> list[list[int]]:
     for i in range(robots):
         arc = tour[bounds[i] : max(bounds[i + 1], bounds[i] + 1)]
         out.append(arc + arc[-2:0:-1] if len(arc) > 2 else arc)
-    return out
-
-
-def _target_px(world: Building, at: np.ndarray, edge: np.ndarray, prog: np.ndarray) -> np.ndarray:
-    """(k, 2) the target's pixel: its node's pose while it dwells, its path's sample while it walks."""
-    out = world.node_px[at].copy()
-    for i in np.flatnonzero(edge >= 0):
-        pts = world.paths[int(edge[i])]
-        out[i] = pts[min(int(prog[i] / SAMPLE_M), len(pts) - 1)]
     return out
 
 
