@@ -114,3 +114,55 @@ def device_of(name: str) -> Any:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise CliError("--device cuda asked for, but no CUDA device is available")
     return dev
+
+
+def add_continuous_args(p: argparse.ArgumentParser, about: str, noise: bool = False) -> Any:
+    """The continuous world's flags (docs/continuous-world.md) in a group of their own, introduced by
+    ``about``; ``noise`` adds --speed-cv. Returns the group, for a command's own additions."""
+    g = p.add_argument_group("continuous world", about)
+    g.add_argument("--world", metavar="MAP.yaml", help="the map the --graph was imported from")
+    g.add_argument("--speed", type=positive_number, default=0.5, metavar="M_PER_S", help="robots' speed (0.5)")
+    if noise:
+        g.add_argument(
+            "--speed-cv",
+            type=number_between(0.0, 1.0),
+            default=0.0,
+            metavar="CV",
+            help="each move's speed drawn with this coefficient of variation (0: every move at --speed)",
+        )
+    g.add_argument("--stay-seconds", type=positive_number, default=1.0, metavar="S", help="a step that stays (1)")
+    g.add_argument("--range", type=positive_number, default=4.0, metavar="M", help="sensor range, metres (4)")
+    g.add_argument("--target-speed", type=positive_number, default=0.5, metavar="M_PER_S", help="(0.5)")
+    g.add_argument(
+        "--target-dwell", type=positive_number, default=10.0, metavar="S", help="target's mean stay on a node (10)"
+    )
+    return g
+
+
+def number_between(lo: float, hi: float) -> Callable[[str], float]:
+    """An argparse type: a number in [lo, hi]."""
+    return lambda text: number_where(text, lambda v: lo <= v <= hi, f"a number in [{lo:g}, {hi:g}]")
+
+
+def building_of(args: argparse.Namespace, graph: Graph) -> Any:
+    """``--world MAP.yaml``'s Building for ``graph`` (shared/world/continuous.py), or a CliError:
+    --world without --graph, a target model other than the uniform walk, a graph imported from
+    another map, a map the graph's poses do not fit."""
+    import json
+    from pathlib import Path
+
+    from shared.floorplan.occupancy import MapError, read_map
+    from shared.world.continuous import building
+
+    if not getattr(args, "graph", None):
+        raise CliError("--world goes with --graph: the graph `mures map import` made from that map")
+    if args.target != "uniform":
+        raise CliError("--world's target is the uniform walk in continuous time (--target-dwell, --target-speed)")
+    source = json.loads(Path(args.graph).read_text(encoding="utf-8")).get("source") or {}
+    try:
+        grid = read_map(args.world)
+        if source.get("image_sha256") and source["image_sha256"] != grid.source["image_sha256"]:
+            raise CliError(f"--graph {args.graph} was not imported from {args.world} (its image differs)")
+        return building(grid, graph, args.range)
+    except MapError as exc:
+        raise CliError(f"--world {args.world}: {exc}") from None

@@ -15,8 +15,10 @@ from shared.learning.config import positive_int, seconds, whole_number
 from shared.learning.team_snapshot import load_snapshot
 from shared.tools.cli_args import (
     CliError,
+    add_continuous_args,
     add_map_args,
     add_world_args,
+    building_of,
     eta_arg,
     probability,
     world_of,
@@ -49,6 +51,11 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         raise CliError("fleet-sim: --step-timeout must be more than 0 seconds")
     if args.kill >= args.robots:
         raise CliError(f"fleet-sim: --kill {args.kill} leaves no robot of {args.robots} to search")
+    continuous = {}
+    if args.world:
+        if args.step_delay:
+            raise CliError("fleet-sim: --step-delay is the step world's; --world moves robots at --speed")
+        continuous = {"building": building_of(args, graph), "motion": motion_of(args)}
     try:
         res = run_fleet_sim(
             graph,
@@ -74,6 +81,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             kill_by=args.kill_by,
             server_extra=server_extra or None,
             agent_extra=["--link-loss", str(args.link_loss)] if args.link_loss else None,
+            **continuous,
         )
     except (ValueError, TimeoutError, RuntimeError, ApiError) as exc:
         raise CliError(f"fleet-sim: {exc}") from None
@@ -97,9 +105,13 @@ def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
         print("no mission was completed: no capture time to report")
         return 0
     print(
-        f"mean capture time: {res['mean_capture_time']:.2f} (95% CI {lo:.2f}..{hi:.2f}), "
+        f"mean capture time: {res['mean_capture_time']:.2f} steps (95% CI {lo:.2f}..{hi:.2f}), "
         f"censored {100 * res['censored_fraction']:.1f}%"
     )
+    if "mean_capture_time_s" in res:
+        print(f"mean capture time in seconds: {res['mean_capture_time_s']:.1f} s ± {res['ci95_halfwidth_s']:.1f} s")
+    if res.get("coordinated_share") is not None:
+        print(f"decisions on the team's plan: {100 * res['coordinated_share']:.1f}%")
     for v, d in res["by_policy_version"].items():
         print(
             f"  policy version {v}: {d['missions']} missions, {d['mean_capture_time']:.2f} "
@@ -114,8 +126,12 @@ def _print_fleet_sim(args: argparse.Namespace, res: dict[str, Any]) -> int:
             )
     print(
         f"episodes stored: {res['episodes_stored']}; rejected: {sum(res['episodes_rejected'].values())}; "
-        f"policy versions used: {', '.join(map(str, res['policy_versions_used']))}; "
-        f"lockstep step median {res['lockstep_step_ms_median']:.2f} ms"
+        f"policy versions used: {', '.join(map(str, res['policy_versions_used']))}"
+        + (
+            f"; lockstep step median {res['lockstep_step_ms_median']:.2f} ms"
+            if res["lockstep_step_ms_median"] is not None
+            else ""
+        )
     )
     return 0
 
@@ -132,6 +148,9 @@ def cmd_world(args: argparse.Namespace) -> int:
     from shared.tools.world import World
 
     graph, target, sensor = world_of(args, "node")
+    building = building_of(args, graph) if args.world else None
+    if args.world and args.step_delay:
+        raise CliError("world: --step-delay is the step world's; --world moves robots at --speed")
     for ep in args.zenoh_connect or []:
         if "/" not in ep or not ep.split("/", 1)[0].isalnum():
             raise CliError(f"world: --zenoh-connect {ep!r} is not a Zenoh endpoint such as tcp/127.0.0.1:7447")
@@ -154,11 +173,21 @@ def cmd_world(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_a: stop.set())
     signal.signal(signal.SIGINT, lambda *_a: stop.set())
-    world = World(
-        session, args.fleet, graph, target, sensor, step_timeout=args.step_timeout, step_delay=args.step_delay
+    if building is not None:
+        from shared.tools.timed_world import TimedWorld
+
+        world: World = TimedWorld(session, args.fleet, building, sensor, motion_of(args), args.step_timeout)
+    else:
+        world = World(
+            session, args.fleet, graph, target, sensor, step_timeout=args.step_timeout, step_delay=args.step_delay
+        )
+    how = (
+        f"in the continuous world of {args.world} (robots at {args.speed:g} m/s, sensor range {args.range:g} m)"
+        if args.world
+        else "in steps"
     )
     print(
-        f"world: simulating fleet {args.fleet!r} on {graph.name} (n={graph.n}), target {args.target}, sensor "
+        f"world: simulating fleet {args.fleet!r} on {graph.name} (n={graph.n}) {how}, target {args.target}, sensor "
         f"eta_fn={sensor.eta_fn} eta_fp={sensor.eta_fp} {sensor.detection}; connected to "
         f"{args.zenoh_config or ', '.join(connect)}; Ctrl-C stops it",
         file=sys.stderr,
@@ -170,6 +199,26 @@ def cmd_world(args: argparse.Namespace) -> int:
         world.close()
         session.close()
     return 0
+
+
+CONTINUOUS_ABOUT = (
+    "with --world MAP.yaml (the map --graph was imported from) the agents fly in the continuous world: each move "
+    "takes its travel time along free space, each robot on its own clock, capture times in seconds "
+    "(docs/continuous-world.md)"
+)
+
+
+def motion_of(args: argparse.Namespace) -> Any:
+    """The continuous world's Motion from the command's flags."""
+    from shared.tools.timed_world import Motion
+
+    return Motion(
+        speed=args.speed,
+        speed_cv=args.speed_cv,
+        stay_s=args.stay_seconds,
+        target_speed=args.target_speed,
+        target_dwell_s=args.target_dwell,
+    )
 
 
 def add_fleet_commands(sub: Any) -> None:
@@ -227,6 +276,7 @@ def add_fleet_commands(sub: Any) -> None:
     p.add_argument("--token-file", metavar="FILE", help="with --server: the operator token")
     p.add_argument("--agent-token-file", metavar="FILE", help="with --server: the agent token (default --token-file)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_continuous_args(p, CONTINUOUS_ABOUT, noise=True)
     p.set_defaults(func=cmd_fleet_sim)
 
     p = sub.add_parser(
@@ -248,4 +298,5 @@ def add_fleet_commands(sub: Any) -> None:
         "--step-timeout", type=seconds, default=10.0, help="withdraw a robot silent this long (s, default 10)"
     )
     p.add_argument("--step-delay", type=seconds, default=0.0, help="simulated travel time per step (s, default 0)")
+    add_continuous_args(p, CONTINUOUS_ABOUT, noise=True)
     p.set_defaults(func=cmd_world)

@@ -315,9 +315,13 @@ def launch(
     server_extra: list[str] | None = None,
     agent_extra: list[str] | None = None,
     simulated_operator: bool = True,
+    building: Any = None,
+    motion: Any = None,
 ) -> Fleet:
     """Start (or attach to) a server, the world and ``robots`` agents r1..rN; wait until all are online.
-    With ``simulated_operator`` a ``SimulatedOperator`` decides the detections that await one."""
+    With ``simulated_operator`` a ``SimulatedOperator`` decides the detections that await one. With
+    ``building`` (shared/world/continuous.py) the world is the continuous one, its robots and target
+    moving as ``motion`` says (shared/tools/timed_world.py), else the step world."""
     import zenoh
 
     from shared.tools.world import World
@@ -351,9 +355,14 @@ def launch(
         if health["graph_id"] != graph.graph_id:
             raise ValueError(f"the server at {base} serves another map ({health['graph_id'][:20]}...)")
         fleet.session = zenoh.open(zenoh_config("client", connect=[endpoint]))
-        fleet.world = World(
-            fleet.session, health["fleet"], graph, target, sensor, step_timeout=step_timeout, step_delay=step_delay
-        )
+        if building is not None:
+            from shared.tools.timed_world import TimedWorld
+
+            fleet.world = TimedWorld(fleet.session, health["fleet"], building, sensor, motion, step_timeout)
+        else:
+            fleet.world = World(
+                fleet.session, health["fleet"], graph, target, sensor, step_timeout=step_timeout, step_delay=step_delay
+            )
         if simulated_operator:
             fleet.operator = SimulatedOperator(fleet.api, fleet.world)
         for i in range(robots):
@@ -470,7 +479,12 @@ def run_fleet_sim(
             tmp.cleanup()
     mean, half = mean_ci95([r["capture_time"] for r in results])
     step_ms = np.asarray(fleet.world.step_seconds) * 1e3 if fleet.world else np.zeros(0)
+    in_time = {}
+    if results and all("capture_time_s" in r for r in results):  # the continuous world's clock
+        mean_s, half_s = mean_ci95([r["capture_time_s"] for r in results])
+        in_time = {"mean_capture_time_s": mean_s, "ci95_halfwidth_s": half_s}
     return {
+        **in_time,
         "missions": len(results),
         "robots": robots,
         "map": graph.name,
@@ -517,7 +531,12 @@ def _mission_result(fleet: Fleet, m: dict[str, Any]) -> dict[str, Any]:
         coordination = fleet.api.get(f"/api/v1/episodes/{robot}/{m['id']}").get("coordination") or {}
         team += coordination.get("team_steps", 0) + coordination.get("partial_steps", 0)
         own += coordination.get("own_steps", 0)
+    seconds = {}
+    if hasattr(fleet.world, "seconds"):  # the continuous world: the mission clock of the capture (or of its end)
+        clock = wait_until(lambda: fleet.world.seconds.get(m["id"]), 10, f"mission {m['id']}'s end in the world")
+        seconds = {"capture_time_s": clock["time_s"]}
     return {
+        **seconds,
         "mission_id": m["id"],
         "captured": ct is not None,
         "capture_time": ct if ct is not None else m["params"]["max_steps"],

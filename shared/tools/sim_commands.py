@@ -21,7 +21,16 @@ from shared.engine.evaluate import episode_records, evaluate
 from shared.engine.searchers import Searcher
 from shared.learning.config import positive_int, whole_number
 from shared.registry import TeamFlight, searcher_factory
-from shared.tools.cli_args import CliError, add_world_args, device_of, positive_number, probability, world_of
+from shared.tools.cli_args import (
+    CliError,
+    add_continuous_args,
+    add_world_args,
+    building_of,
+    device_of,
+    positive_number,
+    probability,
+    world_of,
+)
 
 
 def _searcher_factory(
@@ -158,27 +167,15 @@ def _evaluate_continuous(args: argparse.Namespace) -> int:
     """`mures evaluate --world MAP.yaml`: the searcher flown in the continuous world of the map the
     --graph was imported from (shared/world/continuous.py); capture time in seconds."""
     from shared.engine.evaluate import mean_ci95
-    from shared.floorplan.occupancy import MapError, read_map
-    from shared.world.continuous import building, fly
+    from shared.world.continuous import fly
 
-    if not args.graph:
-        raise CliError("--world goes with --graph: the graph `mures map import` made from that map")
     if args.searcher not in CONTINUOUS_SEARCHERS:
         raise CliError(
             f"--world flies {', '.join(CONTINUOUS_SEARCHERS)} only (the trained policies do not fly in the "
             f"continuous world yet), got {args.searcher!r}"
         )
-    if args.target != "uniform":
-        raise CliError("--world's target is the uniform walk in continuous time (--target-dwell, --target-speed)")
     graph, _target, sensor = world_of(args)
-    source = json.loads(Path(args.graph).read_text(encoding="utf-8")).get("source") or {}
-    try:
-        grid = read_map(args.world)
-        if source.get("image_sha256") and source["image_sha256"] != grid.source["image_sha256"]:
-            raise CliError(f"--graph {args.graph} was not imported from {args.world} (its image differs)")
-        world = building(grid, graph, args.range)
-    except MapError as exc:
-        raise CliError(f"--world {args.world}: {exc}") from None
+    world = building_of(args, graph)
     flight = fly(
         world,
         args.searcher,
@@ -263,18 +260,10 @@ def add_sim_commands(sub: Any) -> None:
         help="incomplete steps in a row before a robot flies its own policy (default: never while a teammate is "
         "heard: the team's plan on what has come)",
     )
-    world = p.add_argument_group(
-        "continuous world",
+    world = add_continuous_args(
+        p,
         "fly random, greedy or sweep in the building's map instead of the step model (docs/continuous-world.md): "
         "robots and target move along free space in metres and seconds, a robot sees within --range in line of sight",
-    )
-    world.add_argument("--world", metavar="MAP.yaml", help="the map the --graph was imported from")
-    world.add_argument("--speed", type=positive_number, default=0.5, metavar="M_PER_S", help="robots' speed (0.5)")
-    world.add_argument("--stay-seconds", type=positive_number, default=1.0, metavar="S", help="a step that stays (1)")
-    world.add_argument("--range", type=positive_number, default=4.0, metavar="M", help="sensor range, metres (4)")
-    world.add_argument("--target-speed", type=positive_number, default=0.5, metavar="M_PER_S", help="(0.5)")
-    world.add_argument(
-        "--target-dwell", type=positive_number, default=10.0, metavar="S", help="target's mean stay on a node (10)"
     )
     world.add_argument(
         "--max-seconds", type=positive_number, default=1800.0, metavar="S", help="a mission's end (1800)"

@@ -117,19 +117,7 @@ class World:
         if msg["type"] == "start":
             if mid in self.missions:
                 return
-            rng = np.random.default_rng(int(msg.get("seed", 0)) % (2**63))
-            e0 = int(np.searchsorted(self.b0, rng.random() * self.b0[-1], side="right"))
-            robots = list(msg.get("robots") or [])
-            m = _Mission(
-                robots=robots,
-                rng=rng,
-                max_steps=int(msg.get("max_steps") or 3 * self.graph.n),
-                target=min(e0, self.graph.n - 1),
-                active=set(robots),
-                confirm=msg.get("capture") == "confirm",
-            )
-            m.path.append(m.target)
-            self.missions[mid] = m
+            self.missions[mid] = self._new_mission(msg)
             for q in self.parked.pop(mid, []):
                 self._on_query(q)
         elif msg["type"] in ("captured", "stop") and mid in self.missions:
@@ -148,6 +136,22 @@ class World:
             m.undecided.discard((str(msg.get("robot_id")), msg.get("t")))
             m.waiting_since = time.monotonic()  # the robots' wait for the decision is no timeout of theirs
             self._advance_if_ready(mid, m)
+
+    def _new_mission(self, msg: dict[str, Any]) -> _Mission:
+        """The state of the mission whose start message is ``msg``: e_0 ~ b0 from the mission seed."""
+        rng = np.random.default_rng(int(msg.get("seed", 0)) % (2**63))
+        e0 = int(np.searchsorted(self.b0, rng.random() * self.b0[-1], side="right"))
+        robots = list(msg.get("robots") or [])
+        m = _Mission(
+            robots=robots,
+            rng=rng,
+            max_steps=int(msg.get("max_steps") or 3 * self.graph.n),
+            target=min(e0, self.graph.n - 1),
+            active=set(robots),
+            confirm=msg.get("capture") == "confirm",
+        )
+        m.path.append(m.target)
+        return m
 
     def _on_query(self, q: Any) -> None:
         parts = str(q.key_expr).split("/")
@@ -171,12 +175,20 @@ class World:
             row = self.graph.index[node]
         except (ValueError, KeyError, TypeError, AttributeError):
             return self._err(q, 'payload must be {"t": int, "node": label on the map}')
-        if t != m.t or robot in m.reports:
-            return self._err(q, f"step t={t} out of lockstep (world is at t={m.t})")
+        why = self._refusal(m, robot, t, row)
+        if why:
+            return self._err(q, why)
         if not m.reports:
             m.waiting_since = time.monotonic()
         m.reports[robot] = (row, q)
         self._advance_if_ready(mid, m)
+        return None
+
+    def _refusal(self, m: _Mission, robot: str, t: int, row: int) -> str | None:
+        """Why robot ``robot``'s report of step ``t`` on ``row`` is refused, or None: in lockstep,
+        every robot reports the world's step once."""
+        if t != m.t or robot in m.reports:
+            return f"step t={t} out of lockstep (world is at t={m.t})"
         return None
 
     def _advance_if_ready(self, mid: str, m: _Mission) -> None:

@@ -1,0 +1,166 @@
+"""The continuous world served to robot agents (shared/tools/timed_world.py): each robot on its own
+clock, readings answered in the order of the mission clock whatever order the reports come in, and
+the whole fleet (server, agents, records) flown in it by `mures fleet-sim --world`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_continuous_world import _two_rooms
+from test_floorplan import NAV2, mures
+
+from shared.core.graph import load_graph_file
+from shared.core.models import Sensor
+from shared.floorplan.occupancy import read_map
+from shared.tools.timed_world import Motion, TimedWorld
+from shared.world.continuous import building
+
+
+class _Session:
+    """What World needs of a Zenoh session, for driving it by hand: declarations that do nothing,
+    puts kept."""
+
+    def __init__(self) -> None:
+        self.puts: list[tuple[str, dict]] = []
+
+    def declare_subscriber(self, *_a, **_k):
+        return self
+
+    declare_queryable = declare_subscriber
+
+    def undeclare(self) -> None:
+        pass
+
+    def put(self, key, payload, **_k) -> None:
+        self.puts.append((str(key), json.loads(payload)))
+
+
+class _Query:
+    """A robot's report (t, node) on mures/<fleet>/sim/<mission>/<robot>, and the world's answer."""
+
+    def __init__(self, mission: str, robot: str, t: int, node: int) -> None:
+        self.key_expr = f"mures/default/sim/{mission}/{robot}"
+        self.payload = type("P", (), {"to_bytes": lambda _s: json.dumps({"t": t, "node": node}).encode()})()
+        self.answer: dict | None = None
+        self.error: str | None = None
+
+    def reply(self, _key, payload) -> None:
+        self.answer = json.loads(payload)
+
+    def reply_err(self, payload) -> None:
+        self.error = payload.decode()
+
+    def drop(self) -> None:
+        pass
+
+
+def _world(tmp_path, **motion):
+    grid, graph = _two_rooms(tmp_path)
+    world = TimedWorld(_Session(), "default", building(grid, graph, 20.0), Sensor(), Motion(**motion), 60.0)
+    world.close()  # its event thread stopped: the test calls its handlers itself
+    return world, graph
+
+
+def _start(world, mid: str, robots: list[str], seed: int, max_steps: int = 50) -> None:
+    start = {"type": "start", "mission_id": mid, "robots": robots, "seed": seed, "max_steps": max_steps}
+    world._on_message(json.dumps(start).encode())
+
+
+def test_each_robot_reads_on_its_own_clock_and_waits_for_no_step_index(tmp_path):
+    world, graph = _world(tmp_path)
+    here, there = (int(x) for x in graph.labels[[graph.start, 1 - graph.start]])
+    _start(world, "m1", ["r1", "r2"], seed=4)
+    a0 = _Query("m1", "r1", 0, here)
+    world._on_query(a0)
+    assert a0.answer is None  # r2 may still read earlier: nothing is answered until it has reported
+    b0 = _Query("m1", "r2", 0, here)
+    world._on_query(b0)
+    assert a0.answer["time_s"] == b0.answer["time_s"] == 0.0  # read together at the start
+    a1 = _Query("m1", "r1", 1, there)  # r1 crosses to the other room: its length along free space at 0.5 m/s
+    world._on_query(a1)
+    walk = world.building.length_m[world.building.edge_of[graph.start, 1 - graph.start]] / 0.5
+    assert walk > 10  # two rooms of 6 m, through a door at the top
+    b = [_Query("m1", "r2", t, here) for t in range(1, 30)]  # r2 stays: a second a step
+    for q in b:
+        world._on_query(q)
+        if a1.answer is not None:
+            break
+    # r2's steps 1..k came first, each a second apart, while r1 was still on its way; r1 read on arrival
+    done = [q for q in b if q.answer is not None]
+    assert [q.answer["time_s"] for q in done] == pytest.approx(list(range(1, len(done) + 1)))
+    assert a1.answer["time_s"] == pytest.approx(walk, abs=1e-3)
+    assert len(done) >= int(walk) - 1
+    m = world.missions["m1"]
+    assert m.next_t == {"r1": 2, "r2": len(done) + 1}  # their step counts apart, as real robots' are
+    # a move to a node outside N[p] or a step out of order is refused, and changes nothing
+    bad = _Query("m1", "r1", 5, here)
+    world._on_query(bad)
+    assert "not robot r1's next" in bad.error and m.next_t["r1"] == 2
+
+
+def test_the_same_seed_reads_the_same_whatever_order_the_reports_come_in(tmp_path):
+    def fly(order: list[str]) -> tuple[list[tuple], dict]:
+        world, graph = _world(tmp_path, speed_cv=0.3)
+        labels = [int(x) for x in graph.labels]
+        _start(world, "m", ["r1", "r2"], seed=9, max_steps=12)  # a robot at its step limit reads no more
+        rng = np.random.default_rng(1)
+        plan = {r: [labels[graph.start]] + [labels[int(k)] for k in rng.integers(0, 2, 12)] for r in ("r1", "r2")}
+        asked: dict[str, _Query] = {}
+        answers: list[tuple] = []
+        for _ in range(100):
+            for r in order:  # each robot reports its next step as soon as its last is answered
+                last = asked.get(r)
+                if last is not None and last.answer is None:
+                    continue
+                t = 0 if last is None else json.loads(last.payload.to_bytes())["t"] + 1
+                if last is not None and (r, t - 1) not in {(a[0], a[1]) for a in answers}:
+                    answers.append((r, t - 1, last.answer["z"], last.answer["time_s"]))
+                if t < len(plan[r]):
+                    asked[r] = _Query("m", r, t, plan[r][t])
+                    world._on_query(asked[r])
+        return sorted(answers), world.seconds["m"]
+
+    first, end = fly(["r1", "r2"])
+    assert (first, end) == fly(["r2", "r1"]) and len(first) == 26
+    assert {z for _r, _t, z, _s in first} == {0, 1}  # the target was seen, and missed
+    # every robot read its step limit: the mission is over in the world, not captured, at its last reading
+    assert not end["captured"] and end["time_s"] == pytest.approx(max(s for *_x, s in first), abs=1e-3)
+
+
+def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
+    depot = NAV2 / "depot.yaml"
+    graph_file, team = tmp_path / "depot.json", tmp_path / "team"
+    assert mures("map", "import", str(depot), "--out", str(graph_file)).returncode == 0
+    r = mures("train", "--graph", str(graph_file), "--robots", "2", "--episodes", "2000", "--team-searcher",
+              "fhpe-sa", "--out", str(team))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    r = mures("fleet-sim", "--graph", str(graph_file), "--world", str(depot), "--robots", "2", "--missions", "4",
+              "--seed", "2", "--init-policy", str(team), "--speed-cv", "0.2", "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["missions"] == 4 and res["episodes_stored"] == 8
+    assert res["mean_capture_time_s"] >= 0 and res["ci95_halfwidth_s"] >= 0
+    assert 0 < res["coordinated_share"] <= 1  # the version's team searcher flies, on the robots' own clocks
+    world = building(read_map(depot), load_graph_file(graph_file), 4.0)
+    fastest = min(1.0, world.length_m.min() / (0.5 * 2))  # a stay, or the shortest edge at twice the speed
+    for m in res["results"]:
+        assert m["capture_time_s"] >= m["capture_time"] * fastest - 1e-6  # steps take time
+    assert np.mean([m["capture_time_s"] for m in res["results"]]) == pytest.approx(res["mean_capture_time_s"])
+
+
+def test_world_flags_that_do_not_fit_are_refused_in_one_line(tmp_path):
+    depot = NAV2 / "depot.yaml"
+    graph_file = tmp_path / "depot.json"
+    assert mures("map", "import", str(depot), "--out", str(graph_file)).returncode == 0
+    for args, says in (
+        (["--env", "office", "--world", str(depot)], "--world goes with --graph"),
+        (["--graph", str(graph_file), "--world", str(NAV2 / "warehouse.yaml")], "was not imported from"),
+        (["--graph", str(graph_file), "--world", str(depot), "--target", "lazy:0.5"], "uniform walk"),
+        (["--graph", str(graph_file), "--world", str(depot), "--step-delay", "1"], "--step-delay"),
+    ):
+        for command in ("fleet-sim", "world"):
+            extra = ["--robots", "2", "--missions", "1"] if command == "fleet-sim" else []
+            r = mures(command, *args, *extra)
+            assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, (command, args, r.stderr)
