@@ -12,6 +12,10 @@ coefficient of variation ``speed_cv``; staying takes ``stay_s``). So a robot's s
 one robot may be at its step 9 while a teammate on long corridors is at its step 5, as on real
 robots, and nothing waits for a common step index.
 
+The target's path is drawn from a generator of its own, seeded by the mission seed: whatever the
+robots do, a mission seed gives the same target path, so that two fleets flown on the same seeds are
+compared on the same missions (paired). The readings' draws come from another.
+
 Virtual time, conservatively (a discrete-event simulation): the world answers only when every
 robot still in the mission has reported where it goes next, and then answers the earliest
 reading (the robots arriving within ``together_s`` after it at once, in time order: a robot's
@@ -66,6 +70,7 @@ class _TimedMission(_Mission):
     next_t: dict[str, int] = field(default_factory=dict)  # the step each robot reports next
     due_s: dict[str, float] = field(default_factory=dict)  # the time of each pending report's reading
     speed_rng: dict[str, np.random.Generator] = field(default_factory=dict)
+    target_rng: np.random.Generator = field(default_factory=np.random.default_rng)
     time_of: dict[tuple[str, int], float] = field(default_factory=dict)  # (robot, t) -> reading's time
     finished_robots: set[str] = field(default_factory=set)  # answered at their step limit
 
@@ -92,9 +97,10 @@ class TimedWorld(World):
     # ------------------------------------------------------------------ hooks of World
     def _new_mission(self, msg: dict[str, Any]) -> _Mission:
         seed = int(msg.get("seed", 0)) % (2**63)
-        rng = np.random.default_rng(seed)
+        rng = np.random.default_rng(seed)  # the readings'
+        target_rng = np.random.default_rng([seed, 1 << 32])  # the target's own: its path is the seed's alone
         robots = list(msg.get("robots") or [])
-        targets = Targets.start(self.building, 1, rng, self.motion.target_dwell_s)
+        targets = Targets.start(self.building, 1, target_rng, self.motion.target_dwell_s)
         m = _TimedMission(
             robots=robots,
             rng=rng,
@@ -105,6 +111,7 @@ class TimedWorld(World):
             targets=targets,
             next_t={r: 0 for r in robots},
             speed_rng={r: np.random.default_rng([seed, i]) for i, r in enumerate(robots)},
+            target_rng=target_rng,
         )
         m.path.append(m.target)
         return m
@@ -152,7 +159,9 @@ class TimedWorld(World):
             row, q = m.reports.pop(robot)
             due = m.due_s.pop(robot)
             while m.now_s + self.motion.dt <= due:  # the target walks to the reading's moment
-                m.targets.advance(self.building, self.motion.dt, np.ones(1, dtype=bool), m.rng, *self._target_motion())
+                m.targets.advance(
+                    self.building, self.motion.dt, np.ones(1, dtype=bool), m.target_rng, *self._target_motion()
+                )
                 m.now_s += self.motion.dt
             t = m.next_t[robot]
             where = m.targets.pixels(self.building, np.zeros(1, dtype=np.int64))
