@@ -48,6 +48,7 @@ from shared.core.models import Sensor
 from shared.core.records import make_record
 from shared.core.snapshot_format import PolicyAgent, SnapshotData, SnapshotError, read_snapshot
 from shared.core.team import FALLBACK_AFTER, LinkHistory, TeamAgent, mission_seed, team_searcher_of
+from shared.core.timed_team import TimedTeamAgent, move_seconds
 from shared.core.wire import (
     DEFAULT_FLEET,
     MAX_REASON_CHARS,
@@ -529,17 +530,18 @@ class Agent:
         snap = self.policies.snapshot
         assert snap is not None, "run() waits for a policy before taking missions"
         seed = int(msg.get("seed") or 0)
-        agent = TeamAgent(
-            snap,
-            self.graph,
-            robots,
-            self.robot_id,
-            seed=seed,
-            searcher=team_searcher_of(snap),  # a robot alone plans on its own belief, the team's
-            fallback_after=self.args.fallback_after,
-            own_seed=mission_seed(seed, index),
-            link_history=self.links,
-        )
+        team_kw: dict[str, Any] = {
+            "seed": seed,
+            "searcher": team_searcher_of(snap),  # a robot alone plans on its own belief, the team's
+            "fallback_after": self.args.fallback_after,
+            "own_seed": mission_seed(seed, index),
+            "link_history": self.links,
+        }
+        if self.args.team_clock == "seconds":  # matched by the mission clock (shared/core/timed_team.py)
+            step_s = move_seconds(self.graph, self.args.speed)
+            agent: TeamAgent = TimedTeamAgent(snap, self.graph, robots, self.robot_id, step_s=step_s, **team_kw)
+        else:
+            agent = TeamAgent(snap, self.graph, robots, self.robot_id, **team_kw)
         header = {
             "mission_id": mid,
             "policy_version": self.policies.version,
@@ -566,16 +568,23 @@ class Agent:
         appended to ``steps`` as it is taken."""
         assert self.graph is not None
         graph, mid = self.graph, team.mission_id
+        timed = agent if isinstance(agent, TimedTeamAgent) else None
         node = backend.begin(msg)  # a label on the map, z a 0 or 1 (CheckedBackend)
-        t = 0
+        started = time.monotonic()
+        t, now_s = 0, 0.0
         while True:
             z = backend.detect()  # z_t at p_t
             t0 = time.perf_counter()
             p = graph.index[node]
             # Eq. 1 (own belief; t = 0: b_0 ∝ Lambda(p_0, z_0) b0) and Eq. 6 (the team's, with the
             # teammates' observations as they come)
-            agent.observe(self.robot_id, t, p, z)
-            team.publish(t, node, z)
+            if timed is not None:  # the reading's time: the backend's mission clock, else this agent's
+                clock = getattr(backend, "clock", lambda: None)()  # CheckedBackend.clock: checked seconds or None
+                now_s = clock if clock is not None else time.monotonic() - started
+                timed.observe_at(self.robot_id, t, p, z, now_s)
+            else:
+                agent.observe(self.robot_id, t, p, z)
+                team.publish(t, node, z)
             steps.append({"t": t, "node": node, "z": z})
             self.journal.step(t, node, z)
             if z:  # the server decides whether this detection ends the mission (docs/SPEC.md section 6)
@@ -589,14 +598,21 @@ class Agent:
             waited = time.perf_counter()
             team.gather(t)  # the teammates' step t, waiting a bounded time for what is missing
             t1 = time.perf_counter()
-            row, mode = agent.act(t, p)  # the team's plan, or a_t ~ pi_i(. | onehot(p_t), b_t) (Algorithm 1)
+            # the team's plan, or a_t ~ pi_i(. | onehot(p_t), b_t) (Algorithm 1)
+            row, mode = agent.act(t, p) if timed is None else timed.act_at(now_s, p)
             goal = int(graph.labels[row])
+            if timed is not None:  # on the clock: the observation goes out with where the robot is headed
+                team.publish(t, node, z, time_s=now_s, goal=goal)
             decide_us.append((waited - t0 + time.perf_counter() - t1) * 1e6)  # the wait for teammates left out
             self.telemetry(
                 {"state": "mission", "mission_id": mid, "t": t, "node": node, "z": z, "goal": goal, "mode": mode},
                 force=t == 0,
                 belief=agent.own.belief,
-                team_belief=agent.collective.belief(t) if agent.searcher is not None else None,
+                team_belief=(
+                    agent.collective.belief(t if timed is None else timed.tick(now_s))
+                    if agent.searcher is not None
+                    else None
+                ),
             )
             node = backend.move(goal)  # a label on the map (CheckedBackend)
             t += 1
@@ -680,6 +696,8 @@ class Agent:
         flusher = None
         try:
             self.graph = self.fetch_map()
+            if self.args.team_clock == "seconds":
+                move_seconds(self.graph, self.args.speed)  # ValueError: the map has no edge lengths
             self.policies = PolicyStore(self.state / "policies", self.graph)
             self.policies.load_current()
             self.sync_policy("start")
@@ -775,6 +793,21 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: never while a teammate is heard: the team's plan on what has come)",
     )
     p.add_argument(
+        "--team-clock",
+        choices=("steps", "seconds"),
+        default="steps",
+        help="how the robot matches its teammates' observations: by step index, waiting --team-wait for the "
+        "current step's (default, the paper's model), or by the mission clock, never waiting for a teammate "
+        "that is travelling (shared/core/timed_team.py; needs a graph with edge lengths)",
+    )
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=0.5,
+        metavar="M_PER_S",
+        help="with --team-clock seconds: the robot's travel speed, for how long a step of the model lasts (0.5)",
+    )
+    p.add_argument(
         "--link-loss",
         type=float,
         default=0.0,
@@ -841,6 +874,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if not 0.0 <= args.link_loss <= 1.0 or args.team_wait < 0 or (args.fallback_after or 1) < 1:
             raise ValueError("--link-loss takes a probability, --team-wait seconds >= 0, --fallback-after at least 1")
+        if not 0.0 < args.speed < float("inf"):
+            raise ValueError(f"--speed takes metres a second above 0, got {args.speed}")
         resolve_backend(args.backend)  # a backend that cannot be loaded stops the agent before it connects
         agent = Agent(args)
     except ValueError as exc:

@@ -9,6 +9,11 @@ mission::
     node = backend.move(goal)       # go to goal (a label in N[node]); returns where the robot is
                                     # after the move: goal on arrival, another node on failure
     backend.end()                   # the mission is over (stop, park, release resources)
+    backend.clock()                 # optional: the mission clock (s) of the last reading, or None
+
+A backend without ``clock`` leaves the time of a reading to the agent: the seconds since it began
+the mission (robot-agent --team-clock seconds; the agents start within a network delay of each
+other, when the server's start message reaches them).
 
 ``mission`` is the mission's start message, a dict (docs/SPEC.md section 6): "mission_id" (str),
 "robots" (the mission's robot ids, in order), "start_node" (the label every robot starts on),
@@ -86,12 +91,18 @@ class SimBackend:
         self.mission = ""
         self.node = -1
         self.t = 0
+        self.time_s: float | None = None
 
     def begin(self, mission: dict[str, Any]) -> int:
         self.mission = mission["mission_id"]
         self.node = int(mission.get("start_node", self.graph.labels[self.graph.start]))
         self.t = 0
+        self.time_s = None
         return self.node
+
+    def clock(self) -> float | None:
+        """The continuous world's clock of the last reading (None from the step world)."""
+        return self.time_s
 
     def move(self, goal: int) -> int:
         row = self.graph.index[self.node]
@@ -115,6 +126,7 @@ class SimBackend:
                 msg = json.loads(reply.ok.payload.to_bytes())
                 if msg.get("ended"):
                     raise MissionOver
+                self.time_s = float(msg["time_s"]) if "time_s" in msg else None
                 return int(msg["z"])
             # no reply: either no world is there yet (a get with no queryable to match ends at once,
             # so ask again until the timeout) or it did not answer in time
@@ -229,6 +241,18 @@ class CheckedBackend:
 
     def end(self) -> None:
         self._call("end")
+
+    def clock(self) -> float | None:
+        """The backend's mission clock of its last reading (seconds, finite, >= 0), or None where
+        it keeps none."""
+        if not callable(getattr(self.backend, "clock", None)):
+            return None
+        value = self._call("clock")
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 <= float(value) < float("inf"):
+            raise BackendError(f"backend clock() returned {value!r}; expected seconds (a finite number >= 0) or None")
+        return float(value)
 
 
 def load_backend(spec: str, **kwargs: Any) -> RobotBackend:

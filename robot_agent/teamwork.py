@@ -5,7 +5,10 @@ Each step the robot publishes (t, node, z) on ``mures/<fleet>/observations/<robo
 (best effort: congestion never blocks the robot, a lost message is no observation) and listens to
 its teammates' on ``mures/<fleet>/observations/*/<mission>``. Before deciding at step t it waits at
 most ``wait_s`` for every live teammate's step t; whatever has not come by then, the robot decides
-without (its own policy on an incomplete step). No decision ever waits longer on the network.
+without (its own policy on an incomplete step). No decision ever waits longer on the network. On
+the mission clock (``TimedTeamAgent``: robot-agent --team-clock seconds) the robot publishes each
+observation with its time and the node it left for, after deciding, and decides on what has come
+without waiting.
 
 A teammate whose liveliness token goes (its agent stopped, its process or its link died:
 ``mures/<fleet>/agents/<robot>``) is withdrawn from this robot's ``TeamAgent`` before its next
@@ -29,6 +32,7 @@ from typing import Any
 
 from shared.core.graph import Graph
 from shared.core.team import TeamAgent
+from shared.core.timed_team import TimedTeamAgent
 from shared.core.wire import agent_key, observation_key, observation_message, parse_observation
 
 log = logging.getLogger("mures.agent")
@@ -81,12 +85,13 @@ class Teamwork:
         elif msg["robot_id"] != self.me:  # its own comes back from the router: already folded in
             self.inbox.put(msg)
 
-    def publish(self, t: int, node: int, z: int) -> None:
-        """This robot's observation of step ``t`` (``node`` a map label) to its teammates."""
+    def publish(self, t: int, node: int, z: int, time_s: float | None = None, goal: int | None = None) -> None:
+        """This robot's observation of step ``t`` (``node`` a map label) to its teammates; on the
+        mission clock with the reading's ``time_s`` and the label of the node it left for."""
         if self.link_loss and random.random() < self.link_loss:
             self.dropped += 1
             return
-        msg = observation_message(self.mission_id, self.me, t, node, z)
+        msg = observation_message(self.mission_id, self.me, t, node, z, time_s, goal)
         try:
             self._session.put(self._key, json.dumps(msg).encode(), congestion_control=self._congestion)
         except Exception as exc:  # the link is down: teammates go without this step
@@ -98,6 +103,9 @@ class Teamwork:
         or while no teammate is heard at all); teammates whose liveliness went are withdrawn first."""
         self._withdraw()
         if self._sub is None:
+            return
+        if isinstance(self.agent, TimedTeamAgent):  # on the clock: what has come, and no wait (timed_team.py)
+            self._drain()
             return
         deadline = time.monotonic() + self.wait_s
         while True:
@@ -136,6 +144,13 @@ class Teamwork:
         row = self.graph.index.get(msg["node"])
         if row is None or msg["robot_id"] not in self.agent.robots:
             self.ignored += 1
+            return
+        if isinstance(self.agent, TimedTeamAgent):
+            if "time_s" not in msg:  # a teammate on step indices: nothing to place on the clock
+                self.ignored += 1
+                return
+            goal = self.graph.index.get(msg["goal"]) if "goal" in msg else None
+            self.agent.observe_at(msg["robot_id"], msg["t"], row, msg["z"], msg["time_s"], goal)
             return
         self.agent.observe(msg["robot_id"], msg["t"], row, msg["z"])
 

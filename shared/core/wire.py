@@ -109,8 +109,24 @@ def observation_key(fleet: str, robot: str = "*", mission: str = "*") -> str:
     return f"mures/{fleet}/observations/{robot}/{mission}"
 
 
-def observation_message(mission_id: str, robot_id: str, t: int, node: int, z: int) -> dict[str, Any]:
-    return {"mission_id": mission_id, "robot_id": robot_id, "t": int(t), "node": int(node), "z": int(z)}
+def observation_message(
+    mission_id: str,
+    robot_id: str,
+    t: int,
+    node: int,
+    z: int,
+    time_s: float | None = None,
+    goal: int | None = None,
+) -> dict[str, Any]:
+    """A robot's observation of its step ``t`` (``node`` a label, z 0 or 1); a robot on the mission
+    clock (robot-agent --team-clock seconds) adds ``time_s``, the clock of the reading, and
+    ``goal``, the label of the node it left for."""
+    msg = {"mission_id": mission_id, "robot_id": robot_id, "t": int(t), "node": int(node), "z": int(z)}
+    if time_s is not None:
+        msg["time_s"] = round(float(time_s), 3)
+    if goal is not None:
+        msg["goal"] = int(goal)
+    return msg
 
 
 def parse_detection(key: str, payload: bytes) -> tuple[dict[str, Any] | None, str]:
@@ -132,7 +148,14 @@ def parse_observation(key: str, payload: bytes) -> tuple[dict[str, Any] | None, 
         return None, why
     if msg["z"] not in (0, 1):
         return None, "'z' must be 0 or 1"
-    return observation_message(msg["mission_id"], msg["robot_id"], msg["t"], msg["node"], msg["z"]), ""
+    time_s, goal = msg.get("time_s"), msg.get("goal")
+    if time_s is not None and (
+        isinstance(time_s, bool) or not isinstance(time_s, int | float) or not 0 <= time_s < float("inf")
+    ):
+        return None, "'time_s' must be a finite number of seconds >= 0"
+    if goal is not None and (isinstance(goal, bool) or not isinstance(goal, int) or goal < 0):
+        return None, "'goal' must be a non-negative integer (a node label)"
+    return observation_message(msg["mission_id"], msg["robot_id"], msg["t"], msg["node"], msg["z"], time_s, goal), ""
 
 
 def _step_message(key: str, payload: bytes, kind: str, fields: tuple[str, ...]) -> tuple[dict[str, Any] | None, str]:

@@ -51,6 +51,11 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         raise CliError("fleet-sim: --step-timeout must be more than 0 seconds")
     if args.kill >= args.robots:
         raise CliError(f"fleet-sim: --kill {args.kill} leaves no robot of {args.robots} to search")
+    agent_extra = ["--link-loss", str(args.link_loss)] if args.link_loss else []
+    if args.team_clock == "seconds":
+        if not args.world:
+            raise CliError("fleet-sim: --team-clock seconds goes with --world (the continuous world keeps the clock)")
+        agent_extra += ["--team-clock", "seconds", "--speed", str(args.speed)]
     continuous = {}
     if args.world:
         if args.step_delay:
@@ -80,7 +85,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             kill=args.kill,
             kill_by=args.kill_by,
             server_extra=server_extra or None,
-            agent_extra=["--link-loss", str(args.link_loss)] if args.link_loss else None,
+            agent_extra=agent_extra or None,
             **continuous,
         )
     except (ValueError, TimeoutError, RuntimeError, ApiError) as exc:
@@ -251,6 +256,13 @@ def add_fleet_commands(sub: Any) -> None:
         default=0.0,
         metavar="P",
         help="each agent drops each of its observations to its teammates with probability P (robot-agent --link-loss)",
+    )
+    p.add_argument(
+        "--team-clock",
+        choices=("steps", "seconds"),
+        default="steps",
+        help="how the agents match their teammates' observations (robot-agent --team-clock): by step index "
+        "(default) or, with --world, by the mission clock (docs/continuous-world.md)",
     )
     p.add_argument(
         "--kill",

@@ -1,0 +1,143 @@
+"""Searching as a team on the mission clock: what a robot agent runs under `--team-clock seconds`,
+when each move takes its own travel time and the robots' steps drift apart (docs/continuous-world.md).
+
+The step rule (shared/core/team.py) matches the teammates' observations by step index and waits
+for the current step's; with travel times a teammate's step t comes seconds or minutes later, so
+the rule falls back to the robot's own policy for most decisions. On the clock instead:
+
+- **Time model.** The mission clock is cut into ticks of ``tick_s`` seconds (1 s). The target
+  moves once a tick with the version's Gamma_hat made a tick's worth (uniformization of the step
+  model: Gamma_tick = I + (tick_s / step_s)(Gamma_hat - I), ``step_s`` the seconds one step of the
+  model lasts: the graph's median move at the robot's speed). An observation is folded in at the
+  tick its reading was made (k = floor(time_s / tick_s)), whenever it comes: a late one re-filters
+  from its tick, exactly as on time (``CollectiveBelief`` keyed by tick). No tick is waited for.
+- **Teammates in transit.** Each observation carries the node its robot left for (``goal``); the
+  team's plan counts a teammate where it is headed.
+- **Deciding.** On arrival, at once: the team's plan (FHPE-SA on the collective belief predicted
+  to the current tick) when some teammate has been heard within ``timeout_s`` and the links
+  deliver (``link_quality``, as in team.py); its own policy otherwise. A decision is "team" when
+  every teammate in the plan has been heard, "partial" when one is placed at the start node.
+- **Links.** A teammate's observation counts as heard in time when it comes before this robot's
+  first decision more than ``late_s`` after the reading: the network's delay, not the spread of
+  travel times, decides whether the links are good.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from shared.core.graph import Graph
+from shared.core.models import TargetModel
+from shared.core.snapshot_format import SnapshotData
+from shared.core.team import CollectiveBelief, TeamAgent
+
+TICK_S = 1.0  # the mission clock's tick
+TIMEOUT_S = 120.0  # a teammate not heard for this long leaves the team's plan (a move takes 4-25 s)
+LATE_S = 2.0  # a teammate's observation arriving this long after its reading's decision time is late
+
+
+def move_seconds(graph: Graph, speed: float) -> float:
+    """The seconds one step of the model lasts: the graph's median edge length (along free space)
+    over the robot's speed. ValueError for a graph without edge lengths."""
+    if graph.edge_lengths is None or not len(graph.edge_lengths):
+        raise ValueError(
+            f"{graph.name} has no edge lengths: --team-clock seconds needs a graph from `mures map import` "
+            "(edge_lengths_m)"
+        )
+    return float(np.median(graph.edge_lengths)) / speed
+
+
+def tick_model(model: TargetModel, step_s: float, tick_s: float = TICK_S) -> TargetModel:
+    """The step model made one tick's worth (module docstring): Gamma_tick = I + a (Gamma - I),
+    a = tick_s / step_s (at most 1); b0 unchanged. Gamma's support holds every self-loop."""
+    a = min(1.0, tick_s / step_s)
+    prob = a * model.prob + (1.0 - a) * (model.src == model.dst)
+    return TargetModel(model.n, model.src, model.dst, prob, model.b0, f"{model.kind} per {tick_s:g} s tick")
+
+
+class TimedTeamAgent(TeamAgent):
+    """Robot ``me`` of the mission's ``robots`` on the mission clock: ``observe_at(robot, t, p, z,
+    time_s, goal)`` for its own and its teammates' observations as they come, then
+    ``act_at(time_s, p)`` -> (next node row, "team", "partial" or "own"). ``step_s``: the seconds a
+    step of the version's model lasts (``move_seconds``). The rest as ``TeamAgent``."""
+
+    def __init__(
+        self,
+        snap: SnapshotData,
+        graph: Graph,
+        robots: list[str],
+        me: str,
+        seed: int,
+        searcher: str | None,
+        step_s: float,
+        tick_s: float = TICK_S,
+        timeout_s: float = TIMEOUT_S,
+        **kw: Any,
+    ) -> None:
+        super().__init__(snap, graph, robots, me, seed, searcher, **kw)
+        self.tick_s, self.step_s, self.timeout_s = tick_s, step_s, timeout_s
+        model = kw.get("team_model") or snap.model
+        self.collective = CollectiveBelief(graph, tick_model(model, step_s, tick_s), snap.sensor, self.robots)
+        self.heard_s = {r: -math.inf for r in self.robots if r != me}  # each teammate's latest reading's time
+        self.goal: dict[str, int] = {}  # each robot's latest known node: where it is headed
+        self.decided_s = -math.inf
+        self.tick_clash = 0  # readings of one robot in one tick: the later one is not folded in
+
+    def tick(self, time_s: float) -> int:
+        return max(0, math.floor(time_s / self.tick_s + 1e-9))
+
+    def observe_at(self, robot: str, t: int, p: int, z: int, time_s: float, goal: int | None = None) -> None:
+        """An observation (this robot's own, or a teammate's from the network) of the reading made
+        at ``time_s`` on node row ``p``; ``goal`` the row it left for (None: not known yet)."""
+        if robot == self.me:
+            self.own.reset(p, z) if t == 0 else self.own.observe(p, z)
+        if robot not in self.robots:
+            return
+        if not self.collective.add(self.tick(time_s), robot, p, z):
+            self.tick_clash += robot != self.me and t > self.last_heard.get(robot, -1)
+        if robot == self.me or t < self.last_heard[robot]:
+            return
+        if t > self.last_heard[robot]:  # a first copy of its latest step
+            self.messages_heard += time_s > self.decided_s - LATE_S  # in time for the decisions after it
+            self.last_heard[robot] = t
+            self.heard_s[robot] = max(self.heard_s[robot], time_s)
+            self.goal[robot] = p
+        if goal is not None:
+            self.goal[robot] = goal
+
+    def _team_live(self, now_s: float) -> list[str]:
+        """This robot and the teammates not withdrawn that were heard within ``timeout_s`` (all of
+        them in the mission's first ``timeout_s``)."""
+        return [
+            r
+            for r in self.robots
+            if r not in self.withdrawn
+            and (r == self.me or now_s - self.heard_s[r] <= self.timeout_s or now_s <= self.timeout_s)
+        ]
+
+    def act_at(self, time_s: float, p: int) -> tuple[int, str]:
+        """The next node row for this robot, arrived on row ``p`` at ``time_s`` (its own
+        observation given), and how it was decided (module docstring)."""
+        self.decided_s = time_s
+        if self.searcher is None:
+            return self._own(p)
+        live = self._team_live(time_s)
+        heard = [r for r in live if r != self.me and self.heard_s[r] > -math.inf]
+        poor_links = not self.alone() and self.link_quality() < self.link_quality_min
+        if (not heard and not self.alone()) or poor_links:
+            return self._own(p)
+        mode = "team" if len(heard) == len(live) - 1 else "partial"
+        self.steps[mode] += 1
+        k = self.tick(time_s)
+        b = self.collective.belief(k)
+        if self.searcher == "c-cepg":
+            return self.own.act(p, belief=b), mode
+        assert self.planner is not None
+        pos = np.array([p if r == self.me else self.goal.get(r, self.graph.start) for r in self.robots], dtype=np.int64)
+        active = np.array([r in live for r in self.robots])
+        row = int(self._team_plan(k, b, pos, active)[self.index])
+        self.goal[self.me] = row
+        return row, mode
