@@ -125,3 +125,27 @@ def test_sweeping_robots_capture_in_the_two_rooms(tmp_path):
     world = building(grid, graph, sensor_range_m=3.0)
     f = fly(world, "sweep", robots=1, missions=30, seed=4)
     assert f.captured.all() and f.decisions > 0
+
+
+def test_map_import_writes_what_each_nodes_robot_sees_as_the_graphs_sensing_table(tmp_path):
+    from test_floorplan import NAV2, mures
+
+    from shared.core.graph import load_graph_file
+
+    Image.fromarray(two_rooms_floor()).save(tmp_path / "m.pgm")
+    (tmp_path / "m.yaml").write_text("image: m.pgm\nresolution: 0.1\norigin: [0.0, 0.0, 0.0]\n")
+    r = mures("map", "import", str(tmp_path / "m.yaml"), "--out", str(tmp_path / "g.json"), "--max-region-m", "10",
+              "--sensor-range", "20")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    two = load_graph_file(tmp_path / "g.json")
+    assert two.n == 2 and two.detection_sets("custom")[1].tolist() == [0, 1]  # each sees itself, not through the wall
+    assert "sees 1.0 nodes' poses on average" in r.stderr
+    r = mures("map", "import", str(NAV2 / "depot.yaml"), "--out", str(tmp_path / "d.json"), "--sensor-range", "4")
+    depot = load_graph_file(tmp_path / "d.json")
+    world = building(read_map(NAV2 / "depot.yaml"), depot, 4.0)
+    ptr, idx = depot.detection_sets("custom")
+    for p in range(depot.n):  # D(p): the nodes whose pose the continuous world's robot on p sees
+        seen = idx[ptr[p] : ptr[p + 1]]
+        assert p in seen
+        assert world.sees(np.full(depot.n, p), world.node_px).nonzero()[0].tolist() == sorted(seen.tolist())
+    assert max(ptr[1:] - ptr[:-1]) > 1  # some robot sees a neighbouring area

@@ -9,6 +9,10 @@ Robot 1 (in the team's order) picks its best h-step walk, robot 2 its best given
 so on; the first move of each robot's walk is taken, then the team plans again (receding horizon).
 Ties between equally good walks are broken by the caller's random generator, so that robots
 planning from the same information with generators seeded alike choose the same plan.
+
+On the mission clock (``move_steps``, shared/core/timed_team.py) a move lasts its travel time in
+the model's steps, and a detection's discount is gamma to the power of the steps' worth of time
+elapsed when it happens: of two walks that look alike, the one through shorter edges is worth more.
 """
 
 from __future__ import annotations
@@ -58,8 +62,10 @@ class FhpeSAPlanner:
         sensor: Sensor,
         horizon: int = HORIZON,
         propagate: Callable[[np.ndarray], np.ndarray] | None = None,
+        move_steps: np.ndarray | None = None,
     ) -> None:
         self.graph, self.n, self.h = graph, graph.n, horizon
+        self.move_steps = move_steps  # (n, n): how many of the model's steps the move u -> v lasts (None: 1 each)
         self.gamma_dense = model.dense()
         self.propagate = propagate or _SparsePropagation(model)
         self.det = graph.detection_matrix(sensor.detection).astype(np.float64)  # det[p, v] = 1 if v in D(p)
@@ -85,16 +91,21 @@ class FhpeSAPlanner:
             P, levels = self.paths(int(pos[i]))  # (K, h)
             U = g1[None, :]  # the uncaptured mass after each prefix, (prefixes, n)
             val = np.zeros(1)
+            here, elapsed = np.array([pos[i]]), np.zeros(1)  # each prefix's last node, and its steps' worth of time
             for k, (rep, nodes) in enumerate(levels):
                 if k:
                     U = np.asarray(self.propagate(U))  # propagate the uncaptured mass: U Gamma
                 U, val = U[rep], val[rep]  # each prefix's children
+                if self.move_steps is not None:  # discounted by when the detection happens, not by the move's index
+                    elapsed = elapsed[rep] + self.move_steps[here[rep], nodes]
+                    here = nodes
+                disc = self.disc[k] if self.move_steps is None else GAMMA**elapsed
                 cap = U @ (1.0 - survive_fixed[k])
                 U = U * survive_fixed[k]
                 D = self.det[nodes]
                 cap += hit * (U * D).sum(1)
                 U *= 1.0 - hit * D
-                val = val + self.disc[k] * cap
+                val = val + disc * cap
             best = np.flatnonzero(val >= val.max() - 1e-12)
             j = int(rng.choice(best))
             for k in range(h):

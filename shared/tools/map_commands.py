@@ -3,7 +3,7 @@
 
     mures map (--env NAME | --graph FILE)
     mures map import MAP.yaml --out GRAPH.json [--regions REGIONS.png] [--preview PREVIEW.png] [--nav2-route G.geojson]
-        [--start X,Y] [--max-region-m M] [--min-door-m W] [--max-door-m D] [--largest-part]
+        [--start X,Y] [--max-region-m M] [--min-door-m W] [--max-door-m D] [--largest-part] [--sensor-range M]
 """
 
 from __future__ import annotations
@@ -87,7 +87,19 @@ def cmd_map_import(args: argparse.Namespace) -> int:
         raise CliError(f"map import: {exc}") from None
     for note in regions.notes:
         say(f"map import: {note}")
+    if args.sensor_range:
+        parameters["sensor_range_m"] = args.sensor_range
     data = graph_dict(grid, regions, Path(args.map).stem.upper(), parameters)
+    if args.sensor_range:  # D(p) for --detection custom: the nodes whose pose p's robot sees
+        from shared.floorplan.sight import sensing_sets
+
+        node_px = np.array([grid.to_pixel(*data["positions"][str(k)]) for k in data["nodes"]])
+        sets = sensing_sets(grid.free, node_px, args.sensor_range, grid.resolution)
+        data["sensing"] = {str(k): v for k, v in sets.items()}
+        say(
+            f"map import: sensing table: a robot sees {np.mean([len(v) for v in sets.values()]):.1f} nodes' poses "
+            f"on average (itself included) within {args.sensor_range:g} m in line of sight (--detection custom)"
+        )
     graph = graph_from_dict(data, str(args.out))  # the file loads with --graph everywhere
     if graph.n < 2:
         free_m2 = float((regions.labels > 0).sum()) * grid.resolution**2
@@ -188,5 +200,10 @@ def add_map_commands(sub: Any) -> None:
     imp.add_argument(
         "--largest-part", action="store_true", help="keep the largest part of a map whose free space is in pieces"
     )
+    imp.add_argument(
+        "--sensor-range", type=metres, default=None, metavar="M",
+        help="also write the graph's sensing table: per node, the nodes whose pose its robot sees within M metres "
+        "in line of sight (D(p) for --detection custom; docs/continuous-world.md)",
+    )  # fmt: skip
     imp.add_argument("--quiet", action="store_true", help="print the summary line only")
     imp.set_defaults(func=cmd_map)

@@ -160,19 +160,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-CONTINUOUS_SEARCHERS = ("random", "greedy", "sweep")
-
-
 def _evaluate_continuous(args: argparse.Namespace) -> int:
     """`mures evaluate --world MAP.yaml`: the searcher flown in the continuous world of the map the
     --graph was imported from (shared/world/continuous.py); capture time in seconds."""
     from shared.engine.evaluate import mean_ci95
-    from shared.world.continuous import fly
+    from shared.world.continuous import SEARCHERS, fly
 
-    if args.searcher not in CONTINUOUS_SEARCHERS:
+    if args.searcher not in SEARCHERS:
         raise CliError(
-            f"--world flies {', '.join(CONTINUOUS_SEARCHERS)} only (the trained policies do not fly in the "
-            f"continuous world yet), got {args.searcher!r}"
+            f"--world flies {', '.join(SEARCHERS)} (the trained policies fly in it as agents: `mures fleet-sim "
+            f"--world`), got {args.searcher!r}"
         )
     graph, _target, sensor = world_of(args)
     world = building_of(args, graph)
@@ -262,7 +259,8 @@ def add_sim_commands(sub: Any) -> None:
     )
     world = add_continuous_args(
         p,
-        "fly random, greedy or sweep in the building's map instead of the step model (docs/continuous-world.md): "
+        "fly random, greedy, sweep or fhpe-sa in the building's map instead of the step model "
+        "(docs/continuous-world.md): "
         "robots and target move along free space in metres and seconds, a robot sees within --range in line of sight",
     )
     world.add_argument(

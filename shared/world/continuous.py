@@ -24,7 +24,13 @@ the paper's step model: updated with each of its readings as if D(p) = {p}, pred
 step with Gamma, the most likely node of N[p] next), the step fleet's decision rule flown in time;
 ``sweep`` (a closed tour of every node, shortest by nearest neighbour and 2-opt over the lengths
 along free space, cut into N arcs of equal length: each robot sweeps its arc back and forth along
-shortest paths, whatever it reads), the planner a robotics team would write first.
+shortest paths, whatever it reads), the planner a robotics team would write first; ``fhpe-sa``
+(``TeamPlan``: the team's plan on the mission clock, as robot-agent --team-clock seconds flies it,
+given every observation at once: one collective belief per mission on 1 s ticks under the uniform
+walk made a tick's worth, each reading folded in as it is made, FHPE-SA's move for the robot that
+arrives with its teammates counted where they are headed; ``time_discount`` discounts a walk's
+detections by when they happen rather than by the move's index, which measured later:
+benchmarks/team_plan_in_time.py).
 """
 
 from __future__ import annotations
@@ -34,14 +40,16 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from skimage.draw import line
 
+from shared.core.fhpe_sa import HORIZON, FhpeSAPlanner
 from shared.core.graph import Graph
 from shared.core.models import Sensor, uniform_walk
+from shared.core.timed_team import TICK_S, tick_model
 from shared.floorplan.occupancy import MapError, OccupancyGrid
+from shared.floorplan.sight import view
 from shared.floorplan.travel import path_length_px, window_path
 
-SEARCHERS = ("random", "greedy", "sweep")
+SEARCHERS = ("random", "greedy", "sweep", "fhpe-sa")
 SAMPLE_M = 0.1  # a path is sampled every this many metres
 WINDOW_MARGIN_M = 3.0  # a path is first searched in the box of its two poses widened by this
 
@@ -98,7 +106,7 @@ def building(grid: OccupancyGrid, graph: Graph, sensor_range_m: float) -> Buildi
             paths.append(pts)
     length = np.array([max(path_length_px(p), 1.0) * grid.resolution for p in paths])
     sampled = [_resample(p, grid.resolution) for p in paths]
-    views = [_view(free, tuple(px), sensor_range_m, grid.resolution) for px in node_px.tolist()]
+    views = [view(free, tuple(px), sensor_range_m, grid.resolution) for px in node_px.tolist()]
     edge_end = np.zeros(len(paths), dtype=np.int64)
     for (_u, v), e in edge_of.items():
         edge_end[e] = v
@@ -126,25 +134,6 @@ def _resample(pixels: np.ndarray, res: float) -> np.ndarray:
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pixels, axis=0), axis=1))]) * res
     at = np.searchsorted(arc, np.arange(0.0, arc[-1], SAMPLE_M))
     return np.concatenate([pixels[at], pixels[-1:]])
-
-
-def _view(free: np.ndarray, px: tuple[int, int], range_m: float, res: float) -> tuple[int, int, np.ndarray]:
-    """What a robot on pixel ``px`` sees: rays to every pixel of the window's border, each until its
-    first pixel that is not free, within ``range_m``."""
-    radius = max(1, math.ceil(range_m / res))
-    r0, c0 = max(0, px[0] - radius), max(0, px[1] - radius)
-    r1, c1 = min(free.shape[0], px[0] + radius + 1), min(free.shape[1], px[1] + radius + 1)
-    win = np.zeros((r1 - r0, c1 - c0), dtype=bool)
-    border = [(r, c) for r in (r0, r1 - 1) for c in range(c0, c1)] + [
-        (r, c) for c in (c0, c1 - 1) for r in range(r0, r1)
-    ]
-    for r, c in border:
-        rr, cc = line(px[0], px[1], r, c)
-        inside = (rr - px[0]) ** 2 + (cc - px[1]) ** 2 <= radius**2
-        ok = free[rr, cc] & inside
-        stop = int(np.argmin(ok)) if not ok.all() else len(ok)
-        win[rr[:stop] - r0, cc[:stop] - c0] = True
-    return r0, c0, win
 
 
 @dataclass
@@ -222,8 +211,9 @@ def fly(
     dt: float = 0.1,
     max_s: float = 1800.0,
     seed: int = 0,
+    time_discount: bool = False,
 ) -> Flight:
-    """B = ``missions`` missions of ``robots`` robots with ``searcher`` (random or greedy)."""
+    """B = ``missions`` missions of ``robots`` robots with ``searcher`` (``SEARCHERS``)."""
     if searcher not in SEARCHERS:
         raise ValueError(f"searcher must be one of {', '.join(SEARCHERS)}, got {searcher!r}")
     g, b_n, r_n = world.graph, missions, robots
@@ -237,6 +227,7 @@ def fly(
     r_left = np.zeros((b_n, r_n))
     belief = np.full((b_n, r_n, g.n), 1.0 / g.n)
     plan = Sweep(world, r_n) if searcher == "sweep" else None
+    team = TeamPlan(world, r_n, b_n, sensor, speed, dwell_s, time_discount) if searcher == "fhpe-sa" else None
     waypoint = np.zeros((b_n, r_n), dtype=np.int64)  # (sweep) the index of each robot's next waypoint
     done = np.zeros(b_n, dtype=bool)
     capture_s = np.full(b_n, max_s)
@@ -244,6 +235,8 @@ def fly(
     now = 0.0
     while now < max_s and not done.all():
         target.advance(world, dt, ~done, rng, target_speed, target_dwell_s)
+        if team is not None:
+            team.predict_to(now)
         # the robots that reach a node now: sense, then decide and go on
         r_left[~done] -= dt
         bs, rs = np.nonzero((r_left <= 0) & ~done[:, None])
@@ -257,6 +250,8 @@ def fly(
             bs, rs, here, z = bs[go], rs[go], here[go], z[go]
             if plan is not None:
                 nxt = plan.next_nodes(waypoint, bs, rs, here)
+            elif team is not None:
+                nxt = team.decide(bs, rs, here, z, rng)
             else:
                 nxt = _decide(searcher, rng, g, gamma, belief, bs, rs, here, z, (in0, in1, out0, out1))
             decisions += len(bs)
@@ -267,6 +262,62 @@ def fly(
         now += dt
         ticks += 1
     return Flight(capture_s, done, decisions, ticks, time.perf_counter() - t0)
+
+
+class TeamPlan:
+    """The fhpe-sa searcher (module docstring) for B missions of N robots: ``predict_to(now)`` once
+    a world tick, ``decide(bs, rs, here, z, rng)`` for the robots that arrive."""
+
+    def __init__(
+        self,
+        world: Building,
+        robots: int,
+        missions: int,
+        sensor: Sensor,
+        speed: float,
+        stay_s: float,
+        time_discount: bool,
+        tick_s: float = TICK_S,
+    ) -> None:
+        g = world.graph
+        model = uniform_walk(g)
+        self.step_s = float(np.median(world.length_m)) / speed  # a step of the model: the median move
+        self.gamma_tick = tick_model(model, self.step_s, tick_s).dense()
+        move_s = np.full((g.n, g.n), stay_s)  # only neighbours' entries are read
+        for (u, v), e in world.edge_of.items():
+            move_s[u, v] = world.length_m[e] / speed
+        steps = move_s / self.step_s if time_discount else None
+        self.planner = FhpeSAPlanner(g, model, sensor, HORIZON, move_steps=steps)
+        self.det = g.detection_matrix(sensor.detection).astype(np.float64)
+        (self.in0, self.in1), (self.out0, self.out1) = sensor.likelihoods()
+        self.belief = np.tile(model.b0, (missions, 1))
+        self.goal = np.full((missions, robots), g.start)
+        self.tick_s, self.next_tick = tick_s, tick_s
+
+    def predict_to(self, now: float) -> None:
+        """The beliefs predicted over every tick that has begun by ``now`` (Gamma_tick^T b)."""
+        while now + 1e-9 >= self.next_tick:
+            self.belief = self.belief @ self.gamma_tick
+            self.next_tick += self.tick_s
+
+    def decide(
+        self, bs: np.ndarray, rs: np.ndarray, here: np.ndarray, z: np.ndarray, rng: np.random.Generator
+    ) -> np.ndarray:
+        """Fold in the arriving robots' readings, then each one's move on the team's plan."""
+        for b, p, zz in zip(bs.tolist(), here.tolist(), z.tolist(), strict=True):
+            d = self.det[p]
+            lik = np.where(d > 0, self.in1 if zz else self.in0, self.out1 if zz else self.out0)
+            x = self.belief[b] * lik
+            total = x.sum()
+            self.belief[b] = x / total if total > 1e-300 else lik / lik.sum()
+        out = np.empty(len(bs), dtype=np.int64)
+        active = np.ones(self.goal.shape[1], dtype=bool)
+        for i, (b, r, p) in enumerate(zip(bs.tolist(), rs.tolist(), here.tolist(), strict=True)):
+            pos = self.goal[b].copy()
+            pos[r] = p
+            out[i] = self.planner.plan(self.belief[b], pos, active, rng)[r]
+            self.goal[b, r] = out[i]
+        return out
 
 
 class Sweep:

@@ -1,0 +1,68 @@
+"""The team's plan on the mission clock given every observation at once (the continuous world's
+``fhpe-sa`` searcher, shared/world/continuous.py), beside sweep, with and without discounting a
+walk's detections by when they happen, and with D(p) = {p} or the sensing table of what each node's
+robot sees (`mures map import --sensor-range`, --detection custom).
+
+    python benchmarks/team_plan_in_time.py [--maps depot] [--robots 2 4] [--missions 200] [--seed 3]
+                                           [--json results/fleet_in_time/team_plan_in_time.json]
+
+Maps: those of benchmarks/shipped_maps.py that are here, imported with default flags and
+--sensor-range 4 (the world's range). Mean capture time in seconds with its 95 % CI half-width; all
+variants on one seed (the same target draws until the robots' decisions part them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+from shipped_maps import MAPS  # benchmarks/shipped_maps.py, beside this script
+
+from shared.core.graph import load_graph_file
+from shared.core.models import Sensor
+from shared.engine.evaluate import mean_ci95
+from shared.floorplan.occupancy import read_map
+from shared.tools.cli import main as mures_main
+from shared.world.continuous import building, fly
+
+VARIANTS = [  # (searcher, detection, time discount)
+    ("sweep", "node", False),
+    ("fhpe-sa", "node", False),
+    ("fhpe-sa", "node", True),
+    ("fhpe-sa", "custom", False),
+]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--maps", type=lambda s: s.split(","), default=["depot"])
+    ap.add_argument("--robots", type=int, nargs="+", default=[2, 4])
+    ap.add_argument("--missions", type=int, default=200)
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--json", default="results/fleet_in_time/team_plan_in_time.json")
+    args = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.maps:
+            out = Path(tmp) / f"{name}.json"
+            if mures_main(["map", "import", str(MAPS[name]), "--out", str(out), "--sensor-range", "4", "--quiet"]):
+                raise SystemExit(f"importing {name} failed")
+            world = building(read_map(MAPS[name]), load_graph_file(out), 4.0)
+            for robots in args.robots:
+                for searcher, detection, discount in VARIANTS:
+                    f = fly(world, searcher, robots, args.missions, sensor=Sensor(detection=detection),
+                            seed=args.seed, time_discount=discount)  # fmt: skip
+                    mean, half = mean_ci95(f.capture_s)
+                    rows.append({"map": name, "robots": robots, "searcher": searcher, "detection": detection,
+                                 "time_discount": discount, "mean_capture_time_s": mean, "ci95_halfwidth_s": half,
+                                 "captured": float(f.captured.mean()), "wall_s": round(f.wall_s, 1)})  # fmt: skip
+                    print(f"{name:<10} N={robots} {searcher:<8} D(p) {detection:<6} time discount {discount!s:<5} "
+                          f"{mean:6.1f} ± {half:4.1f} s  ({f.wall_s:.0f} s)", flush=True)  # fmt: skip
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps({"settings": vars(args), "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
