@@ -126,7 +126,7 @@ class Journal:
         if not self.path.exists():
             return None
         header: dict[str, Any] | None = None
-        steps: list[dict[str, int]] = []
+        steps: list[dict[str, Any]] = []
         for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
             try:
                 obj = json.loads(line)
@@ -450,7 +450,7 @@ class Agent:
         )
 
     def _record(
-        self, header: dict[str, Any], steps: list[dict[str, int]], end: dict[str, Any] | None
+        self, header: dict[str, Any], steps: list[dict[str, Any]], end: dict[str, Any] | None
     ) -> dict[str, Any]:
         graph = self.graph
         assert graph is not None, "the map is fetched before any mission"
@@ -473,6 +473,7 @@ class Agent:
             captured_by=by,
             policy_version=header.get("policy_version"),
             coordination=header.get("coordination"),  # decisions on the team's plan and on its own policy
+            times=[s["time_s"] for s in steps] if all("time_s" in s for s in steps) else None,
         )
 
     def run_mission(self, msg: dict[str, Any], backend: RobotBackend) -> None:
@@ -480,7 +481,7 @@ class Agent:
         leave its episode record in the outbox."""
         agent, header, max_steps, auto_capture = self._begin_mission(msg)
         mid = header["mission_id"]
-        steps: list[dict[str, int]] = []
+        steps: list[dict[str, Any]] = []
         decide_us: list[float] = []
         end: dict[str, Any] | None = None
         self.in_mission = True
@@ -560,7 +561,7 @@ class Agent:
         team: Teamwork,
         max_steps: int,
         auto_capture: bool,
-        steps: list[dict[str, int]],
+        steps: list[dict[str, Any]],
         decide_us: list[float],
     ) -> dict[str, Any] | None:
         """From the mission's start (``msg``): sense, update the belief, decide and move until the
@@ -585,7 +586,7 @@ class Agent:
             else:
                 agent.observe(self.robot_id, t, p, z)
                 team.publish(t, node, z)
-            steps.append({"t": t, "node": node, "z": z})
+            steps.append({"t": t, "node": node, "z": z, **({"time_s": now_s} if timed is not None else {})})
             self.journal.step(t, node, z)
             if z:  # the server decides whether this detection ends the mission (docs/SPEC.md section 6)
                 self.report_detection(mid, t, node)
@@ -618,7 +619,7 @@ class Agent:
             t += 1
 
     def _finish_mission(
-        self, header: dict[str, Any], steps: list[dict[str, int]], end: dict[str, Any] | None, decide_us: list[float]
+        self, header: dict[str, Any], steps: list[dict[str, Any]], end: dict[str, Any] | None, decide_us: list[float]
     ) -> None:
         """The mission's episode record into the outbox (durable before it is sent), and what it took."""
         rec = self._record(header, steps, end)

@@ -111,3 +111,36 @@ def test_an_observation_on_the_clock_carries_its_time_and_goal_and_bad_ones_are_
     for bad, says in ((-1, "time_s"), ("5", "time_s"), (True, "time_s"), (float("inf"), "time_s")):
         assert says in parse_observation(key, json.dumps({**msg, "time_s": bad}).encode())[1]
     assert "goal" in parse_observation(key, json.dumps({**msg, "goal": -2}).encode())[1]
+
+
+def test_a_record_carries_the_clock_of_every_reading_or_of_none():
+    from shared.core.models import Sensor
+    from shared.core.records import RecordError, make_record, parse_record
+
+    graph = builtin_graph("office")
+
+    def record(times):
+        return make_record(graph, fleet="f", mission_id="m", robot_id="r1", nodes=[0, 0, 0], z=[0, 0, 0],
+                           sensor=Sensor(), captured=False, capture_time=None, captured_by=None, times=times)  # fmt: skip
+
+    assert parse_record(record([0.0, 4.5, 19.25]), graph).times.tolist() == [0.0, 4.5, 19.25]
+    assert parse_record(record(None), graph).times is None  # the step clock's records, as before
+    for steps, says in (
+        ([0.0, 5.0, 3.0], "before the step before it"),
+        ([0.0, -1.0, 3.0], "finite number of seconds"),
+    ):
+        with pytest.raises(RecordError, match=says) as err:
+            parse_record(record(steps), graph)
+        assert err.value.reason == "time"
+    partial = record([0.0, 1.0, 2.0])
+    del partial["steps"][1]["time_s"]
+    with pytest.raises(RecordError, match="on some steps only"):
+        parse_record(partial, graph)
+    first_missing = record([0.0, 1.0, 2.0])
+    del first_missing["steps"][0]["time_s"]
+    with pytest.raises(RecordError, match="on some steps only"):
+        parse_record(first_missing, graph)
+    bad = record([0.0, 1.0, 2.0])
+    bad["steps"][2]["time_s"] = "2"
+    with pytest.raises(RecordError, match="finite number"):
+        parse_record(bad, graph)

@@ -5,6 +5,7 @@ the whole fleet (server, agents, records) flown in it by `mures fleet-sim --worl
 from __future__ import annotations
 
 import json
+import sqlite3
 
 import numpy as np
 import pytest
@@ -148,6 +149,24 @@ def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
     for m in res["results"]:
         assert m["capture_time_s"] >= m["capture_time"] * fastest - 1e-6  # steps take time
     assert np.mean([m["capture_time_s"] for m in res["results"]]) == pytest.approx(res["mean_capture_time_s"])
+    # on the mission clock: the agents decide without waiting for travelling teammates, and their
+    # records carry each reading's time, the capturing one's the world's capture time
+    work = tmp_path / "on-the-clock"
+    r = mures("fleet-sim", "--graph", str(graph_file), "--world", str(depot), "--robots", "2", "--missions", "4",
+              "--seed", "2", "--init-policy", str(team), "--team-clock", "seconds", "--workdir", str(work),
+              "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    timed = json.loads(r.stdout)
+    assert timed["episodes_stored"] == 8 and 0 < timed["coordinated_share"] <= 1
+    with sqlite3.connect(next((work / "server").glob("*.db"))) as db:
+        records = [json.loads(row[0]) for row in db.execute("SELECT record FROM episodes")]
+    assert len(records) == 8 and all("time_s" in step for rec in records for step in rec["steps"])
+    by_mission = {(rec["mission_id"], rec["robot_id"]): rec for rec in records}
+    for m in timed["results"]:
+        if m["captured"]:
+            rec = next(rec for (mid, _r), rec in by_mission.items() if mid == m["mission_id"] and rec["outcome"]["captured"])
+            capturer = by_mission[m["mission_id"], rec["outcome"]["captured_by"]]
+            assert capturer["steps"][m["capture_time"]]["time_s"] == pytest.approx(m["capture_time_s"], abs=1e-3)
 
 
 def test_world_flags_that_do_not_fit_are_refused_in_one_line(tmp_path):

@@ -58,6 +58,7 @@ class Episode:
     captured_by: str | None
     # {"team_searcher", "team_steps", "partial_steps", "own_steps"[, "observations_heard", "observations_sent"]}
     coordination: dict[str, Any] | None = None
+    times: np.ndarray | None = None  # (T+1,) float64 the mission clock of each reading (s), where recorded
 
 
 def _need(rec: dict[str, Any], key: str, kind: type | tuple[type, ...]) -> Any:
@@ -108,6 +109,8 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
     nodes = np.empty(len(steps), dtype=np.int64)
     z = np.empty(len(steps), dtype=np.int8)
     index = graph.index
+    timed = isinstance(steps[0], dict) and "time_s" in steps[0]
+    times = np.empty(len(steps)) if timed else None
     for k, st in enumerate(steps):
         if not isinstance(st, dict):
             raise RecordError("steps", f"step #{k} is not an object")
@@ -120,6 +123,8 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
             raise RecordError("z", f"step t={k}: z must be 0 or 1, got {_show(zz)}")
         nodes[k] = index[node]
         z[k] = int(zz)
+        if times is not None or "time_s" in st:
+            times = _step_time(st, k, times)
     adj = graph.closed_adjacency if graph.n <= 4096 else None
     for k in range(1, len(nodes)):
         u, v = nodes[k - 1], nodes[k]
@@ -158,7 +163,22 @@ def parse_record(rec: Any, graph: Graph, fleet: str | None = None) -> Episode:
         capture_time=ct,
         captured_by=by,
         coordination=coordination,
+        times=times,
     )
+
+
+def _step_time(st: dict[str, Any], k: int, times: np.ndarray | None) -> np.ndarray:
+    """``times`` with step k's ``time_s`` in: every step carries one or none does, each a finite
+    number of seconds >= 0, none before the step before it."""
+    ts = st.get("time_s")
+    if times is None or ts is None:
+        raise RecordError("time", f"step t={k}: time_s on some steps only (every step has one, or none does)")
+    if isinstance(ts, bool) or not isinstance(ts, int | float) or not 0 <= ts < float("inf"):
+        raise RecordError("time", f"step t={k}: time_s must be a finite number of seconds >= 0, got {_show(ts)}")
+    if k and ts < times[k - 1]:
+        raise RecordError("time", f"step t={k}: time_s {ts} is before the step before it ({times[k - 1]:g})")
+    times[k] = float(ts)
+    return times
 
 
 def _count(v: Any) -> TypeGuard[int]:
@@ -219,10 +239,12 @@ def make_record(
     captured_by: str | None,
     policy_version: int | None = None,
     coordination: dict[str, Any] | None = None,
+    times: list[float] | np.ndarray | None = None,
 ) -> dict[str, Any]:
-    """Build a record from rows ``nodes`` and observations ``z`` for t = 0..T."""
+    """Build a record from rows ``nodes`` and observations ``z`` for t = 0..T (and the mission
+    clock of each reading, ``times``, where the robot keeps one)."""
     labels = graph.labels
-    rec = {
+    rec: dict[str, Any] = {
         "schema": SCHEMA,
         "fleet": fleet,
         "mission_id": mission_id,
@@ -235,6 +257,9 @@ def make_record(
         ],
         "outcome": {"captured": captured, "capture_time": capture_time, "captured_by": captured_by},
     }
+    if times is not None:
+        for step, ts in zip(rec["steps"], times, strict=True):
+            step["time_s"] = round(float(ts), 3)
     if coordination is not None:
         rec["coordination"] = coordination
     return rec
@@ -316,6 +341,7 @@ def canonical_record(ep: Episode, graph: Graph) -> dict[str, Any]:
         captured_by=ep.captured_by,
         policy_version=ep.policy_version,
         coordination=ep.coordination,
+        times=ep.times,
     )
 
 
