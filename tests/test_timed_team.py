@@ -79,7 +79,7 @@ def test_a_teammate_in_transit_counts_where_it_is_headed_and_nobody_waits_for_it
     me.observe_at("r2", 0, start, 0, 0.0, goal=far)
     seen = {}
     me._team_plan = lambda k, b, pos, active: seen.update(k=k, pos=pos.copy(), active=active.copy()) or pos
-    row, mode = me.act_at(6.0, start)
+    _row, mode = me.act_at(6.0, start)
     assert mode == "team" and seen["k"] == 6
     assert seen["pos"].tolist() == [start, far, start] and seen["active"].all()
     # a teammate not heard for the timeout leaves the plan; one never heard at all sends the robot to its own policy
@@ -121,7 +121,8 @@ def test_a_record_carries_the_clock_of_every_reading_or_of_none():
 
     def record(times):
         return make_record(graph, fleet="f", mission_id="m", robot_id="r1", nodes=[0, 0, 0], z=[0, 0, 0],
-                           sensor=Sensor(), captured=False, capture_time=None, captured_by=None, times=times)  # fmt: skip
+                           sensor=Sensor(), captured=False, capture_time=None, captured_by=None,
+                           times=times)  # fmt: skip
 
     assert parse_record(record([0.0, 4.5, 19.25]), graph).times.tolist() == [0.0, 4.5, 19.25]
     assert parse_record(record(None), graph).times is None  # the step clock's records, as before

@@ -164,8 +164,9 @@ def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
     by_mission = {(rec["mission_id"], rec["robot_id"]): rec for rec in records}
     for m in timed["results"]:
         if m["captured"]:
-            rec = next(rec for (mid, _r), rec in by_mission.items() if mid == m["mission_id"] and rec["outcome"]["captured"])
-            capturer = by_mission[m["mission_id"], rec["outcome"]["captured_by"]]
+            by = next(rec["outcome"]["captured_by"] for (mid, _r), rec in by_mission.items()
+                      if mid == m["mission_id"] and rec["outcome"]["captured"])  # fmt: skip
+            capturer = by_mission[m["mission_id"], by]
             assert capturer["steps"][m["capture_time"]]["time_s"] == pytest.approx(m["capture_time_s"], abs=1e-3)
 
 
