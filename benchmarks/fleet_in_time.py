@@ -5,7 +5,7 @@ plan, beside the same fleet in the step world.
 
     python benchmarks/fleet_in_time.py [--robots 2 4] [--missions 30] [--episodes 20000] [--seed 1]
                                        [--offices 2] [--maps depot,bookstore,...] [--workdir DIR]
-                                       [--team-clock steps|seconds] [--against BEFORE.json]
+                                       [--team-clock steps|seconds] [--step-limit 3] [--against BEFORE.json]
                                        [--json results/fleet_in_time/before.json]
 
 Per map (imported with `mures map import`'s defaults) and team size N:
@@ -14,7 +14,8 @@ Per map (imported with `mures map import`'s defaults) and team size N:
    --json`: the agents in the continuous world (docs/continuous-world.md: 0.5 m/s, 4 m range in
    line of sight, a target walking at 0.5 m/s and dwelling 10 s on average);
    with --team-clock seconds, the agents match their teammates' observations by the mission clock
-   (shared/core/timed_team.py) instead of by step index;
+   (shared/core/timed_team.py) instead of by step index; each mission's step limit is --step-limit
+   times n (a robot on the clock that stays spends a step a second);
 3. (--team-clock steps) the same fleet-sim without --world (the step world: every step together),
    for the share of decisions on the team's plan when steps are simultaneous;
 4. `mures evaluate --graph G --world MAP.yaml --robots N --searcher sweep --episodes 500` (the
@@ -73,6 +74,9 @@ def main() -> None:
     ap.add_argument("--maps", type=lambda s: s.split(","), default=None, help="only these (default: all here)")
     ap.add_argument("--workdir", help="keep graphs, teams and maps here (default: a temporary folder)")
     ap.add_argument("--team-clock", choices=("steps", "seconds"), default="steps")
+    ap.add_argument(
+        "--step-limit", type=int, default=3, metavar="K", help="each mission's step limit, K n (the server's: 3)"
+    )
     ap.add_argument("--against", help="an earlier run's JSON on the same settings: paired differences")
     ap.add_argument("--json", default="results/fleet_in_time/before.json")
     args = ap.parse_args()
@@ -95,7 +99,8 @@ def main() -> None:
                 run("train", "--graph", str(graph_file), "--robots", str(robots), "--episodes", str(args.episodes),
                     "--team-searcher", "fhpe-sa", "--seed", "0", "--out", str(team), "--quiet")  # fmt: skip
             common = ["--graph", str(graph_file), "--robots", str(robots), "--missions", str(args.missions),
-                      "--seed", str(args.seed), "--init-policy", str(team), "--json"]  # fmt: skip
+                      "--seed", str(args.seed), "--init-policy", str(team), "--max-steps", str(args.step_limit * graph.n),
+                      "--json"]  # fmt: skip
             in_time = run("fleet-sim", *common, "--world", str(yaml_path), "--team-clock", args.team_clock)
             in_steps = run("fleet-sim", *common) if args.team_clock == "steps" else {"coordinated_share": None}
             sweep = run("evaluate", "--graph", str(graph_file), "--world", str(yaml_path), "--robots", str(robots),

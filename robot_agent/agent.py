@@ -357,12 +357,12 @@ class Agent:
         except Exception as exc:  # the mission then ends at its deadline, as a robot that vanished
             log.error("mission %s: the withdrawal could not be sent: %s", mission_id, exc)
 
-    def report_detection(self, mission_id: str, t: int, node: int) -> None:
+    def report_detection(self, mission_id: str, t: int, node: int, time_s: float | None = None) -> None:
         """Tell the server that this robot read z = 1 at step t on ``node``
         (mures/<fleet>/detections/<robot>/<mission>); it ends the mission as captured, or asks the
         operator first (``training-server --capture``). Sent reliably (BLOCK); a failure to send is
         logged and the mission goes on: the record still carries the reading."""
-        msg = detection_message(mission_id, self.robot_id, t, node)
+        msg = detection_message(mission_id, self.robot_id, t, node, time_s)
         log.info("mission %s: detection at t=%d on node %d reported", mission_id, t, node)
         try:
             self.session.put(
@@ -455,8 +455,15 @@ class Agent:
         graph = self.graph
         assert graph is not None, "the map is fetched before any mission"
         captured, ct, by = False, None, None
+        capture_s = header.get("capture_time_s")
+        if end and end.get("type") == "captured" and "time_s" in steps[0]:
+            # on the mission clock: this robot's readings up to the capture's moment (its step count is its
+            # own); a moment it never learned (a lost message) keeps every reading it made
+            if capture_s is not None:
+                steps = [s for s in steps if s["time_s"] <= capture_s + 1e-6]
+            captured, ct, by = True, len(steps) - 1, end.get("captured_by")
         # a robot whose own steps end before the capture (withdrawn, restarted) did not witness it
-        if end and end.get("type") == "captured" and isinstance(end.get("t"), int) and end["t"] <= steps[-1]["t"]:
+        elif end and end.get("type") == "captured" and isinstance(end.get("t"), int) and end["t"] <= steps[-1]["t"]:
             captured, ct, by = True, int(end["t"]), end.get("captured_by")
             steps = steps[: ct + 1]
         sensor = Sensor(**header["sensor"])
@@ -515,6 +522,15 @@ class Agent:
             self.journal.finish()
             return
         header["coordination"] = {"team_searcher": agent.searcher, **agent.summary()}
+        if (
+            isinstance(agent, TimedTeamAgent)
+            and end
+            and end.get("type") == "captured"
+            and isinstance(end.get("t"), int)
+        ):
+            # the capture's moment: the server's word, else the capturer's observation as heard
+            heard = agent.reading_s.get((str(end.get("captured_by")), int(end["t"])))
+            header["capture_time_s"] = end["time_s"] if isinstance(end.get("time_s"), int | float) else heard
         self.links.fold(*agent.link_counts())
         self._finish_mission(header, steps, end, decide_us)
 
@@ -589,7 +605,9 @@ class Agent:
             steps.append({"t": t, "node": node, "z": z, **({"time_s": now_s} if timed is not None else {})})
             self.journal.step(t, node, z)
             if z:  # the server decides whether this detection ends the mission (docs/SPEC.md section 6)
-                self.report_detection(mid, t, node)
+                self.report_detection(mid, t, node, now_s if timed is not None else None)
+                if timed is not None:  # its teammates learn the moment now, whatever the robot decides next
+                    team.publish(t, node, z, time_s=now_s)
             # under "auto" the server's verdict comes at once: wait for it before moving on (a robot
             # that has found the target stays with it); under "confirm" the search goes on meanwhile
             wait = z and (auto_capture or t >= max_steps)

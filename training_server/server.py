@@ -202,6 +202,8 @@ class Server:
         False when the mission had already ended (the first end is kept)."""
         mid = detection["mission_id"]
         msg = {"type": "captured", "mission_id": mid, "t": int(detection["t"]), "captured_by": detection["robot_id"]}
+        if detection.get("time_s") is not None:  # a robot on the mission clock: when its reading was made
+            msg["time_s"] = detection["time_s"]
         if not self.store.mission_event(mid, msg, "captured"):
             self.store.decide_detection(detection["id"], "closed", by)  # (when it was pending)
             return False

@@ -85,6 +85,7 @@ class TimedTeamAgent(TeamAgent):
         self.goal: dict[str, int] = {}  # each robot's latest known node: where it is headed
         self.decided_s = -math.inf
         self.tick_clash = 0  # readings of one robot in one tick: the later one is not folded in
+        self.reading_s: dict[tuple[str, int], float] = {}  # (robot, t) -> the time of its step-t reading, as heard
 
     def tick(self, time_s: float) -> int:
         return max(0, math.floor(time_s / self.tick_s + 1e-9))
@@ -96,6 +97,7 @@ class TimedTeamAgent(TeamAgent):
             self.own.reset(p, z) if t == 0 else self.own.observe(p, z)
         if robot not in self.robots:
             return
+        self.reading_s[robot, t] = time_s
         if not self.collective.add(self.tick(time_s), robot, p, z):
             self.tick_clash += robot != self.me and t > self.last_heard.get(robot, -1)
         if robot == self.me or t < self.last_heard[robot]:

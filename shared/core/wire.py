@@ -25,7 +25,7 @@ Mission-control messages (JSON objects with a ``type``):
 
     {"type": "start", "mission_id", "robots": [ids], "seed": int, "max_steps": int,
      "sensor": {...}, "policy_version": int|null}
-    {"type": "captured", "mission_id", "t": int, "captured_by": id}     (the mission is over)
+    {"type": "captured", "mission_id", "t": int, "captured_by": id[, "time_s"]}  (the mission is over)
     {"type": "stop", "mission_id", "reason": str}                        (the mission is over)
     {"type": "dismissed", "mission_id", "robot_id", "t", "detection": int}  (an operator ruled a
         detection a false alarm; the search goes on)
@@ -71,8 +71,21 @@ def detection_key(fleet: str, robot: str = "*", mission: str = "*") -> str:
     return f"mures/{fleet}/detections/{robot}/{mission}"
 
 
-def detection_message(mission_id: str, robot_id: str, t: int, node: int) -> dict[str, Any]:
-    return {"mission_id": mission_id, "robot_id": robot_id, "t": int(t), "node": int(node)}
+def detection_message(mission_id: str, robot_id: str, t: int, node: int, time_s: float | None = None) -> dict[str, Any]:
+    """A robot's z = 1 at its step ``t`` on ``node``; on the mission clock with the reading's ``time_s``."""
+    msg = {"mission_id": mission_id, "robot_id": robot_id, "t": int(t), "node": int(node)}
+    if time_s is not None:
+        msg["time_s"] = round(float(time_s), 3)
+    return msg
+
+
+def _seconds_or_none(value: Any) -> tuple[float | None, str]:
+    """An optional ``time_s``: (None, "") when absent, (seconds, "") when a finite number >= 0, else a reason."""
+    if value is None:
+        return None, ""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value < float("inf"):
+        return None, "'time_s' must be a finite number of seconds >= 0"
+    return float(value), ""
 
 
 def withdrawal_key(fleet: str, robot: str = "*", mission: str = "*") -> str:
@@ -133,11 +146,12 @@ def parse_detection(key: str, payload: bytes) -> tuple[dict[str, Any] | None, st
     """A detection message and "" if it is well formed and matches its key
     (``mures/<fleet>/detections/<robot_id>/<mission_id>``), else None and what is wrong."""
     msg, why = _step_message(key, payload, "detections", ("t", "node"))
-    return (
-        (None, why)
-        if msg is None
-        else (detection_message(msg["mission_id"], msg["robot_id"], msg["t"], msg["node"]), "")
-    )
+    if msg is None:
+        return None, why
+    time_s, why = _seconds_or_none(msg.get("time_s"))
+    if why:
+        return None, why
+    return detection_message(msg["mission_id"], msg["robot_id"], msg["t"], msg["node"], time_s), ""
 
 
 def parse_observation(key: str, payload: bytes) -> tuple[dict[str, Any] | None, str]:
@@ -148,11 +162,10 @@ def parse_observation(key: str, payload: bytes) -> tuple[dict[str, Any] | None, 
         return None, why
     if msg["z"] not in (0, 1):
         return None, "'z' must be 0 or 1"
-    time_s, goal = msg.get("time_s"), msg.get("goal")
-    if time_s is not None and (
-        isinstance(time_s, bool) or not isinstance(time_s, int | float) or not 0 <= time_s < float("inf")
-    ):
-        return None, "'time_s' must be a finite number of seconds >= 0"
+    time_s, why = _seconds_or_none(msg.get("time_s"))
+    if why:
+        return None, why
+    goal = msg.get("goal")
     if goal is not None and (isinstance(goal, bool) or not isinstance(goal, int) or goal < 0):
         return None, "'goal' must be a non-negative integer (a node label)"
     return observation_message(msg["mission_id"], msg["robot_id"], msg["t"], msg["node"], msg["z"], time_s, goal), ""

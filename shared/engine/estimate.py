@@ -63,11 +63,17 @@ def collect_missions(
     graph: Graph,
     capture_aware: bool = True,
     fleet: str | None = None,
+    tick_s: float | None = None,
 ) -> MissionData:
     """Validate records, group them by (fleet, mission_id) and build emission likelihoods.
 
     ``records`` yields (line number, parsed JSON or RecordError). Bad records are skipped and
     counted by reason; a second record of the same robot in a mission counts as "duplicate".
+
+    ``tick_s``: the mission clock cut into ticks of that many seconds, so that the model fitted is
+    Gamma_hat per tick: each reading is an emission at the tick it was made (floor(time_s /
+    tick_s); readings in one tick multiply), and a tick without one has none (likelihood 1).
+    Records without times (``steps[k].time_s``) are skipped as "no-times".
     """
     skipped: Counter[str] = Counter()
     missions: dict[tuple[str, str], dict[str, Episode]] = defaultdict(dict)
@@ -80,6 +86,9 @@ def collect_missions(
         except RecordError as exc:
             skipped[exc.reason] += 1
             continue
+        if tick_s is not None and ep.times is None:
+            skipped["no-times"] += 1
+            continue
         robots = missions[(ep.fleet, ep.mission_id)]
         if ep.robot_id in robots:
             skipped["duplicate"] += 1
@@ -87,7 +96,15 @@ def collect_missions(
         robots[ep.robot_id] = ep
     M = len(missions)
     n = graph.n
-    T = max((len(ep.nodes) for robots in missions.values() for ep in robots.values()), default=1)
+
+    def at(ep: Episode) -> np.ndarray:
+        """(T_r + 1,) the index along the mission's axis of each of the robot's readings."""
+        if tick_s is None:
+            return np.arange(len(ep.nodes))
+        assert ep.times is not None
+        return np.floor(ep.times / tick_s + 1e-9).astype(np.int64)
+
+    T = max((int(at(ep)[-1]) + 1 for robots in missions.values() for ep in robots.values()), default=1)
     lik = np.ones((M, T, n), dtype=np.float64)
     length = np.zeros(M, dtype=np.int64)
     detect_cache: dict[str, np.ndarray] = {}
@@ -97,10 +114,10 @@ def collect_missions(
             det = detect_cache.get(ep.sensor.detection)
             if det is None:
                 det = detect_cache[ep.sensor.detection] = graph.detection_matrix(ep.sensor.detection)
-            Tr = len(ep.nodes)
+            k = at(ep)
             l_in, l_out = emission_likelihoods(ep, capture_aware)
-            lik[m, :Tr] *= np.where(det[ep.nodes], l_in[:, None], l_out[:, None])
-            length[m] = max(length[m], Tr)
+            np.multiply.at(lik[m], k, np.where(det[ep.nodes], l_in[:, None], l_out[:, None]))
+            length[m] = max(length[m], int(k[-1]) + 1)
             used += 1
     per_mission = np.array([len(robots) for robots in missions.values()], dtype=np.int64)
     keep = explained(graph, lik, length)

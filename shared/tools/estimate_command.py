@@ -18,7 +18,7 @@ from shared.core.models import parse_target
 from shared.core.records import read_jsonl
 from shared.engine.estimate import collect_missions, em, eq8, mean_row_tv
 from shared.learning.config import positive_int
-from shared.tools.cli_args import CliError, add_map_args, graph_of
+from shared.tools.cli_args import CliError, add_map_args, graph_of, positive_number
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
@@ -30,7 +30,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     if not Path(args.episodes).is_file():
         raise CliError(f"episode file {args.episodes!r} does not exist")
     t0 = time.perf_counter()
-    data = collect_missions(read_jsonl(args.episodes), graph, capture_aware=args.method == "em")
+    if args.tick is not None and args.method != "em":
+        raise CliError("--tick goes with --method em")
+    data = collect_missions(read_jsonl(args.episodes), graph, capture_aware=args.method == "em", tick_s=args.tick)
     skipped = sum(data.skipped.values())
     reasons = ", ".join(f"{k}: {v}" for k, v in sorted(data.skipped.items())) or "none"
     print(
@@ -70,6 +72,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     else:
         est = eq8(graph, data, rounds=args.rounds)
     out = est.to_json(graph, data)
+    if args.tick is not None:
+        out["tick_s"] = args.tick  # Gamma_hat is per tick of this many seconds
     if args.truth:
         truth = parse_target(graph, args.truth)
         out["mean_row_tv_to_truth"] = mean_row_tv(est.model, truth)
@@ -107,6 +111,14 @@ def add_estimate_command(sub: Any) -> None:
         type=float,
         default=0.0,
         help="Dirichlet prior: expected starts added to every node of b0 (default 0; the training server uses 1)",
+    )
+    p.add_argument(
+        "--tick",
+        type=positive_number,
+        default=None,
+        metavar="S",
+        help="fit Gamma_hat per tick of S seconds from the records' times (steps[k].time_s: each reading at the "
+        "tick it was made, none in between; records without times are skipped), instead of per step",
     )
     p.add_argument("--rounds", type=positive_int, default=1, help="Eq. 8 rounds (filter <-> Eq. 8)")
     p.add_argument("--truth", metavar="MODEL", help="a known model (lazy:STAY, uniform, or .json): report the TV")

@@ -49,6 +49,8 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         load_snapshot(args.init_policy, graph)  # a clear error before anything starts
     if args.step_timeout <= 0:
         raise CliError("fleet-sim: --step-timeout must be more than 0 seconds")
+    if args.max_steps is not None and args.kill:
+        raise CliError("fleet-sim: --max-steps goes without --kill")
     if args.kill >= args.robots:
         raise CliError(f"fleet-sim: --kill {args.kill} leaves no robot of {args.robots} to search")
     agent_extra = ["--link-loss", str(args.link_loss)] if args.link_loss else []
@@ -84,6 +86,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             step_timeout=args.step_timeout,
             kill=args.kill,
             kill_by=args.kill_by,
+            max_steps=args.max_steps,
             server_extra=server_extra or None,
             agent_extra=agent_extra or None,
             **continuous,
@@ -256,6 +259,14 @@ def add_fleet_commands(sub: Any) -> None:
         default=0.0,
         metavar="P",
         help="each agent drops each of its observations to its teammates with probability P (robot-agent --link-loss)",
+    )
+    p.add_argument(
+        "--max-steps",
+        type=positive_int,
+        default=None,
+        metavar="K",
+        help="each mission's step limit per robot (default the server's, 3 n); on the mission clock a step that "
+        "stays takes --stay-seconds, so a robot that waits uses its steps fast",
     )
     p.add_argument(
         "--team-clock",

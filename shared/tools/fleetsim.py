@@ -419,6 +419,7 @@ def run_fleet_sim(
     retrains: int | None = None,
     kill: int = 0,
     kill_by: int = 10,
+    max_steps: int | None = None,
     **launch_kw: Any,
 ) -> dict[str, Any]:
     """Fly ``missions`` missions and return the summary (see ``mures fleet-sim``), retraining
@@ -447,7 +448,8 @@ def run_fleet_sim(
                 m = fleet.fly_losing(ids, mission_seed, kill, kill_by)
                 results.append({**_mission_result(fleet, m), "killed": m["killed"]})
             else:
-                results.append(_mission_result(fleet, fleet.fly(ids, seed=mission_seed)))
+                limit = {"max_steps": max_steps} if max_steps else {}
+                results.append(_mission_result(fleet, fleet.fly(ids, seed=mission_seed, **limit)))
             if on_trial is not None:
                 trial = _trial_decided(fleet, on_trial, say)
                 if trial is not None:
