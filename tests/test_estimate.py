@@ -382,3 +382,21 @@ def test_em_per_tick_fits_the_model_of_a_tick_from_timestamped_records():
     # records without times have no place on the clock
     untimed = [{**r, "steps": [{k: v for k, v in s.items() if k != "time_s"} for s in r["steps"]]} for r in recs[:4]]
     assert collect_missions(enumerate(untimed), g, tick_s=1.0).skipped == {"no-times": 4}
+
+
+def test_mures_estimate_per_tick_writes_the_ticks_model(tmp_path):
+    import subprocess
+    import sys
+
+    g = grid_graph(3, 3)
+    (tmp_path / "g.json").write_text(json.dumps(g.to_json()))
+    recs = _timed_records(g, lazy_walk(g, 0.8), missions=300, seed=2)
+    (tmp_path / "e.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+    cmd = [sys.executable, "-m", "shared.tools.cli", "estimate", "--graph", str(tmp_path / "g.json"),
+           "--episodes", str(tmp_path / "e.jsonl"), "--out", str(tmp_path / "m.json")]  # fmt: skip
+    r = subprocess.run([*cmd, "--tick", "1", "--truth", "lazy:0.8"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    model = json.loads((tmp_path / "m.json").read_text())
+    assert model["tick_s"] == 1.0 and model["mean_row_tv_to_truth"] < 0.25
+    r = subprocess.run([*cmd, "--tick", "1", "--method", "eq8"], capture_output=True, text=True)
+    assert r.returncode == 2 and "--tick goes with --method em" in r.stderr
