@@ -200,6 +200,9 @@ class PolicyStore:
         self.version = version
 
 
+RECEIVED = "_received_monotonic"  # the agent's own mark on a control message: when it arrived
+
+
 class AgentStop(Exception):
     """A reason to stop the agent (exit status 2) that retrying cannot fix."""
 
@@ -376,6 +379,7 @@ class Agent:
     def _on_control(self, sample: Any) -> None:  # callback: queue only
         msg = parse_message(sample.payload.to_bytes())
         if msg is not None:
+            msg[RECEIVED] = time.monotonic()  # a start's arrival begins this robot's mission clock
             self.control.put(msg)
 
     def open_session(self) -> None:
@@ -587,7 +591,7 @@ class Agent:
         graph, mid = self.graph, team.mission_id
         timed = agent if isinstance(agent, TimedTeamAgent) else None
         node = backend.begin(msg)  # a label on the map, z a 0 or 1 (CheckedBackend)
-        started = time.monotonic()
+        started = float(msg.get(RECEIVED, time.monotonic()))  # the mission clock's zero: the start's arrival
         t, now_s = 0, 0.0
         while True:
             z = backend.detect()  # z_t at p_t
