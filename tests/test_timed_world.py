@@ -160,6 +160,7 @@ def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
     assert timed["episodes_stored"] == 8 and 0 < timed["coordinated_share"] <= 1
     with sqlite3.connect(next((work / "server").glob("*.db"))) as db:
         records = [json.loads(row[0]) for row in db.execute("SELECT record FROM episodes")]
+        events = {mid: json.loads(ev) for mid, ev in db.execute("SELECT id, event FROM missions")}
     assert len(records) == 8 and all("time_s" in step for rec in records for step in rec["steps"])
     by_mission = {(rec["mission_id"], rec["robot_id"]): rec for rec in records}
     for m in timed["results"]:
@@ -170,6 +171,8 @@ def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
             assert capturer["steps"][capturer["outcome"]["capture_time"]]["time_s"] == pytest.approx(
                 m["capture_time_s"], abs=1e-3
             )
+            # the server's captured message (GET /api/v1/missions/{id}'s outcome.capture_time_s) says the moment
+            assert events[m["mission_id"]]["time_s"] == pytest.approx(m["capture_time_s"], abs=1e-3)
             for robot in ("r1", "r2"):  # each robot's own readings up to the capture's moment, whatever its step count
                 rec = by_mission[m["mission_id"], robot]
                 assert rec["outcome"]["captured"] and rec["steps"][-1]["time_s"] <= m["capture_time_s"] + 1e-3

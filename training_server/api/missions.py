@@ -48,6 +48,8 @@ def mission_view(srv: Any, mid: str, m: dict[str, Any] | None = None) -> Mission
         }
         if m["event"] and m["event"].get("type") == "captured":
             outcome["captured_by"] = m["event"].get("captured_by")
+            if m["event"].get("time_s") is not None:  # robots on the mission clock: the capture in seconds
+                outcome["capture_time_s"] = m["event"]["time_s"]
     return Mission(
         id=m["id"],
         status=status,

@@ -215,7 +215,8 @@ class Mission(BaseModel):
         description="robots that left it because they could not go on (their backend failed), by robot id",
     )
     outcome: dict[str, Any] | None = Field(
-        description="from the records received: captured, capture_time, steps, policy_versions, captured_by"
+        description="from the records received: captured, capture_time, steps, policy_versions, captured_by, and "
+        "capture_time_s (seconds on the mission clock) where the capturing robot flew on it"
     )
 
 

@@ -550,7 +550,7 @@ pages.missions = async function (ctx) {
         const outcome = !o
           ? "—"
           : o.captured
-            ? `captured at t = ${o.capture_time}` + (o.captured_by ? ` by ${o.captured_by}` : "")
+            ? `captured at t = ${o.capture_time}` + (o.capture_time_s != null ? ` (${o.capture_time_s.toFixed(1)} s)` : "") + (o.captured_by ? ` by ${o.captured_by}` : "")
             : `not captured: ended after ${o.steps} steps${m.ended ? `, ${fmtTime(m.ended)}` : ""}${m.event && m.event.reason ? ` (${m.event.reason})` : ""}`;
         return el(
           "tr",
@@ -663,7 +663,7 @@ pages.replay = async function (ctx) {
         !o
           ? "no record yet"
           : o.captured
-            ? `captured at t = ${o.capture_time}${o.captured_by ? " by " + o.captured_by : ""}`
+            ? `captured at t = ${o.capture_time}${o.capture_time_s != null ? ` (${o.capture_time_s.toFixed(1)} s)` : ""}${o.captured_by ? " by " + o.captured_by : ""}`
             : `not captured: ended after ${o.steps} steps${m.event && m.event.reason ? ` (${m.event.reason})` : ""}`,
       ],
       ["seed", m.params.seed],
