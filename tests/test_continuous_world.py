@@ -55,6 +55,8 @@ def test_missions_capture_in_seconds_and_repeat_by_seed(tmp_path):
     assert (a.capture_s == 0).any() and (a.capture_s > 0).any()
     start_room = world.sees(np.array([graph.start]), world.node_px[[1 - graph.start]])[0]
     assert not start_room  # the other room's pose is out of sight from the start
+    team = fly(world, "fhpe-sa", robots=2, missions=20, seed=3)  # the plan on the clock, every observation at once
+    assert team.captured.all() and np.array_equal(team.capture_s, fly(world, "fhpe-sa", 2, 20, seed=3).capture_s)
     blind = fly(world, "greedy", robots=2, missions=20, sensor=Sensor(eta_fn=0.5), seed=3)
     assert blind.decisions > 0 and (blind.capture_s >= 0).all()
     with pytest.raises(ValueError, match="random, greedy, sweep"):

@@ -194,6 +194,7 @@ def _evaluate_continuous(args: argparse.Namespace) -> int:
         "robots": args.robots,
         "searcher": args.searcher,
         "sensor": {**sensor.to_json(), "detection": f"within {args.range:g} m in line of sight"},
+        **({"plan_detection": sensor.detection} if args.searcher == "fhpe-sa" else {}),  # D(p) of the plan's belief
         "continuous": {
             "speed_m_s": args.speed,
             "stay_s": args.stay_seconds,
