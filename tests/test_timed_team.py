@@ -88,6 +88,17 @@ def test_a_teammate_in_transit_counts_where_it_is_headed_and_nobody_waits_for_it
     assert me.act_at(200.0, start)[1] == "own"  # r2 and r3 last heard at 0 s, 200 s ago: no teammate in reach
 
 
+def test_at_the_start_a_robot_plans_with_its_teammates_on_the_start_node_before_hearing_them():
+    graph = builtin_graph("office")
+    me = _agents(graph)[0]
+    me.observe_at("r1", 0, graph.start, 0, 0.0)
+    seen = {}
+    me._team_plan = lambda k, b, pos, active: seen.update(pos=pos.copy()) or pos
+    assert me.act_at(0.0, graph.start)[1] == "partial" and seen["pos"].tolist() == [graph.start] * 3
+    me.observe_at("r1", 1, graph.start, 0, 1.0)
+    assert me.act_at(1.0, graph.start)[1] == "own"  # later, none heard: its link may be down
+
+
 def test_links_are_judged_by_the_networks_delay_not_by_the_teammates_travel_times():
     graph = builtin_graph("office")
     me = _agents(graph)[0]

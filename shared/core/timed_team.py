@@ -14,8 +14,9 @@ the rule falls back to the robot's own policy for most decisions. On the clock i
 - **Teammates in transit.** Each observation carries the node its robot left for (``goal``); the
   team's plan counts a teammate where it is headed.
 - **Deciding.** On arrival, at once: the team's plan (FHPE-SA on the collective belief predicted
-  to the current tick) when some teammate has been heard within ``timeout_s`` and the links
-  deliver (``link_quality``, as in team.py); its own policy otherwise. A decision is "team" when
+  to the current tick) when some teammate has been heard within ``timeout_s``, or at the mission's
+  start (time 0: every robot is on the start node), and the links deliver (``link_quality``, as
+  in team.py); its own policy otherwise. A decision is "team" when
   every teammate in the plan has been heard, "partial" when one is placed at the start node.
 - **Links.** A teammate's observation counts as heard in time when it comes before this robot's
   first decision more than ``late_s`` after the reading: the network's delay, not the spread of
@@ -129,7 +130,9 @@ class TimedTeamAgent(TeamAgent):
         live = self._team_live(time_s)
         heard = [r for r in live if r != self.me and self.heard_s[r] > -math.inf]
         poor_links = not self.alone() and self.link_quality() < self.link_quality_min
-        if (not heard and not self.alone()) or poor_links:
+        # at the mission's start every robot is on the start node: its teammates are known to be there
+        # before any is heard; later a robot that hears none cannot tell their absence from its link's
+        if (not heard and not self.alone() and time_s > 0) or poor_links:
             return self._own(p)
         mode = "team" if len(heard) == len(live) - 1 else "partial"
         self.steps[mode] += 1
