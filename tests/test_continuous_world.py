@@ -94,7 +94,7 @@ def test_mures_evaluate_flies_a_searcher_in_the_continuous_world(tmp_path):
     (other / "m.yaml").write_text((tmp_path / "m.yaml").read_text())
     for args, words in (
         (["--world", str(other / "m.yaml"), "--searcher", "random"], "was not imported from"),
-        (["--searcher", "fhpe"], "flies random, greedy, sweep only"),
+        (["--searcher", "fhpe"], "flies random, greedy, sweep, fhpe-sa (the trained policies fly in it as agents"),
         (["--searcher", "random", "--speed", "0"], "a number above 0"),
     ):
         r = mures(*common, *args, "--episodes", "5")
