@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from shared.core.belief_filter import TINY, BeliefFilter
 from shared.core.fhpe_sa import HORIZON, FhpeSAPlanner
 from shared.core.graph import Graph
 from shared.core.models import Sensor, uniform_walk
@@ -288,8 +289,7 @@ class TeamPlan:
             move_s[u, v] = world.length_m[e] / speed
         steps = move_s / self.step_s if time_discount else None
         self.planner = FhpeSAPlanner(g, model, sensor, HORIZON, move_steps=steps)
-        self.det = g.detection_matrix(sensor.detection).astype(np.float64)
-        (self.in0, self.in1), (self.out0, self.out1) = sensor.likelihoods()
+        self.filter = BeliefFilter(g, model, sensor)  # its weigh: Lambda(p, z) (Eq. 2)
         self.belief = np.tile(model.b0, (missions, 1))
         self.goal = np.full((missions, robots), g.start)
         self.tick_s, self.next_tick = tick_s, tick_s
@@ -305,11 +305,12 @@ class TeamPlan:
     ) -> np.ndarray:
         """Fold in the arriving robots' readings, then each one's move on the team's plan."""
         for b, p, zz in zip(bs.tolist(), here.tolist(), z.tolist(), strict=True):
-            d = self.det[p]
-            lik = np.where(d > 0, self.in1 if zz else self.in0, self.out1 if zz else self.out0)
-            x = self.belief[b] * lik
+            x = self.filter.weigh(self.belief[b].copy(), p, int(zz))
             total = x.sum()
-            self.belief[b] = x / total if total > 1e-300 else lik / lik.sum()
+            if total <= TINY:  # vanished mass: from the reading alone (shared/core/belief_filter.py)
+                x = self.filter.weigh(np.ones(len(x)), p, int(zz))
+                total = x.sum()
+            self.belief[b] = x / total
         out = np.empty(len(bs), dtype=np.int64)
         active = np.ones(self.goal.shape[1], dtype=bool)
         for i, (b, r, p) in enumerate(zip(bs.tolist(), rs.tolist(), here.tolist(), strict=True)):
