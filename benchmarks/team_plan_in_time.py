@@ -4,10 +4,14 @@ walk's detections by when they happen, and with D(p) = {p} or the sensing table 
 robot sees (`mures map import --sensor-range`, --detection custom).
 
     python benchmarks/team_plan_in_time.py [--maps depot] [--robots 2 4] [--missions 200] [--seed 3]
+                                           [--variants all|plan] [--offices K]
                                            [--json results/fleet_in_time/team_plan_in_time.json]
 
-Maps: those of benchmarks/shipped_maps.py that are here, imported with default flags and
---sensor-range 4 (the world's range). Mean capture time in seconds with its 95 % CI half-width; all
+Maps: those of benchmarks/shipped_maps.py named by --maps ("all": every one here) and K generated
+office floors (as benchmarks/fleet_in_time.py makes them), imported with default flags and
+--sensor-range 4 (the world's range). --variants plan flies the plan alone (D(p) = {p}, discount by
+move: what robot-agent --team-clock seconds flies), the reference the fleet on the clock is
+measured against. Mean capture time in seconds with its 95 % CI half-width; all
 variants on one seed (the same target draws until the robots' decisions part them).
 """
 
@@ -23,13 +27,15 @@ from shipped_maps import MAPS  # benchmarks/shipped_maps.py, beside this script
 from shared.core.graph import load_graph_file
 from shared.core.models import Sensor
 from shared.engine.evaluate import mean_ci95
+from shared.floorplan.floors import office_floor
 from shared.floorplan.occupancy import read_map
 from shared.tools.cli import main as mures_main
 from shared.world.continuous import building, fly
 
+PLAN = ("fhpe-sa", "node", False)
 VARIANTS = [  # (searcher, detection, time discount)
     ("sweep", "node", False),
-    ("fhpe-sa", "node", False),
+    PLAN,
     ("fhpe-sa", "node", True),
     ("fhpe-sa", "custom", False),
 ]
@@ -41,17 +47,22 @@ def main() -> None:
     ap.add_argument("--robots", type=int, nargs="+", default=[2, 4])
     ap.add_argument("--missions", type=int, default=200)
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--variants", choices=("all", "plan"), default="all")
+    ap.add_argument("--offices", type=int, default=0, help="generated office floors, seeds 1..K (default 0)")
     ap.add_argument("--json", default="results/fleet_in_time/team_plan_in_time.json")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for name in args.maps:
+        names = [n for n in MAPS if MAPS[n].exists()] if args.maps == ["all"] else args.maps
+        maps = [(name, MAPS[name]) for name in names]
+        maps += [(f"office-{k}", office_floor(k).write(tmp, f"office-{k}")) for k in range(1, args.offices + 1)]
+        for name, yaml_path in maps:
             out = Path(tmp) / f"{name}.json"
-            if mures_main(["map", "import", str(MAPS[name]), "--out", str(out), "--sensor-range", "4", "--quiet"]):
+            if mures_main(["map", "import", str(yaml_path), "--out", str(out), "--sensor-range", "4", "--quiet"]):
                 raise SystemExit(f"importing {name} failed")
-            world = building(read_map(MAPS[name]), load_graph_file(out), 4.0)
+            world = building(read_map(yaml_path), load_graph_file(out), 4.0)
             for robots in args.robots:
-                for searcher, detection, discount in VARIANTS:
+                for searcher, detection, discount in VARIANTS if args.variants == "all" else [PLAN]:
                     f = fly(world, searcher, robots, args.missions, sensor=Sensor(detection=detection),
                             seed=args.seed, time_discount=discount)  # fmt: skip
                     mean, half = mean_ci95(f.capture_s)
