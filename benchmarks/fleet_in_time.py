@@ -5,11 +5,14 @@ plan, beside the same fleet in the step world.
 
     python benchmarks/fleet_in_time.py [--robots 2 4] [--missions 30] [--episodes 20000] [--seed 1]
                                        [--offices 2] [--maps depot,bookstore,...] [--workdir DIR]
-                                       [--team-clock steps|seconds] [--step-limit 3] [--against BEFORE.json]
+                                       [--team-clock steps|seconds] [--step-limit 3] [--belief em|true]
+                                       [--against BEFORE.json]
                                        [--json results/fleet_in_time/before.json]
 
 Per map (imported with `mures map import`'s defaults) and team size N:
-1. `mures train --graph G --robots N --episodes E --team-searcher fhpe-sa --seed 0 --out TEAM`;
+1. `mures train --graph G --robots N --episodes E --team-searcher fhpe-sa --seed 0 --belief B --out
+   TEAM` (B em: the model the team's beliefs and plan use learned by EM, as the trainer does by
+   default; true: the true model, the uniform walk);
 2. `mures fleet-sim --graph G --world MAP.yaml --robots N --missions K --seed S --init-policy TEAM
    --json`: the agents in the continuous world (docs/continuous-world.md: 0.5 m/s, 4 m range in
    line of sight, a target walking at 0.5 m/s and dwelling 10 s on average);
@@ -74,6 +77,7 @@ def main() -> None:
     ap.add_argument("--maps", type=lambda s: s.split(","), default=None, help="only these (default: all here)")
     ap.add_argument("--workdir", help="keep graphs, teams and maps here (default: a temporary folder)")
     ap.add_argument("--team-clock", choices=("steps", "seconds"), default="steps")
+    ap.add_argument("--belief", choices=("em", "true"), default="em", help="the teams' model: mures train --belief")
     ap.add_argument(
         "--step-limit", type=int, default=3, metavar="K", help="each mission's step limit, K n (the server's: 3)"
     )
@@ -94,10 +98,11 @@ def main() -> None:
         graph_file = work / f"{yaml_path.stem}.json"
         for robots in args.robots:
             t0 = time.perf_counter()
-            team = work / f"team-{name}-N{robots}"
+            team = work / f"team-{name}-N{robots}" if args.belief == "em" else work / f"team-{name}-N{robots}-true"
             if not team.exists():
                 run("train", "--graph", str(graph_file), "--robots", str(robots), "--episodes", str(args.episodes),
-                    "--team-searcher", "fhpe-sa", "--seed", "0", "--out", str(team), "--quiet")  # fmt: skip
+                    "--team-searcher", "fhpe-sa", "--seed", "0", "--belief", args.belief, "--out", str(team),
+                    "--quiet")  # fmt: skip
             common = ["--graph", str(graph_file), "--robots", str(robots), "--missions", str(args.missions),
                       "--seed", str(args.seed), "--init-policy", str(team), "--max-steps", str(args.step_limit * graph.n),
                       "--json"]  # fmt: skip
