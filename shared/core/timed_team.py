@@ -85,7 +85,6 @@ class TimedTeamAgent(TeamAgent):
         self.heard_s = {r: -math.inf for r in self.robots if r != me}  # each teammate's latest reading's time
         self.goal: dict[str, int] = {}  # each robot's latest known node: where it is headed
         self.decided_s = -math.inf
-        self.tick_clash = 0  # readings of one robot in one tick: the later one is not folded in
         self.reading_s: dict[tuple[str, int], float] = {}  # (robot, t) -> the time of its step-t reading, as heard
 
     def tick(self, time_s: float) -> int:
@@ -99,8 +98,7 @@ class TimedTeamAgent(TeamAgent):
         if robot not in self.robots:
             return
         self.reading_s[robot, t] = time_s
-        if not self.collective.add(self.tick(time_s), robot, p, z):
-            self.tick_clash += robot != self.me and t > self.last_heard.get(robot, -1)
+        self.collective.add(self.tick(time_s), robot, p, z)  # a second reading in one tick is not folded in
         if robot == self.me or t < self.last_heard[robot]:
             return
         if t > self.last_heard[robot]:  # a first copy of its latest step

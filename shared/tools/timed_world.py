@@ -160,7 +160,12 @@ class TimedWorld(World):
             due = m.due_s.pop(robot)
             while m.now_s + self.motion.dt <= due:  # the target walks to the reading's moment
                 m.targets.advance(
-                    self.building, self.motion.dt, np.ones(1, dtype=bool), m.target_rng, *self._target_motion()
+                    self.building,
+                    self.motion.dt,
+                    np.ones(1, dtype=bool),
+                    m.target_rng,
+                    self.motion.target_speed,
+                    self.motion.target_dwell_s,
                 )
                 m.now_s += self.motion.dt
             t = m.next_t[robot]
@@ -187,9 +192,6 @@ class TimedWorld(World):
             self._end(mid, None if m.finished_robots else {"type": "stop", "mission_id": mid, "reason": "no robots"})
         else:  # a robot that read its last step no longer holds the others back
             self._advance_if_ready(mid, m)
-
-    def _target_motion(self) -> tuple[float, float]:
-        return self.motion.target_speed, self.motion.target_dwell_s
 
     def _end(self, mid: str, publish: dict[str, Any] | None) -> None:
         m = self.missions[mid]

@@ -284,10 +284,11 @@ class TeamPlan:
         model = uniform_walk(g)
         self.step_s = float(np.median(world.length_m)) / speed  # a step of the model: the median move
         self.gamma_tick = tick_model(model, self.step_s, tick_s).dense()
-        move_s = np.full((g.n, g.n), stay_s)  # only neighbours' entries are read
-        for (u, v), e in world.edge_of.items():
-            move_s[u, v] = world.length_m[e] / speed
-        steps = move_s / self.step_s if time_discount else None
+        steps = None
+        if time_discount:  # each move's steps' worth of time; only neighbours' entries are read
+            steps = np.full((g.n, g.n), stay_s / self.step_s)
+            for (u, v), e in world.edge_of.items():
+                steps[u, v] = world.length_m[e] / speed / self.step_s
         self.planner = FhpeSAPlanner(g, model, sensor, HORIZON, move_steps=steps)
         self.filter = BeliefFilter(g, model, sensor)  # its weigh: Lambda(p, z) (Eq. 2)
         self.belief = np.tile(model.b0, (missions, 1))
