@@ -4,11 +4,13 @@ packages, so none of them imports another's searchers."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
 
+from shared.core.clock import TravelTimes
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
 from shared.engine.searchers import REFERENCE_SEARCHERS, GreedySearcher, RandomSearcher, Searcher
@@ -45,12 +47,20 @@ def searcher_factory(
     device: torch.device | str = "cpu",
     note: Callable[[str], None] | None = None,
     team: TeamFlight | None = None,
+    clock: TravelTimes | None = None,
 ) -> Callable[[int], Searcher]:
     """seed -> searcher, for the evaluator. Checks the name, loads a ``policy:DIR`` snapshot and
     runs the searcher's own checks (the oracle's N <= 2, fhpe's node detection) once, before any
     simulation; raises ValueError (SnapshotError for a bad snapshot) with the reason. With ``team``,
     a ``policy:DIR`` is flown as robot agents fly it in a team (``LinkedTeamSearcher``: the agents'
-    own decision code, over a simulated network)."""
+    own decision code, over a simulated network).
+
+    ``clock``: the evaluation runs on travel times (``model`` is then the model per tick): random,
+    greedy and ``policy:DIR`` decide on arrival; a team trained in steps has its model made a tick's
+    worth, one trained on the clock must have been trained with the same tick. A team trained on
+    the clock is refused without one."""
+    if clock is not None and (team is not None or name in BASELINES):
+        raise ValueError(f"travel times fly random, greedy and policy:DIR as batched searchers, not {name!r} or a team")
     if name.startswith("policy:") and team is not None:
         return _team_factory(name.removeprefix("policy:"), graph, n_robots, team, note)
     if name.startswith("policy:"):
@@ -60,11 +70,25 @@ def searcher_factory(
         team_note = snap.team_note(n_robots)
         if team_note and note:
             note(team_note)
+        trained = snap.clock
+        if clock is None and trained is not None:
+            raise ValueError(
+                f"{name} was trained on the clock ({trained[0]:g} m/s, ticks of {trained[1]:g} s): its model is per "
+                "tick; evaluate it on travel times (--clock)"
+            )
+        if clock is not None and trained is None:  # a team of steps on the clock: its model a tick's worth
+            snap = dataclasses.replace(snap, model=clock.model(snap.model))
+        elif clock is not None and trained is not None and abs(trained[1] - clock.tick_s) > 1e-9:
+            raise ValueError(
+                f"{name} was trained with ticks of {trained[1]:g} s, this evaluation's are {clock.tick_s:g} s"
+            )
         return lambda seed: PolicySearcher(snap, graph, sensor, n_robots, seed=seed, device=device)
     if team is not None:
         raise ValueError(f"team flight (--team-searcher, --link-loss, --link-delay) flies a policy:DIR, not {name!r}")
 
     def make(seed: int) -> Searcher:
+        if name == "greedy" and clock is not None:  # its choice looks a step's worth of ticks ahead
+            return GreedySearcher(graph, model, sensor, seed, device, lookahead=round(clock.ticks_per_step))
         return make_searcher(name, graph, model, sensor, seed=seed, device=device, n_robots=n_robots)
 
     if name not in SEARCHERS:

@@ -84,7 +84,11 @@ class BeliefFilter:
         """Gamma_hat^T b: (Gamma^T b)(v) = sum_u Gamma(u, v) b(u); O(nnz) = O(n + m)."""
         return np.bincount(self._dst, weights=self._prob * b[self._src], minlength=self.n)
 
-    def update(self, p: int, z: int) -> np.ndarray:
-        """Theorem 1, Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}."""
-        self.belief = self._observe(self.predict(), p, z)
+    def update(self, p: int, z: int, ticks: int = 1) -> np.ndarray:
+        """Theorem 1, Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}; with ``ticks`` k > 1 (a model
+        per tick, a reading k ticks after the last) the prediction is made k times, (Gamma_hat^T)^k b."""
+        prior = self.belief
+        for _ in range(max(1, ticks)):
+            prior = self.predict_of(prior)
+        self.belief = self._observe(prior, p, z)
         return self.belief

@@ -100,6 +100,16 @@ class TeamInfo:
     def robots(self) -> int:
         return int(self.meta["robots"])
 
+    @property
+    def clock(self) -> tuple[float, float] | None:
+        """(speed m/s, tick s) of a team trained on the mission clock (`mures train --speed`), whose
+        belief model is per tick; None for a team trained in steps, whose model is per step."""
+        training = self.meta.get("training") or {}
+        speed = training.get("speed")
+        if not isinstance(speed, (int, float)) or isinstance(speed, bool):
+            return None
+        return float(speed), float(training.get("tick", 1.0))
+
     def network_for(self, robot: int) -> int:
         """The network robot ``robot`` runs (module docstring)."""
         return robot % self.robots
@@ -434,9 +444,10 @@ class PolicyAgent:
         """b_0 ∝ Lambda(p_0, z_0) b0 (Theorem 1 at t = 0)."""
         self.belief = self.filter.reset(p0, z0)
 
-    def observe(self, p: int, z: int) -> None:
-        """Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}."""
-        self.belief = self.filter.update(p, z)
+    def observe(self, p: int, z: int, ticks: int = 1) -> None:
+        """Eq. 1: b_t ∝ Lambda(p_t, z_t) Gamma_hat^T b_{t-1}; a team trained on the clock (model per
+        tick) predicts the ``ticks`` since the last reading."""
+        self.belief = self.filter.update(p, z, ticks)
 
     def act(self, p: int, belief: np.ndarray | None = None) -> int:
         """Next node row from N[p] for the robot's own belief (or ``belief``, a team's collective

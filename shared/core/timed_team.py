@@ -30,33 +30,13 @@ from typing import Any
 
 import numpy as np
 
+from shared.core.clock import TICK_S, tick_model
 from shared.core.graph import Graph
-from shared.core.models import TargetModel
 from shared.core.snapshot_format import SnapshotData
 from shared.core.team import CollectiveBelief, TeamAgent
 
-TICK_S = 1.0  # the mission clock's tick
 TIMEOUT_S = 120.0  # a teammate not heard for this long leaves the team's plan (a move takes 4-25 s)
 LATE_S = 2.0  # a teammate's observation arriving this long after its reading's decision time is late
-
-
-def move_seconds(graph: Graph, speed: float) -> float:
-    """The seconds one step of the model lasts: the graph's median edge length (along free space)
-    over the robot's speed. ValueError for a graph without edge lengths."""
-    if graph.edge_lengths is None or not len(graph.edge_lengths):
-        raise ValueError(
-            f"{graph.name} has no edge lengths: --team-clock seconds needs a graph from `mures map import` "
-            "(edge_lengths_m)"
-        )
-    return float(np.median(graph.edge_lengths)) / speed
-
-
-def tick_model(model: TargetModel, step_s: float, tick_s: float = TICK_S) -> TargetModel:
-    """The step model made one tick's worth (module docstring): Gamma_tick = I + a (Gamma - I),
-    a = tick_s / step_s (at most 1); b0 unchanged. Gamma's support holds every self-loop."""
-    a = min(1.0, tick_s / step_s)
-    prob = a * model.prob + (1.0 - a) * (model.src == model.dst)
-    return TargetModel(model.n, model.src, model.dst, prob, model.b0, f"{model.kind} per {tick_s:g} s tick")
 
 
 class TimedTeamAgent(TeamAgent):
@@ -80,8 +60,16 @@ class TimedTeamAgent(TeamAgent):
     ) -> None:
         super().__init__(snap, graph, robots, me, seed, searcher, **kw)
         self.tick_s, self.step_s, self.timeout_s = tick_s, step_s, timeout_s
+        # a team trained on the clock (`mures train --speed`) has its model per tick already, and its
+        # own belief predicts every tick between readings; a --team-model, like a team of steps, is per step
+        self.per_tick = snap.clock is not None and kw.get("team_model") is None
+        self.snap_per_tick = snap.clock is not None  # the own policy's belief uses the version's model
+        if snap.clock is not None and abs(snap.clock[1] - tick_s) > 1e-9:
+            raise ValueError(f"the version was trained with ticks of {snap.clock[1]:g} s, the agent's are {tick_s:g} s")
         model = kw.get("team_model") or snap.model
-        self.collective = CollectiveBelief(graph, tick_model(model, step_s, tick_s), snap.sensor, self.robots)
+        model = model if self.per_tick else tick_model(model, step_s, tick_s)
+        self.collective = CollectiveBelief(graph, model, snap.sensor, self.robots)
+        self.own_tick = 0  # the tick of this robot's latest reading
         self.heard_s = {r: -math.inf for r in self.robots if r != me}  # each teammate's latest reading's time
         self.goal: dict[str, int] = {}  # each robot's latest known node: where it is headed
         self.decided_s = -math.inf
@@ -94,7 +82,12 @@ class TimedTeamAgent(TeamAgent):
         """An observation (this robot's own, or a teammate's from the network) of the reading made
         at ``time_s`` on node row ``p``; ``goal`` the row it left for (None: not known yet)."""
         if robot == self.me:
-            self.own.reset(p, z) if t == 0 else self.own.observe(p, z)
+            k = self.tick(time_s)
+            if t == 0:
+                self.own.reset(p, z)
+            else:  # per tick: every tick since its last reading; per step: one step
+                self.own.observe(p, z, k - self.own_tick if self.snap_per_tick else 1)
+            self.own_tick = k
         if robot not in self.robots:
             return
         self.reading_s[robot, t] = time_s

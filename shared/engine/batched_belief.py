@@ -38,11 +38,13 @@ class BatchedBelief:
         # [z, p, j]: Lambda's diagonal entry j for a robot at p seeing z, one gather per update
         self.lik_table = torch.where(self.detect, self.lik_in.view(2, 1, 1), self.lik_out.view(2, 1, 1))  # (2, n, n)
 
-    def likelihood(self, pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Diagonal of Lambda (Eq. 2) for robots at ``pos`` seeing ``z``: (...,) -> (..., n)."""
+    def likelihood(self, pos: torch.Tensor, z: torch.Tensor, read: torch.Tensor | None = None) -> torch.Tensor:
+        """Diagonal of Lambda (Eq. 2) for robots at ``pos`` seeing ``z``: (...,) -> (..., n).
+        ``read`` (...,) bool: where False the robot made no reading (in transit), Lambda = I."""
         # one row gather from the (2n, n) view: row z n + p (index_select is cheaper than a 2-D index)
         rows = torch.where(z if z.dtype == torch.bool else z != 0, pos + self.n, pos).reshape(-1)
-        return self.lik_table.view(2 * self.n, self.n).index_select(0, rows).view(*pos.shape, self.n)
+        lik = self.lik_table.view(2 * self.n, self.n).index_select(0, rows).view(*pos.shape, self.n)
+        return lik if read is None else torch.where(read.unsqueeze(-1), lik, torch.ones_like(lik))
 
     def collective_likelihood(
         self, pos: torch.Tensor, z: torch.Tensor, active: torch.Tensor | None = None

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from shared.core.clock import TravelTimes
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
 from shared.core.records import make_record
@@ -26,11 +27,14 @@ Z95 = 1.959963984540054
 
 @dataclass
 class Trajectories:
-    """Per-step positions and observations of a fixed batch. pos/z: (T+1, B, N); length: (B,)."""
+    """Per-step positions and observations of a fixed batch. pos/z: (T+1, B, N); length: (B,).
+    With travel times a step is a tick and ``ready`` (T+1, B, N) marks the robots that stood on a
+    node and read z then (None: every robot every step)."""
 
     pos: np.ndarray
     z: np.ndarray
     length: np.ndarray  # steps recorded per episode: capture_time + 1
+    ready: np.ndarray | None = None
 
 
 def mean_ci95(x: Any) -> tuple[float, float]:
@@ -99,8 +103,12 @@ def evaluate(
     withdraw_at: list[int | None] | None = None,
     record: bool = False,
     progress: Callable[[dict[str, Any]], None] | None = None,
+    clock: TravelTimes | None = None,
 ) -> EvalResult:
     """Run ``episodes`` episodes of ``make_searcher(chunk_seed)`` and collect their outcomes.
+
+    ``clock``: moves take the graph's travel times (shared/engine/sim.py ``move_ticks``), capture
+    times are in ticks and T_max is 3n steps' worth of ticks; ``target`` is then the model per tick.
 
     ``record`` keeps every step's positions and observations (for writing episode records);
     ``progress`` gets {"episodes", "total", "episodes_per_second"} after every chunk (a planner's
@@ -124,6 +132,8 @@ def evaluate(
             device=device,
             auto_reset=False,
             withdraw_at=withdraw_at,
+            move_ticks=None if clock is None else clock.ticks,
+            t_max=None if clock is None else clock.t_max(graph.n),
         )
         searcher = make_searcher(chunk_seed + 7919)
         obs = sim.reset()
@@ -132,6 +142,7 @@ def evaluate(
         fa = torch.zeros(B, dtype=torch.long)
         by = torch.full((B,), -1, dtype=torch.long)
         pos_log, z_log = [obs.pos.cpu()], [obs.z.cpu()]
+        ready_log = [] if obs.ready is None else [obs.ready.cpu()]
         with torch.no_grad():
             while sim.any_alive:
                 obs, res = sim.step(searcher.act(obs))
@@ -143,6 +154,8 @@ def evaluate(
                 if record:
                     pos_log.append(obs.pos.cpu())
                     z_log.append(obs.z.cpu())
+                    if obs.ready is not None:
+                        ready_log.append(obs.ready.cpu())
         outs["ct"].append(ct.numpy())
         outs["cens"].append(cens.numpy())
         outs["fa"].append(fa.numpy())
@@ -156,6 +169,7 @@ def evaluate(
                     pos=torch.stack(pos_log).numpy(),
                     z=torch.stack(z_log).numpy().astype(np.int8),
                     length=ct.numpy() + 1,
+                    ready=torch.stack(ready_log).numpy() if ready_log else None,
                 )
             )
     return EvalResult(
@@ -170,27 +184,40 @@ def evaluate(
 
 
 def episode_records(
-    graph: Graph, result: EvalResult, sensor: Sensor, fleet: str = "default", mission_prefix: str = "sim"
+    graph: Graph,
+    result: EvalResult,
+    sensor: Sensor,
+    fleet: str = "default",
+    mission_prefix: str = "sim",
+    tick_s: float | None = None,
 ) -> Iterator[dict[str, Any]]:
     """Episode records (docs/SPEC.md section 5), one per robot per mission, from a ``record=True`` run.
 
-    Robots are named r0..r{N-1}; missions ``{mission_prefix}-{k:06d}`` in episode order.
+    Robots are named r0..r{N-1}; missions ``{mission_prefix}-{k:06d}`` in episode order. A run with
+    travel times gives each robot's readings only (the ticks it stood on a node), each with its
+    ``time_s`` (tick k at k ``tick_s``), as a robot on the mission clock records them.
     """
     k = 0
     for tr in result.trajectories:
         for b in range(tr.pos.shape[1]):
             length, censored = int(tr.length[b]), bool(result.censored[k])
             for i in range(tr.pos.shape[2]):
+                ticks = np.arange(length) if tr.ready is None else np.flatnonzero(tr.ready[:length, b, i])
+                timed = tr.ready is not None
+                if timed and tick_s is None:
+                    raise ValueError("a run with travel times makes records on the clock: give tick_s")
                 yield make_record(
                     graph,
                     fleet=fleet,
                     mission_id=f"{mission_prefix}-{k:06d}",
                     robot_id=f"r{i}",
-                    nodes=tr.pos[:length, b, i],
-                    z=tr.z[:length, b, i],
+                    nodes=tr.pos[ticks, b, i],
+                    z=tr.z[ticks, b, i],
                     sensor=sensor,
                     captured=not censored,
-                    capture_time=None if censored else int(result.capture_time[k]),
+                    # the robot's own reading index of the capture: its last (on the clock, each robot's own count)
+                    capture_time=None if censored else (len(ticks) - 1 if timed else int(result.capture_time[k])),
                     captured_by=None if censored else f"r{int(result.captured_by[k])}",
+                    times=ticks * tick_s if timed else None,
                 )
             k += 1

@@ -54,7 +54,8 @@ class RandomSearcher:
 
 class GreedySearcher:
     """`greedy`: each robot keeps its own belief (true Gamma) and moves to the node of N[p]
-    with the largest predicted mass (Gamma^T b)(v); ties broken uniformly at random.
+    with the largest predicted mass (Gamma^T b)(v); ties broken uniformly at random. With travel
+    times (``model`` per tick) ``lookahead`` ticks, one step's worth: ((Gamma^k)^T b)(v).
 
     Nothing is shared between robots, so from one start node they tend to move as a pack.
     """
@@ -69,16 +70,21 @@ class GreedySearcher:
         sensor: Sensor,
         seed: int = 0,
         device: torch.device | str = "cpu",
+        lookahead: int = 1,
     ) -> None:
         self.device = torch.device(device)
         self.tab = _Neighbourhoods(graph, self.device)
         self.beliefs = BeliefTracker(BatchedBelief(graph, model, sensor, self.device))
+        # on the clock (``model`` per tick) the mass is predicted a move's worth of ticks ahead: (Gamma^k)^T b
+        self.ahead = None if lookahead == 1 else torch.linalg.matrix_power(self.beliefs.belief.gamma, lookahead)
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(seed)
 
     def act(self, obs: Obs) -> torch.Tensor:
-        lik = self.beliefs.belief.likelihood(obs.pos, obs.z)  # (B, N, n)
-        _b, pred = self.beliefs.update(lik, obs.new)  # pred (B, N, n): (Gamma^T b_t)(v), own beliefs
+        lik = self.beliefs.belief.likelihood(obs.pos, obs.z, obs.ready)  # (B, N, n); in transit: no reading
+        b, pred = self.beliefs.update(lik, obs.new)  # pred (B, N, n): (Gamma^T b_t)(v), own beliefs
+        if self.ahead is not None:
+            pred = b @ self.ahead
         cand = self.tab.nbr[obs.pos]  # (B, N, d)
         valid = self.tab.valid[obs.pos]
         mass = torch.gather(pred, 2, cand).masked_fill(~valid, -1.0)

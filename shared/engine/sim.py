@@ -19,6 +19,14 @@ Deterministic for a seed: all randomness comes from one ``torch.Generator``.
 
 Robustness experiments: ``withdraw_at[i] = k`` withdraws robot i at step k: from t = k on it
 stays where it is, observes nothing (z = 0) and cannot capture.
+
+Travel times (``move_ticks``, docs/continuous-world.md "Training on the clock"): t counts ticks of
+the mission clock and a move from p to a takes ``move_ticks[p, a]`` >= 1 ticks (a stay one). The
+target moves once a tick (its model is a tick's worth, shared/core/clock.py ``tick_model``). A
+robot decides only when it stands on a node (``Obs.ready``); in transit it stays at the node it left
+(``pos``), observes nothing (z = 0, no reading) and cannot capture, and the actions given for it are
+ignored; on arriving it stands on its goal and reads z there. Every move taking one tick is the
+paper's model: the same random draws, so the same seeds give the same episodes as without the table.
 """
 
 from __future__ import annotations
@@ -45,6 +53,11 @@ class Obs:
     active: torch.Tensor  # (B, N) bool, False once a robot is withdrawn
     alive: torch.Tensor  # (B,) bool, False for frozen slots (evaluation mode)
     target: torch.Tensor | None = None  # (B,) the hidden target's rows: only the `oracle` baseline reads it
+    ready: torch.Tensor | None = None  # (B, N) bool: on a node, read z and decides now (None: every robot)
+
+    def observed(self) -> torch.Tensor:
+        """(B, N) bool: the robots whose z is a reading this tick (active and on a node)."""
+        return self.active if self.ready is None else self.active & self.ready
 
 
 @dataclass
@@ -76,6 +89,7 @@ class SearchSim:
         withdraw_at: list[int | None] | None = None,
         check_actions: bool = True,
         details: bool = True,
+        move_ticks: np.ndarray | None = None,
     ) -> None:
         if n_robots < 1:
             raise ValueError(f"expected at least 1 robot, got {n_robots}")
@@ -118,6 +132,15 @@ class SearchSim:
         # False: StepResult's false_alarms and captured_by are not kept up to date (the trainer
         # reads done, capture_time and censored only); saves their bookkeeping every step
         self.details = details
+        # travel times: ticks[p, a] per move of N[p] (module docstring); None: every move one tick
+        self.timed = move_ticks is not None
+        if move_ticks is not None:
+            ticks = np.asarray(move_ticks)
+            if ticks.shape != (graph.n, graph.n):
+                raise ValueError(f"move_ticks: expected an (n, n) = ({graph.n}, {graph.n}) table, got {ticks.shape}")
+            if (ticks[graph.closed_adjacency] < 1).any():
+                raise ValueError("move_ticks: every move of N[p] must take at least 1 tick")
+            self.move_ticks = torch.as_tensor(ticks, dtype=torch.long, device=dev)
         drop = [NEVER if w is None else int(w) for w in (withdraw_at or [None] * n_robots)]
         if len(drop) != n_robots:
             raise ValueError(f"withdraw_at has {len(drop)} entries, expected one per robot ({n_robots})")
@@ -140,10 +163,16 @@ class SearchSim:
         self.active = torch.ones(B, N, dtype=torch.bool, device=dev)
         self._new = torch.zeros(B, dtype=torch.bool, device=dev)
         self.moving = torch.zeros(B, dtype=torch.bool, device=dev)  # set by each step
+        self.goal = torch.full((B, N), self.start, dtype=torch.long, device=dev)  # where each robot is headed
+        self.left = torch.zeros(B, N, dtype=torch.long, device=dev)  # ticks until it stands on its goal
+        self.ready = torch.ones(B, N, dtype=torch.bool, device=dev)  # on a node: reads z and decides
 
     # the episodes' state: what ``state_dict`` saves (the graph's and the models' tables are rebuilt
     # from the same graph, target model and sensor)
-    _STATE = ("pos", "target", "t", "z", "alive", "pending", "pending_by", "false_alarms", "active", "_new", "moving")
+    _STATE = (
+        "pos", "target", "t", "z", "alive", "pending", "pending_by", "false_alarms", "active", "_new", "moving",
+        "goal", "left", "ready",
+    )  # fmt: skip
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         """The running episodes and the generator's state, to continue later exactly where they are
@@ -170,13 +199,14 @@ class SearchSim:
         # detect[p, e] for each robot's p and its episode's e, as one gather from the flat table
         flat = (self.pos * self.n + self.target.unsqueeze(1)).reshape(-1)
         in_d = self.detect.view(-1).index_select(0, flat).view(self.B, self.N)
-        if self.withdrawals:
-            in_d = in_d & self.active
+        reading = self.active if not self.timed else self.active & self.ready  # robots that read z now
+        if self.withdrawals or self.timed:
+            in_d = in_d & reading
         u = self._rand(self.B, self.N)
         if self.perfect:  # u >= 0 always, u < 0 never
             return in_d, in_d
         z = torch.where(in_d, u >= self.eta_fn, u < self.eta_fp)
-        return (z & self.active if self.withdrawals else z), in_d
+        return (z & reading if self.withdrawals or self.timed else z), in_d
 
     @staticmethod
     def _first(hits: torch.Tensor) -> torch.Tensor:
@@ -191,6 +221,10 @@ class SearchSim:
         self.target = torch.where(mask, e0, self.target)
         self.pos = torch.where(m1, torch.full_like(self.pos, self.start), self.pos)
         self.t = torch.where(mask, torch.zeros_like(self.t), self.t)
+        if self.timed:  # every robot stands on the start node
+            self.goal = torch.where(m1, torch.full_like(self.goal, self.start), self.goal)
+            self.left = torch.where(m1, torch.zeros_like(self.left), self.left)
+            self.ready = self.ready | m1
         if self.withdrawals:  # otherwise every robot stays active throughout
             self.active = torch.where(m1, (self.withdraw_at > 0).expand(self.B, self.N), self.active)
         z, in_d = self._observe()
@@ -204,7 +238,16 @@ class SearchSim:
         self._new = mask
 
     def _obs(self) -> Obs:
-        return Obs(self.pos, self.z, self.t, self._new, self.active, self.alive, self.target)
+        return Obs(
+            self.pos,
+            self.z,
+            self.t,
+            self._new,
+            self.active,
+            self.alive,
+            self.target,
+            self.ready if self.timed else None,
+        )
 
     # ------------------------------------------------------------------ API
     def reset(self) -> Obs:
@@ -213,14 +256,18 @@ class SearchSim:
         return self._obs()
 
     def step(self, actions: torch.Tensor) -> tuple[Obs, StepResult]:
-        """Advance every running episode by one step. actions: (B, N) node rows in N[p]."""
+        """Advance every running episode by one step (a tick with ``move_ticks``). actions: (B, N) node
+        rows in N[p]; with ``move_ticks`` only those of robots on a node (``Obs.ready``) count."""
         if actions.shape != (self.B, self.N):
             raise ValueError(f"expected actions of shape {(self.B, self.N)}, got {tuple(actions.shape)}")
         actions = actions.to(device=self.device, dtype=torch.long)
         moving = self.moving = self.alive & ~self.pending  # (B,) the episodes this step advances
-        act = torch.where(
-            self.active & moving.unsqueeze(1) if self.withdrawals else moving.unsqueeze(1), actions, self.pos
-        )
+        deciding = moving.unsqueeze(1)  # (B, N): the robots whose action counts
+        if self.withdrawals:
+            deciding = deciding & self.active
+        if self.timed:
+            deciding = deciding & self.ready
+        act = torch.where(deciding, actions, self.pos)
         if self.check_actions and not bool(self.adj[self.pos, act].all()):
             bad = (~self.adj[self.pos, act]).nonzero()[0]
             b, i = int(bad[0]), int(bad[1])
@@ -229,7 +276,15 @@ class SearchSim:
                 f"is not in N[{self.graph.labels[int(self.pos[b, i])]}]"
             )
         # robots move, then the target moves (docs/SPEC.md section 1 order)
-        self.pos = act
+        if self.timed:  # a robot on a node sets off for its goal; one in transit goes on (module docstring)
+            start = self.ready & moving.unsqueeze(1)
+            self.goal = torch.where(start, act, self.goal)
+            self.left = torch.where(start, self.move_ticks[self.pos, act], self.left)
+            self.left = self.left - (moving.unsqueeze(1) & (self.left > 0)).long()
+            self.ready = self.left == 0
+            self.pos = torch.where(self.ready, self.goal, self.pos)
+        else:
+            self.pos = act
         u = self._rand(self.B, 1)
         k = (u > self.t_cum.index_select(0, self.target)).sum(1)  # the candidate u falls on
         nxt = self.t_dst.view(-1).index_select(0, self.target * self.t_dst.shape[1] + k)  # t_dst[e, k]

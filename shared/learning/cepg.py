@@ -49,7 +49,9 @@ class Rollout:
 
     pos (S, N), belief (S, N, n), action (S, N), t (S,), episode (S,) index into the B episodes,
     ret (S,) the team's return from t on, or (S, N) one per robot; length (B,) decisions per episode (T_i of Eq. 12);
-    capture_time (B,), censored (B,).
+    capture_time (B,), censored (B,). With travel times t counts ticks and a row is a tick at which
+    some robot of the episode stands on a node: ``decided`` (S, N) marks the robots that decide
+    there (None: every robot, the paper's model).
     """
 
     pos: torch.Tensor
@@ -61,6 +63,7 @@ class Rollout:
     length: torch.Tensor
     capture_time: torch.Tensor
     censored: torch.Tensor
+    decided: torch.Tensor | None = None
 
 
 @torch.no_grad()
@@ -70,39 +73,48 @@ def rollout(
     """Run sim.B episodes to the end with the team's stochastic policies (Algorithm 1 per robot).
 
     Only running episodes are evaluated each step (work proportional to the steps taken).
-    ``collective``: every robot uses the collective belief (C-CE-PG).
+    ``collective``: every robot uses the collective belief (C-CE-PG). With the simulator's travel
+    times (``sim.timed``) every belief predicts once a tick and takes a robot's reading at the tick
+    it arrives; only the robots on a node decide (``Rollout.decided``).
     """
     B, N = sim.B, sim.N
     if sim.auto_reset:
         raise ValueError("rollout runs its episodes to their end: the simulator must not restart them (auto_reset)")
 
-    def lik(pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Lambda's diagonal per robot (B', N, n): own (Eq. 2) or collective (Eq. 7)."""
+    def lik(pos: torch.Tensor, z: torch.Tensor, read: torch.Tensor | None) -> torch.Tensor:
+        """Lambda's diagonal per robot (B', N, n): own (Eq. 2) or collective (Eq. 7); ``read`` (B', N)
+        marks the robots with a reading this tick (None: all)."""
         if collective:
-            return belief.collective_likelihood(pos, z).unsqueeze(1).expand(-1, N, -1)
-        return belief.likelihood(pos, z)
+            return belief.collective_likelihood(pos, z, read).unsqueeze(1).expand(-1, N, -1)
+        return belief.likelihood(pos, z, read)
 
     obs = sim.reset()
-    b = belief.initial(lik(obs.pos, obs.z))
-    logs: dict[str, list[torch.Tensor]] = {k: [] for k in ("pos", "belief", "action", "t", "episode")}
+    b = belief.initial(lik(obs.pos, obs.z, obs.ready))
+    names = ("pos", "belief", "action", "t", "episode", "decided")
+    logs: dict[str, list[torch.Tensor]] = {k: [] for k in names}
     censored = torch.zeros(B, dtype=torch.bool, device=sim.device)
     while True:
-        idx = (sim.alive & ~sim.pending).nonzero().squeeze(1)  # the episodes that decide now
+        idx = (sim.alive & ~sim.pending).nonzero().squeeze(1)  # the episodes that go on
         if idx.numel() == 0:  # every episode has ended (or was caught at t = 0, its capture time 0)
             break
-        pos_a, bel_a = obs.pos[idx], b[idx]
+        dec = idx if obs.ready is None else idx[obs.ready[idx].any(1)]  # those where some robot decides now
+        pos_a, bel_a = obs.pos[dec], b[dec]
         probs = torch.softmax(policy.logits(pos_a, bel_a), dim=-1)
         act = sample(probs, gen)
-        for k, v in (("pos", pos_a), ("belief", bel_a), ("action", act), ("t", obs.t[idx]), ("episode", idx)):
+        for k, v in (("pos", pos_a), ("belief", bel_a), ("action", act), ("t", obs.t[dec]), ("episode", dec)):
             logs[k].append(v)
-        obs, res = sim.step(obs.pos.index_put((idx,), act))  # the others stand still (finished, or caught at t = 0)
+        if obs.ready is not None:
+            logs["decided"].append(obs.ready[dec])
+        obs, res = sim.step(obs.pos.index_put((dec,), act))  # the others stand still or travel on
         censored = censored | res.censored
-        b[idx] = belief.update(bel_a, lik(obs.pos[idx], obs.z[idx]))
+        read = None if obs.ready is None else obs.ready[idx]
+        b[idx] = belief.update(b[idx], lik(obs.pos[idx], obs.z[idx], read))
     # a finished episode's clock stops (the simulator does not restart it): t is its capture time
     capture_time = obs.t
-    pos, bel, act, t, ep = (torch.cat(logs[k]) for k in ("pos", "belief", "action", "t", "episode"))
-    ret = -(capture_time[ep] - t).to(torch.float32)  # reward -1 per step until capture
-    return Rollout(pos, bel, act, t, ep, ret, capture_time, capture_time, censored)
+    pos, bel, act, t, ep = (torch.cat(logs[k]) for k in names[:-1])
+    decided = torch.cat(logs["decided"]) if logs["decided"] else None
+    ret = -(capture_time[ep] - t).to(torch.float32)  # reward -1 per step (tick) until capture
+    return Rollout(pos, bel, act, t, ep, ret, capture_time, capture_time, censored, decided)
 
 
 @dataclass
@@ -130,6 +142,8 @@ def policy_gradient_term(log_pi: torch.Tensor, ro: Rollout, adv: torch.Tensor) -
     log_pi (S, N, n): each robot's own network on its own states, with gradient."""
     B = ro.length.shape[0]
     logp_a = log_pi.gather(2, ro.action.unsqueeze(2)).squeeze(2)  # (S, N): log pi_i(a_t | s_t)
+    if ro.decided is not None:  # travel times: only the decisions robots made on a node
+        logp_a = logp_a * ro.decided
     return (logp_a * adv).sum(0) / B
 
 
@@ -167,9 +181,14 @@ def cross_entropy_term(
         sub, weight = torch.arange(S, device=device), 1.0
     pos, bel = ro.pos[sub], ro.belief[sub]
     pairs = ~torch.eye(N, dtype=torch.bool, device=device).expand(sub.shape[0], N, N)  # (K, N_i, N_j): j != i
+    decided = None if ro.decided is None else ro.decided[sub]  # (K, N): travel times, robot on a node
+    if decided is not None:  # robot i's states are those where it decides
+        pairs = pairs & decided.unsqueeze(2)
     if ce_states == "shared":  # only where robot j is in robot i's situation: same node, same belief
         tv = 0.5 * (bel.unsqueeze(2) - bel.unsqueeze(1)).abs().sum(-1)  # (K, N, N)
         pairs = pairs & (pos.unsqueeze(2) == pos.unsqueeze(1)) & (tv < same_tol)
+        if decided is not None:  # and robot j decides there too (not in transit from that node)
+            pairs = pairs & decided.unsqueeze(1)
         # H is needed only at the decisions where some pair counts (most have none): the same sum,
         # without evaluating N x N networks on states whose every term would be multiplied by 0
         keep = pairs.any(2).any(1).nonzero().squeeze(1)

@@ -63,6 +63,17 @@ def seconds(text: str) -> float:
     return v
 
 
+def positive_float(text: str) -> float:
+    """A finite number above 0 (argparse type)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number above 0, got {text!r}") from None
+    if not v > 0 or math.isinf(v):
+        raise argparse.ArgumentTypeError(f"expected a number above 0, got {text!r}")
+    return v
+
+
 def floats(text: str) -> list[float]:
     """One number or comma-separated numbers (one per robot)."""
     try:
@@ -126,6 +137,20 @@ class TrainConfig:
     em_every: int = field(default=100_000, metadata=_opt("episodes between later EM updates", parse=positive_int))
     em_missions: int = field(default=512, metadata=_opt("missions recorded for each EM update", parse=positive_int))
     em_max_iter: int = field(default=300, metadata=_opt("EM forward-backward passes at most", parse=positive_int))
+    speed: float | None = field(
+        default=None,
+        metadata=_opt(
+            "robots' speed in m/s: each move takes its edge's travel time (the graph's edge_lengths_m) in "
+            "ticks of --tick seconds and the target moves once a tick (docs/continuous-world.md); unset: every "
+            "move is one step, the paper's model",
+            parse=positive_float,
+            metavar="M_PER_S",
+        ),
+    )
+    tick: float = field(
+        default=1.0,
+        metadata=_opt("the mission clock's tick in seconds, with --speed", parse=positive_float, metavar="S"),
+    )
     seed: int = field(default=0, metadata=_opt("random seed", flag=False))
     device: str = field(default="cpu", metadata=_opt("torch device", flag=False))
     hidden: int | None = field(
@@ -166,6 +191,12 @@ class TrainConfig:
             raise ValueError(f"eps must be in (0, 1], got {self.eps}")
         if self.batch < 1 or self.episodes < 1:
             raise ValueError("batch and episodes must be positive")
+        if self.speed is not None and not (self.speed > 0 and math.isfinite(self.speed)):
+            raise ValueError(f"speed must be a number of m/s above 0, got {self.speed}")
+        if not (self.tick > 0 and math.isfinite(self.tick)):
+            raise ValueError(f"tick must be a number of seconds above 0, got {self.tick}")
+        if self.speed is not None and self.algorithm != "cepg":
+            raise ValueError(f"--speed trains CE-PG on travel times; {self.algorithm} counts steps")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

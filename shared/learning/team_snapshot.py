@@ -186,10 +186,11 @@ class PolicySearcher:
         self.gen.manual_seed(seed)
 
     def _lik(self, obs: Obs) -> torch.Tensor:
+        """Lambda's diagonal per robot (B, N, n), 1 for a robot without a reading this tick."""
         if self.collective:
-            lik = self.belief.collective_likelihood(obs.pos, obs.z, obs.active)
+            lik = self.belief.collective_likelihood(obs.pos, obs.z, obs.observed())
             return lik.unsqueeze(1).expand(-1, obs.pos.shape[1], -1)
-        return self.belief.likelihood(obs.pos, obs.z)
+        return self.belief.likelihood(obs.pos, obs.z, obs.ready)
 
     @torch.no_grad()
     def act(self, obs: Obs) -> torch.Tensor:

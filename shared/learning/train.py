@@ -31,6 +31,7 @@ from typing import Any
 import torch
 import torch.distributed as dist
 
+from shared.core.clock import TravelTimes
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel, from_matrix, identity_model
 from shared.engine.batched_belief import BatchedBelief
@@ -101,6 +102,11 @@ def train(
     """Train a team (module docstring). ``target`` is the true model the simulator uses;
     ``init_model`` is Gamma_hat_0 (default I); ``init_policy`` warm-starts the networks.
 
+    With ``cfg.speed`` the team trains on the mission clock (``clock_of``): moves take the graph's
+    travel times, ``target`` and ``init_model`` (models per step) are made a tick's worth, EM fits
+    Gamma_hat per tick from the missions' timestamped records, returns count ticks in units of
+    one step's worth of ticks, and the result's model is per tick.
+
     ``progress`` gets a dict after every update; ``should_stop`` is polled after every update
     and ends training early with the last completed update (``interrupted``).
     """
@@ -112,6 +118,11 @@ def train(
     collective = cfg.variant == "c-cepg"
     policy = _initial_policy(graph, cfg, init_policy, device)
     opt = torch.optim.Adam(policy.parameters(), lr=float(lrs.max()))
+    clock = clock_of(graph, cfg)
+    if clock is not None:  # the models per step made a tick's worth (Gamma_hat_0 = I stays I)
+        target = clock.model(target)
+        init_model = None if init_model is None else clock.model(init_model)
+    j_unit = cfg.j_unit * (1.0 if clock is None else clock.ticks_per_step)
     model = target if cfg.belief == "true" else (init_model or identity_model(graph))
     belief = BatchedBelief(graph, model, sensor, device)
     sim = SearchSim(
@@ -125,6 +136,8 @@ def train(
         auto_reset=False,
         check_actions=False,  # the policies' softmax is masked to N[p]: every draw is a valid move
         details=False,  # the rollout reads done, capture_time and censored only
+        move_ticks=None if clock is None else clock.ticks,
+        t_max=None if clock is None else clock.t_max(graph.n),
     )
     gen = torch.Generator(device=device)
     gen.manual_seed(cfg.seed * 104_729 + rank)
@@ -137,7 +150,7 @@ def train(
     interrupted = False
     while episodes < cfg.episodes:
         ro = rollout(sim, policy, belief, collective, gen)  # B episodes with the current policies
-        terms = cepg_loss(policy, ro, beta, cfg.eps, cfg.ce_fraction, gen, cfg.j_unit, cfg.ce_states)  # Eq. 9-13
+        terms = cepg_loss(policy, ro, beta, cfg.eps, cfg.ce_fraction, gen, j_unit, cfg.ce_states)  # Eq. 9-13
         # linear decay of the learning rate over the run: a steadier final policy
         lr = float(lrs.max()) * (1.0 - (1.0 - cfg.lr_final) * min(1.0, episodes / cfg.episodes))
         stats = _update(policy, opt, terms, ro, lrs, lr, world)
@@ -147,7 +160,7 @@ def train(
         env_steps += int(steps)
         curve.add(n_eps, ct_sum, cens_sum, ce)
         if episodes >= next_em:  # Algorithm 2's model update, by EM on the team's own missions
-            em_log.append(em_update(graph, target, sensor, cfg, policy, belief, episodes, rank, world, device))
+            em_log.append(em_update(graph, target, sensor, cfg, policy, belief, episodes, rank, world, device, clock))
             model = belief_model(graph, belief, em_log[-1].get("kind", "em"))
             next_em = episodes + cfg.em_every
         stop = bool(should_stop and should_stop())
@@ -162,6 +175,7 @@ def train(
                         "updates": updates,
                         "env_steps": env_steps,
                         "episodes_per_second": episodes / max(elapsed, 1e-9),
+                        "time_unit": "steps" if clock is None else "ticks",
                     }
                 )
         if stop:
@@ -181,10 +195,21 @@ def train(
         "interrupted": interrupted,
         "final_mean_capture_time": curve.points[-1]["mean_capture_time"] if curve.points else None,
         "belief_model": model.kind,
+        "clock": None
+        if clock is None
+        else {"speed_m_s": cfg.speed, "tick_s": clock.tick_s, "step_s": round(clock.step_s, 3), "unit": "ticks"},
         "em_updates": em_log,
         "learning_curve": curve.points,
     }
     return TrainResult(policy=policy, model=model, summary=summary, interrupted=interrupted)
+
+
+def clock_of(graph: Graph, cfg: TrainConfig) -> TravelTimes | None:
+    """The graph's travel times at ``cfg.speed`` in ticks of ``cfg.tick`` s, or None without a speed
+    (the paper's model: every move one step). ValueError for a graph without edge lengths."""
+    if cfg.speed is None:
+        return None
+    return TravelTimes.of(graph, cfg.speed, cfg.tick)
 
 
 def _initial_policy(graph: Graph, cfg: TrainConfig, init_policy: Snapshot | None, device: torch.device) -> TeamPolicy:
@@ -302,9 +327,11 @@ def em_update(
     rank: int,
     world: int,
     device: torch.device,
+    clock: TravelTimes | None = None,
 ) -> dict[str, Any]:
     """Algorithm 2's model update: fly ``em_missions`` missions with the current policies, turn
-    them into episode records, and re-estimate Gamma_hat and b0 by EM from those records."""
+    them into episode records, and re-estimate Gamma_hat and b0 by EM from those records (with a
+    ``clock``: Gamma_hat per tick from the records' times, ``target`` being the model per tick)."""
     t0 = time.perf_counter()
     info: dict[str, Any] = {"episodes": episodes}
     gamma = torch.empty(graph.n, graph.n, dtype=torch.float64)
@@ -324,9 +351,11 @@ def em_update(
             seed=cfg.seed * 31 + episodes,
             device=device,
             record=True,
+            clock=clock,
         )
-        recs = episode_records(graph, res, sensor, mission_prefix=f"train-{episodes}")
-        data = collect_missions(((0, r) for r in recs), graph)
+        tick_s = None if clock is None else clock.tick_s
+        recs = episode_records(graph, res, sensor, mission_prefix=f"train-{episodes}", tick_s=tick_s)
+        data = collect_missions(((0, r) for r in recs), graph, tick_s=tick_s)
         est = em(graph, data, max_iter=cfg.em_max_iter, tol=1e-5)
         gamma.copy_(torch.as_tensor(est.model.dense()))
         b0.copy_(torch.as_tensor(est.model.b0))

@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from shared.core.choices import TEAM_SEARCHERS
+from shared.core.clock import TICK_S, TravelTimes
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel, load_model_file
@@ -40,6 +41,7 @@ def _searcher_factory(
     sensor: Sensor,
     device: torch.device,
     team: TeamFlight | None = None,
+    clock: TravelTimes | None = None,
 ) -> Callable[[int], Searcher]:
     """seed -> searcher for evaluate(); checks the name (and loads a snapshot) once, before any simulation."""
     try:
@@ -52,6 +54,7 @@ def _searcher_factory(
             device,
             note=lambda text: print(f"mures: note: {text}", file=sys.stderr),
             team=team,
+            clock=clock,
         )
     except SnapshotError:
         raise
@@ -84,14 +87,33 @@ def _team_flight(args: argparse.Namespace, graph: Graph) -> TeamFlight | None:
     )
 
 
-def cmd_evaluate(args: argparse.Namespace) -> int:
+def _clock(args: argparse.Namespace, graph: Graph) -> TravelTimes | None:
+    """`mures evaluate --clock`'s travel times, or None; a CliError names what is wrong."""
+    if not args.clock:
+        if args.tick is not None:
+            raise CliError("--tick sets the clock of --clock's travel times: give --clock too")
+        return None
     if args.world:
+        raise CliError("--clock runs the engine on travel times; --world flies the continuous world: give one")
+    try:
+        return TravelTimes.of(graph, args.speed, args.tick or TICK_S)
+    except ValueError as exc:
+        raise CliError(f"--clock: {exc}") from None
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    if args.world and not args.clock:
         return _evaluate_continuous(args)
     graph, target, sensor = world_of(args, _snapshot_detection(args))
+    clock = _clock(args, graph)
+    if clock is not None:  # the target moves once a tick
+        target = clock.model(target)
     device = device_of(args.device)
     team = _team_flight(args, graph)
-    factory = _searcher_factory(args, graph, target, sensor, device, team)
-    res = evaluate(graph, target, sensor, args.robots, factory, episodes=args.episodes, seed=args.seed, device=device)
+    factory = _searcher_factory(args, graph, target, sensor, device, team, clock)
+    res = evaluate(
+        graph, target, sensor, args.robots, factory, episodes=args.episodes, seed=args.seed, device=device, clock=clock
+    )
     summary: dict[str, Any] = {
         "map": graph.name,
         "graph_id": graph.graph_id,
@@ -102,6 +124,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         **res.summary(),
         "wall_seconds": round(res.wall_seconds, 3),
     }
+    if clock is not None:  # capture times above in ticks; in seconds here
+        summary["clock"] = {"speed_m_s": args.speed, "tick_s": clock.tick_s, "step_s": round(clock.step_s, 3)}
+        summary["mean_capture_time_s"] = summary["mean_capture_time"] * clock.tick_s
+        summary["ci95_halfwidth_s"] = summary["ci95_halfwidth"] * clock.tick_s
     if team is not None:
         flown = sum(team.steps.values())
         summary["team"] = {
@@ -118,12 +144,22 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
     else:
         lo, hi = summary["ci95"]
+        unit = "" if clock is None else " ticks"
         print(
             f"{graph.name}, N={args.robots}, searcher={args.searcher}, "
-            f"{summary['episodes']} episodes, seed {args.seed}\n"
-            f"  mean_capture_time         {summary['mean_capture_time']:.2f}  (95% CI {lo:.2f} .. {hi:.2f})\n"
-            f"  median                    {summary['median']:.1f}\n"
-            f"  censored_fraction         {summary['censored_fraction']:.4f}  (T_max = {3 * graph.n})\n"
+            f"{summary['episodes']} episodes, seed {args.seed}"
+            + ("" if clock is None else f", on the clock at {args.speed:g} m/s (ticks of {clock.tick_s:g} s)")
+            + "\n"
+            f"  mean_capture_time         {summary['mean_capture_time']:.2f}{unit}  (95% CI {lo:.2f} .. {hi:.2f})\n"
+            + (
+                ""
+                if clock is None
+                else f"  mean_capture_time_s       {summary['mean_capture_time_s']:.1f} s  "
+                f"(95% CI half-width {summary['ci95_halfwidth_s']:.1f} s)\n"
+            )
+            + f"  median                    {summary['median']:.1f}{unit}\n"
+            f"  censored_fraction         {summary['censored_fraction']:.4f}  "
+            f"(T_max = {3 * graph.n if clock is None else clock.t_max(graph.n)}{unit})\n"
             f"  false_alarms_per_episode  {summary['false_alarms_per_episode']:.3f}\n"
             + (
                 f"  robot-steps on the plan   {summary['team']['team_steps']:,} complete, "
@@ -267,6 +303,14 @@ def add_sim_commands(sub: Any) -> None:
     world.add_argument(
         "--max-seconds", type=positive_number, default=1800.0, metavar="S", help="a mission's end (1800)"
     )
+    clock = p.add_argument_group(
+        "travel times",
+        "the engine on the mission clock (docs/continuous-world.md, 'Training on the clock'): each move takes its "
+        "edge's length (the graph's edge_lengths_m) over --speed in whole ticks, the target moves once a tick, "
+        "capture times in ticks and seconds; random, greedy and policy:DIR (a team trained with or without --speed)",
+    )
+    clock.add_argument("--clock", action="store_true", help="evaluate on travel times at --speed")
+    clock.add_argument("--tick", type=positive_number, metavar="S", help="the clock's tick in seconds (1)")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("simulate", help="simulate missions and write their episode records (JSON Lines)")

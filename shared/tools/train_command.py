@@ -34,7 +34,7 @@ class _Progress:
         eta = (p["total"] - p["episodes"]) / max(rate, 1e-9)
         text = (
             f"{p['episodes']:>9,}/{p['total']:,} episodes  {rate:7.0f} eps/s  "
-            f"capture time {p['mean_capture_time']:6.2f}  "
+            f"capture time {p['mean_capture_time']:6.2f}{' ticks' if p.get('time_unit') == 'ticks' else ''}  "
             + (f"CE {p['cross_entropy']:.2f}  " if "cross_entropy" in p else "")
             + f"ETA {max(eta, 0):4.0f} s"
         )
@@ -86,6 +86,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         init_model = load_model_file(graph, args.model)
     init_policy = load_snapshot(args.init, graph) if args.init else None
     cfg, hyper = _checked_config(args, device)
+    clock_text = _clock_text(graph, cfg)
     torch.set_num_threads(args.threads)
     if hyper is not None and int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise CliError(f"{cfg.algorithm} runs in one process; torchrun data parallelism is CE-PG's")
@@ -97,7 +98,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"{model_text}; hyperparameters {hyper.to_dict()}"
             if hyper is not None
             else f"{args.variant} on {graph.name} (n={graph.n}), N={args.robots}, beta={args.beta}, "
-            f"{cfg.episodes:,} episodes, {model_text}"
+            f"{cfg.episodes:,} episodes, {model_text}{clock_text}"
         )
         print(f"training {what}", file=sys.stderr)
     res = _fit(args, cfg, hyper, (graph, target, sensor), init_model, init_policy, rank == 0 and not args.quiet)
@@ -106,6 +107,27 @@ def cmd_train(args: argparse.Namespace) -> int:
     code = 130 if res.interrupted else 0
     leave_process_group(code)  # under torchrun: ends this process with ``code``
     return code
+
+
+def _clock_text(graph: Any, cfg: Any) -> str:
+    """With --speed, what the run's travel times are (for its first line); a CliError for a graph
+    without edge lengths or --tick without --speed."""
+    from shared.learning.train import clock_of
+
+    if cfg.speed is None:
+        if cfg.tick != train_config.default("tick"):
+            raise CliError("--tick sets the clock of --speed's travel times: give --speed too")
+        return ""
+    try:
+        clock = clock_of(graph, cfg)
+    except ValueError as exc:
+        raise CliError(f"--speed: {exc}") from None
+    assert clock is not None
+    moves = clock.ticks[graph.edges[:, 0], graph.edges[:, 1]]
+    return (
+        f"; on the clock at {cfg.speed:g} m/s: moves of {int(moves.min())}-{int(moves.max())} ticks of "
+        f"{cfg.tick:g} s (a step of the model {clock.ticks_per_step:.1f} ticks), capture times in ticks"
+    )
 
 
 def _checked_config(args: argparse.Namespace, device: Any) -> tuple[Any, Any]:
@@ -217,10 +239,15 @@ def _write_snapshot(
     )
     s = res.summary
     resumed = f" (resumed at {s['resumed'][-1]['episodes']:,})" if s.get("resumed") else ""
+    clock = s.get("clock")
+    unit = "steps" if not clock else "ticks when some robot decided"
+    last = f"{s['final_mean_capture_time']:.2f}"
+    if clock:
+        last += f" ticks ({s['final_mean_capture_time'] * clock['tick_s']:.1f} s)"
     print(
         f"{'interrupted: ' if res.interrupted else ''}{s['episodes']:,} episodes{resumed} ({s['env_steps']:,} team "
-        f"steps) in {s['wall_seconds']:.1f} s, {s['episodes_per_second']:.0f} episodes/s; "
-        f"last capture time {s['final_mean_capture_time']:.2f}; wrote {out}"
+        f"{unit}) in {s['wall_seconds']:.1f} s, {s['episodes_per_second']:.0f} episodes/s; "
+        f"last capture time {last}; wrote {out}"
     )
     if args.checkpoint and res.interrupted:
         print(f"checkpoint in {args.checkpoint}: the same command continues the run from it")

@@ -42,10 +42,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.core.belief_filter import TINY, BeliefFilter
+from shared.core.clock import TICK_S, tick_model
 from shared.core.fhpe_sa import HORIZON, FhpeSAPlanner
 from shared.core.graph import Graph
 from shared.core.models import Sensor, uniform_walk
-from shared.core.timed_team import TICK_S, tick_model
 from shared.floorplan.occupancy import MapError, OccupancyGrid
 from shared.floorplan.sight import view
 from shared.floorplan.travel import path_length_px, window_path
