@@ -41,6 +41,7 @@ import zenoh
 
 from robot_agent.backend import BackendError, MissionOver, RobotBackend, load_backend, resolve_backend
 from robot_agent.teamwork import TEAM_WAIT_S, Teamwork
+from shared.core.clock import move_seconds
 from shared.core.files import atomic_write, read_token
 from shared.core.graph import Graph, graph_from_dict
 from shared.core.http import ApiClient, ApiError
@@ -48,7 +49,7 @@ from shared.core.models import Sensor
 from shared.core.records import make_record
 from shared.core.snapshot_format import PolicyAgent, SnapshotData, SnapshotError, read_snapshot
 from shared.core.team import FALLBACK_AFTER, LinkHistory, TeamAgent, mission_seed, team_searcher_of
-from shared.core.timed_team import TimedTeamAgent, move_seconds
+from shared.core.timed_team import TimedTeamAgent
 from shared.core.wire import (
     DEFAULT_FLEET,
     MAX_REASON_CHARS,
@@ -558,7 +559,9 @@ class Agent:
             "own_seed": mission_seed(seed, index),
             "link_history": self.links,
         }
-        if self.args.team_clock == "seconds":  # matched by the mission clock (shared/core/timed_team.py)
+        # matched by the mission clock (shared/core/timed_team.py); a version trained on the clock
+        # (`mures train --speed`, its model per tick) always flies on it
+        if self.args.team_clock == "seconds" or snap.clock is not None:
             step_s = move_seconds(self.graph, self.args.speed)
             agent: TeamAgent = TimedTeamAgent(snap, self.graph, robots, self.robot_id, step_s=step_s, **team_kw)
         else:
@@ -821,7 +824,8 @@ def build_parser() -> argparse.ArgumentParser:
         default="steps",
         help="how the robot matches its teammates' observations: by step index, waiting --team-wait for the "
         "current step's (default, the paper's model), or by the mission clock, never waiting for a teammate "
-        "that is travelling (shared/core/timed_team.py; needs a graph with edge lengths)",
+        "that is travelling (shared/core/timed_team.py; needs a graph with edge lengths); a version trained on "
+        "the clock (mures train --speed) always flies on it",
     )
     p.add_argument(
         "--speed",

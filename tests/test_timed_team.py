@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from test_team import _snapshot
 
+from shared.core.clock import move_seconds, tick_model
 from shared.core.graph import builtin_graph
 from shared.core.models import uniform_walk
-from shared.core.timed_team import LATE_S, TimedTeamAgent, move_seconds, tick_model
+from shared.core.timed_team import LATE_S, TimedTeamAgent
 from shared.core.wire import observation_message, parse_observation
 
 ROBOTS = ["r1", "r2", "r3"]
@@ -156,3 +157,30 @@ def test_a_record_carries_the_clock_of_every_reading_or_of_none():
     bad["steps"][2]["time_s"] = "2"
     with pytest.raises(RecordError, match="finite number"):
         parse_record(bad, graph)
+
+
+def test_a_version_trained_on_the_clock_keeps_its_model_per_tick_and_its_own_belief_predicts_each_tick():
+    graph = builtin_graph("office")
+    step_snap = _snapshot(graph, 3)
+    per_tick = tick_model(step_snap.model, step_s=8.0)
+    clock_snap = dataclasses.replace(step_snap, model=per_tick, meta={**step_snap.meta, "training": {"speed": 0.5}})
+    assert clock_snap.clock == (0.5, 1.0) and step_snap.clock is None
+    on_clock = TimedTeamAgent(clock_snap, graph, ROBOTS, "r1", seed=7, searcher="fhpe-sa", step_s=8.0)
+    of_steps = TimedTeamAgent(step_snap, graph, ROBOTS, "r1", seed=7, searcher="fhpe-sa", step_s=8.0)
+    # the same team plan's model either way: converted once, never twice
+    np.testing.assert_allclose(on_clock.collective._filter._prob, of_steps.collective._filter._prob)
+    nxt = int(graph.nbr[graph.start, 1])
+    for agent in (on_clock, of_steps):
+        agent.observe_at("r1", 0, graph.start, 0, 0.0)
+        agent.observe_at("r1", 1, nxt, 0, 9.0)  # its next reading 9 ticks later
+    b0 = on_clock.own.filter._observe(on_clock.own.filter._b0.copy(), graph.start, 0)
+    prior = b0
+    for _ in range(9):
+        prior = on_clock.own.filter.predict_of(prior)
+    np.testing.assert_allclose(on_clock.own.belief, on_clock.own.filter._observe(prior, nxt, 0))
+    # a team of steps: its own policy's belief moves one step between its readings, as trained
+    np.testing.assert_allclose(
+        of_steps.own.belief, of_steps.own.filter._observe(of_steps.own.filter.predict_of(b0), nxt, 0)
+    )
+    with pytest.raises(ValueError, match="ticks of 1 s, the agent's are 2 s"):
+        TimedTeamAgent(clock_snap, graph, ROBOTS, "r1", seed=7, searcher="fhpe-sa", step_s=8.0, tick_s=2.0)

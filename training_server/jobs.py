@@ -289,6 +289,11 @@ class _TrainingRun:
         self.events.put({"type": "progress", "phase": phase, "elapsed_s": elapsed, **kw})
 
     def run(self) -> dict[str, Any]:
+        if self.current.clock is not None:  # its model is per tick; EM, training and the gate here count steps
+            raise ValueError(
+                "the current version was trained on travel times (mures train --speed): the server retrains in "
+                "steps; retrain it with mures train --speed and publish it as a new --init-policy"
+            )
         for method in self.p.methods():  # a misnamed hyperparameter fails the run now, not after EM
             check_hyperparameters(method, self.p.hyperparameters_of(method))
         model, gate_model, em_info = self.models()
