@@ -245,6 +245,9 @@ def test_training_runs(api):
     # one mission is too little to fit a model on (a run on it promoted a worse policy): refused, saying why
     r = c.post("/api/v1/training-runs", json={"episodes": 512}, headers=auth(OP))
     assert r.status_code == 409 and "1 missions recorded, 50 needed (49 more)" in r.json()["error"]
+    # travel times need the map's edge lengths: refused at once, naming the map
+    r = c.post("/api/v1/training-runs", json={"speed": 0.5, "min_missions": 1}, headers=auth(OP))
+    assert r.status_code == 409 and f"map {srv.graph.name} has no edge lengths" in r.json()["error"]
     assert c.get("/api/v1/training-runs", headers=auth(AG)).json()["items"] == []
     r = c.post("/api/v1/training-runs", json={"episodes": 512, "beta": 1, "min_missions": 1}, headers=auth(OP))
     assert r.status_code == 202 and r.headers["location"].endswith(r.json()["id"])

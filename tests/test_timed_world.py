@@ -178,6 +178,32 @@ def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
                 assert rec["outcome"]["captured"] and rec["steps"][-1]["time_s"] <= m["capture_time_s"] + 1e-3
 
 
+def test_a_fleet_on_the_clock_retrains_over_http_on_its_timestamped_records_and_flies_a_team_trained_on_it(tmp_path):
+    depot = NAV2 / "depot.yaml"
+    graph_file, team = tmp_path / "depot.json", tmp_path / "team"
+    assert mures("map", "import", str(depot), "--out", str(graph_file)).returncode == 0
+    r = mures("fleet-sim", "--graph", str(graph_file), "--world", str(depot), "--robots", "2", "--missions", "4",
+              "--seed", "2", "--team-clock", "seconds", "--retrain-every", "2", "--retrains", "1",
+              "--retrain-episodes", "256", "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    run = json.loads(r.stdout)["training_runs"][0]
+    metrics = run["metrics"]
+    assert metrics["em"]["per"] == "1 s tick" and metrics["em"]["records"] == 2 and not metrics["em"]["skipped"]
+    assert metrics["gate"]["unit"] == "ticks of 1 s" and metrics["gate"]["current"]["episodes"] == 1000
+    assert run["status"] == "succeeded" or run["error"].startswith("evaluation gate: new policy"), run
+    # a team trained on the clock flies on it without --team-clock: its records carry the readings' times
+    r = mures("train", "--graph", str(graph_file), "--robots", "2", "--episodes", "256", "--em-first", "128",
+              "--em-missions", "8", "--speed", "0.5", "--out", str(team), "--quiet")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    work = tmp_path / "clock-team"
+    r = mures("fleet-sim", "--graph", str(graph_file), "--world", str(depot), "--robots", "2", "--missions", "2",
+              "--seed", "3", "--init-policy", str(team), "--workdir", str(work), "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    with sqlite3.connect(next((work / "server").glob("*.db"))) as db:
+        records = [json.loads(row[0]) for row in db.execute("SELECT record FROM episodes")]
+    assert len(records) == 4 and all("time_s" in step for rec in records for step in rec["steps"])
+
+
 def test_world_flags_that_do_not_fit_are_refused_in_one_line(tmp_path):
     depot = NAV2 / "depot.yaml"
     graph_file = tmp_path / "depot.json"

@@ -176,6 +176,17 @@ class TrainingParams(BaseModel):
         200, description="episodes of that comparison (the gate's first seeds; a team plans at every step)"
     )
     promote: bool = Field(True, description="make the new version current")
+    speed: float | None = Field(
+        None,
+        gt=0.0,
+        le=100.0,
+        allow_inf_nan=False,
+        description="retrain on the mission clock at this robot speed in m/s (docs/continuous-world.md, 'Training "
+        "on the clock'): EM fits Gamma_hat per 1 s tick from the records' times (records without times are "
+        "skipped), CE-PG trains on the map's travel times (its edge_lengths_m) and the gate evaluates on them; "
+        "the new version flies on the clock. Default: the current version's, when it was trained on the clock; "
+        "otherwise steps",
+    )
     threads: Annotated[int, Field(ge=0, le=1024), INTEGRAL] = Field(
         train_config.TORCH_THREADS,
         description="torch threads in the training process (0: torch's default, one per core); "
@@ -186,6 +197,10 @@ class TrainingParams(BaseModel):
     def _distinct(self) -> TrainingParams:
         if len(set(self.candidates or ())) != len(self.candidates or ()):
             raise ValueError("candidates must not repeat a method")
+        if self.speed is not None and any(m not in ("cepg", "pg") for m in self.methods()):
+            raise ValueError("speed retrains CE-PG (cepg or pg) on travel times; the MARL baselines count steps")
+        if self.speed is not None and self.team_sizes:
+            raise ValueError("speed: teams for other sizes (team_sizes) are not trained on travel times yet")
         return self
 
     def hyperparameters_of(self, method: str) -> dict[str, int | float | bool]:
@@ -282,18 +297,37 @@ class _TrainingRun:
         self.graph = graph_from_dict(job["graph"], "server map")
         self.current = load_snapshot(job["current_path"], self.graph)
         self.sensor = self.current.sensor
+        self.clock = self._clock()
         self.t0 = time.perf_counter()
 
     def say(self, phase: str, **kw: Any) -> None:
         elapsed = round(time.perf_counter() - self.t0, 2)
         self.events.put({"type": "progress", "phase": phase, "elapsed_s": elapsed, **kw})
 
+    def _clock(self) -> Any:
+        """The run's travel times (``speed``, or the current version's), or None: steps."""
+        from shared.core.clock import TICK_S, TravelTimes
+
+        trained = self.current.clock
+        speed = self.speed = self.p.speed if self.p.speed is not None else (trained[0] if trained else None)
+        if speed is None:
+            return None
+        if trained is not None and abs(trained[1] - TICK_S) > 1e-9:
+            raise ValueError(f"the current version was trained with ticks of {trained[1]:g} s; the server's are 1 s")
+        if self.p.speed is None and any(m not in ("cepg", "pg") for m in self.p.methods()):
+            raise ValueError("the current version was trained on travel times, which only CE-PG (cepg, pg) trains on")
+        if self.p.speed is None and self.p.team_sizes:
+            raise ValueError("the current version was trained on travel times: team_sizes are not trained on them yet")
+        return TravelTimes.of(self.graph, speed, TICK_S)  # ValueError: the map has no edge lengths
+
+    def _on_clock(self, snap: Any) -> Any:
+        """A team to evaluate on the run's travel times: one trained in steps gets its model made a
+        tick's worth (shared/core/clock.py), one trained on the clock is as it is."""
+        if self.clock is None or snap.clock is not None:
+            return snap
+        return replace(snap, model=self.clock.model(snap.model))
+
     def run(self) -> dict[str, Any]:
-        if self.current.clock is not None:  # its model is per tick; EM, training and the gate here count steps
-            raise ValueError(
-                "the current version was trained on travel times (mures train --speed): the server retrains in "
-                "steps; retrain it with mures train --speed and publish it as a new --init-policy"
-            )
         for method in self.p.methods():  # a misnamed hyperparameter fails the run now, not after EM
             check_hyperparameters(method, self.p.hyperparameters_of(method))
         model, gate_model, em_info = self.models()
@@ -319,6 +353,7 @@ class _TrainingRun:
             "passed": passed,
             "enforced": self.p.gate,
             "model": f"EM on {em_info['held_out']} held-out missions" if em_info["held_out"] else "the uniform walk",
+            "unit": "steps" if self.clock is None else f"ticks of {self.clock.tick_s:g} s",
         }
         return {
             "metrics": {
@@ -365,9 +400,13 @@ class _TrainingRun:
         rows = read_episode_records(self.job["db"], self.job["fleet"], self.p.max_records)
         records = [json.loads(r) for r in rows]
         self.links = measured_links(records)
-        data = collect_missions(enumerate(records), self.graph, fleet=self.job["fleet"])
+        tick_s = None if self.clock is None else self.clock.tick_s  # on the clock: EM per tick from the times
+        data = collect_missions(enumerate(records), self.graph, fleet=self.job["fleet"], tick_s=tick_s)
         if len(data.length) == 0:
-            raise ValueError("no usable missions: fly some missions before training")
+            raise ValueError(
+                "no usable missions: fly some missions before training"
+                + (" (on the clock only records with times count)" if tick_s is not None else "")
+            )
         if data.impossible:
             self.say(
                 "em",
@@ -390,6 +429,8 @@ class _TrainingRun:
         est = self._em(fit, "on the missions fitted")
         gate_est = self._em(held, "on the missions held out") if len(held.length) else None
         gate_model = gate_est.model if gate_est is not None else uniform_walk(self.graph)
+        if gate_est is None and self.clock is not None:  # the prior per tick
+            gate_model = self.clock.model(gate_model)
         em_info = {
             "missions": len(fit.length),
             "held_out": len(held.length),
@@ -400,6 +441,7 @@ class _TrainingRun:
             "skipped": dict(data.skipped),
             "impossible_missions": data.impossible[:100],
             "prior": {"pseudo_count": self.p.em_pseudo_count, "b0_pseudo_count": self.p.em_b0_pseudo_count},
+            "per": "step" if self.clock is None else f"{self.clock.tick_s:g} s tick",
         }
         return est.model, gate_model, em_info
 
@@ -479,6 +521,7 @@ class _TrainingRun:
             self.folder,
             on_progress,
             self.stopping,
+            speed=self.speed,
         )
         if team is None:
             raise _Cancelled if self.cancel.is_set() else _Paused
@@ -505,7 +548,7 @@ class _TrainingRun:
 
         p, graph, sensor, N = self.p, self.graph, self.sensor, self.current.robots
         under = f"the model of {held} held-out missions" if held else "the uniform walk"
-        teams = {"current": self.current, **{m: t.snapshot for m, t in trained.items()}}
+        teams = {"current": self._on_clock(self.current), **{m: t.snapshot for m, t in trained.items()}}
         self.say("gate", message=f"evaluating {', '.join(teams)} on {p.gate_episodes} episodes under {under}")
         figures, times = {}, {}
         for name, snap in teams.items():
@@ -513,7 +556,9 @@ class _TrainingRun:
             def team(seed: int, snap: Any = snap) -> PolicySearcher:
                 return PolicySearcher(snap, graph, sensor, N, seed=seed)
 
-            r = evaluate(graph, gate_model, sensor, N, team, episodes=p.gate_episodes, seed=p.seed + 1)
+            r = evaluate(
+                graph, gate_model, sensor, N, team, episodes=p.gate_episodes, seed=p.seed + 1, clock=self.clock
+            )
             summary = r.summary()
             times[name] = np.asarray(r.capture_time, dtype=np.float64)
             figures[name] = {k: summary[k] for k in ("mean_capture_time", "ci95", "censored_fraction", "episodes")}
@@ -588,6 +633,15 @@ class _TrainingRun:
         p = self.p
         if p.team_searcher == "none":
             return {"team_searcher": "none", "decided_by": "parameter", "links": self.links}
+        if self.clock is not None:  # the engine's team flight counts steps: nothing to compare on the clock yet
+            kept = p.team_searcher if p.team_searcher != "auto" else (self.current.meta.get("team_searcher") or "none")
+            return {
+                "team_searcher": kept,
+                "decided_by": "parameter"
+                if p.team_searcher != "auto"
+                else "on travel times the team's plan is not compared in simulation: the current version's",
+                "links": self.links,
+            }
         loss = self.links["link_loss"] or 0.0
         self.say(
             "gate",
@@ -852,7 +906,7 @@ class Supervisor:
                 "failed",
                 "gated out",
                 metrics=result["metrics"],
-                error=f"evaluation gate: new policy {g['new']['mean_capture_time']:.2f} steps, "
+                error=f"evaluation gate: new policy {g['new']['mean_capture_time']:.2f} {g.get('unit', 'steps')}, "
                 f"current {g['current']['mean_capture_time']:.2f}; current policy kept",
             )
             log.info("training run %s did not pass the gate; version %s stays current", run_id, parent)

@@ -154,10 +154,12 @@ def train_team(
     folder: RunFolder,
     progress: Callable[[dict[str, Any]], None],
     should_stop: Callable[[], bool],
+    speed: float | None = None,
 ) -> TrainedTeam | None:
     """Train ``method``'s team for ``robots`` robots for ``episodes`` episodes in ``world`` (graph,
     the run's EM model, sensor), save it in ``folder`` and return it; None when stopped first
-    (a MARL team's checkpoint then holds where it was)."""
+    (a MARL team's checkpoint then holds where it was). ``speed``: CE-PG on the map's travel times,
+    the EM model being per tick."""
     from shared.learning.config import TrainConfig
     from shared.learning.team_snapshot import save_snapshot
 
@@ -179,9 +181,17 @@ def train_team(
             belief="true",
             seed=params.seed,
             hidden=current.policy.H if warm else None,
+            speed=speed,
         )
         res = train(
-            graph, model, sensor, cfg, init_policy=current if warm else None, progress=progress, should_stop=should_stop
+            graph,
+            model,
+            sensor,
+            cfg,
+            init_policy=current if warm else None,
+            progress=progress,
+            should_stop=should_stop,
+            models_per_tick=speed is not None,
         )
         config = {**cfg.to_dict(), "warm_start": bool(warm)}
         algorithm, beta_list = "cepg", cfg.per_robot(cfg.beta, "beta")

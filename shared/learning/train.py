@@ -98,14 +98,16 @@ def train(
     init_policy: Snapshot | None = None,
     progress: Callable[[dict[str, Any]], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
+    models_per_tick: bool = False,
 ) -> TrainResult:
     """Train a team (module docstring). ``target`` is the true model the simulator uses;
     ``init_model`` is Gamma_hat_0 (default I); ``init_policy`` warm-starts the networks.
 
     With ``cfg.speed`` the team trains on the mission clock (``clock_of``): moves take the graph's
-    travel times, ``target`` and ``init_model`` (models per step) are made a tick's worth, EM fits
-    Gamma_hat per tick from the missions' timestamped records, returns count ticks in units of
-    one step's worth of ticks, and the result's model is per tick.
+    travel times, ``target`` and ``init_model`` (models per step, unless ``models_per_tick``: the
+    server's EM fitted per tick) are made a tick's worth, EM fits Gamma_hat per tick from the
+    missions' timestamped records, returns count ticks in units of one step's worth of ticks, and
+    the result's model is per tick.
 
     ``progress`` gets a dict after every update; ``should_stop`` is polled after every update
     and ends training early with the last completed update (``interrupted``).
@@ -119,7 +121,7 @@ def train(
     policy = _initial_policy(graph, cfg, init_policy, device)
     opt = torch.optim.Adam(policy.parameters(), lr=float(lrs.max()))
     clock = clock_of(graph, cfg)
-    if clock is not None:  # the models per step made a tick's worth (Gamma_hat_0 = I stays I)
+    if clock is not None and not models_per_tick:  # the models per step made a tick's worth (I stays I)
         target = clock.model(target)
         init_model = None if init_model is None else clock.model(init_model)
     j_unit = cfg.j_unit * (1.0 if clock is None else clock.ticks_per_step)

@@ -39,14 +39,13 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
     graph_args = ["--env", args.env] if args.env else ["--graph", str(Path(args.graph).resolve())]
     if args.server and not (args.zenoh_connect and args.token_file):
         raise CliError("--server needs --zenoh-connect ENDPOINT and --token-file FILE (the operator token)")
-    retrain = {"episodes": args.retrain_episodes}
+    # every K missions: the server's floor of missions before a run (50) lowered to the K flown since the last
+    retrain: dict[str, Any] = {"episodes": args.retrain_episodes, "min_missions": max(1, args.retrain_every)}
     server_extra = ["--init-policy", str(Path(args.init_policy).resolve())] if args.init_policy else []
     if args.map_image:  # the server checks it against the graph, in one line, before the fleet starts
         if not args.graph:
             raise CliError("fleet-sim: --map-image goes with --graph (a graph made by `mures map import`)")
         server_extra += ["--map-image", str(Path(args.map_image).resolve())]
-    if args.init_policy:
-        load_snapshot(args.init_policy, graph)  # a clear error before anything starts
     if args.step_timeout <= 0:
         raise CliError("fleet-sim: --step-timeout must be more than 0 seconds")
     if args.max_steps is not None and args.kill:
@@ -58,6 +57,9 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         if not args.world:
             raise CliError("fleet-sim: --team-clock seconds goes with --world (the continuous world keeps the clock)")
         agent_extra += ["--team-clock", "seconds", "--speed", str(args.speed)]
+    init_clock = load_snapshot(args.init_policy, graph).clock if args.init_policy else None
+    if args.world and (args.team_clock == "seconds" or init_clock is not None):
+        retrain["speed"] = args.speed  # the fleet flies on the clock: retrain on the map's travel times
     continuous = {}
     if args.world:
         if args.step_delay:
@@ -239,7 +241,14 @@ def add_fleet_commands(sub: Any) -> None:
         action="store_true",
         help="then keep the fleet up for the operator console (http://HOST:PORT/) until Ctrl-C",
     )
-    p.add_argument("--retrain-every", type=int, default=0, metavar="K", help="retrain over HTTP every K missions")
+    p.add_argument(
+        "--retrain-every",
+        type=int,
+        default=0,
+        metavar="K",
+        help="retrain over HTTP every K missions, on the records of at least K missions (with --world on the "
+        "clock: on the map's travel times at --speed, EM per tick from the records' times)",
+    )
     p.add_argument("--retrain-episodes", type=positive_int, default=20_000, help="CE-PG episodes per retrain")
     p.add_argument(
         "--retrains", type=positive_int, default=None, metavar="R", help="retrain at most R times (default: no limit)"

@@ -32,6 +32,12 @@ def start_run(response: Response, srv: Srv, req: TrainingParams | None = None) -
             f"too little data to retrain: {usable} missions recorded, {params.min_missions} needed "
             f"({params.min_missions - usable} more); fly more missions (or lower min_missions)",
         )
+    if params.speed is not None and srv.graph.edge_lengths is None:
+        raise HTTPException(
+            409,
+            f"speed retrains on travel times, and the map {srv.graph.name} has no edge lengths: import it with "
+            "`mures map import` (edge_lengths_m)",
+        )
     run_id = f"run-{time.strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
     srv.store.add_run(run_id, params.model_dump())
     srv.supervisor.submit(run_id)
