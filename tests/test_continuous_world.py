@@ -151,3 +151,41 @@ def test_map_import_writes_what_each_nodes_robot_sees_as_the_graphs_sensing_tabl
         assert p in seen
         assert world.sees(np.full(depot.n, p), world.node_px).nonzero()[0].tolist() == sorted(seen.tolist())
     assert max(ptr[1:] - ptr[:-1]) > 1  # some robot sees a neighbouring area
+
+
+def test_a_lazy_target_or_a_model_files_target_walks_its_model_in_continuous_time(tmp_path):
+    """After each dwell the target draws its next node from the model's row: a lazy walk that
+    always stays never leaves, a model file's b0 says where it starts; the uniform walk keeps its
+    rule (a neighbour after each dwell). `mures evaluate --world --target lazy:STAY` flies it."""
+    import dataclasses
+    import subprocess
+    import sys
+
+    from shared.core.models import lazy_walk
+    from shared.world.continuous import Targets
+
+    grid, graph = _two_rooms(tmp_path)
+    world = building(grid, graph, sensor_range_m=4.0)
+    rng = np.random.default_rng(0)
+    still = dataclasses.replace(lazy_walk(graph, 1.0), b0=np.eye(graph.n)[1])
+    targets = Targets.start(world, 5, rng, 2.0, still)
+    assert targets.at.tolist() == [1] * 5
+    for _ in range(600):  # a minute of dwells, each drawing its own node again
+        targets.advance(world, 0.1, np.ones(5, dtype=bool), rng, 0.5, 2.0, still)
+    assert targets.at.tolist() == [1] * 5 and (targets.edge == -1).all()
+    walking, set_off = Targets.start(world, 5, rng, 2.0), np.zeros(5, dtype=bool)
+    for _ in range(600):
+        walking.advance(world, 0.1, np.ones(5, dtype=bool), rng, 0.5, 2.0)
+        set_off |= walking.edge >= 0
+    assert set_off.all()  # the uniform walk sets off after every dwell
+    graph_file = tmp_path / "g.json"
+    mures = [sys.executable, "-m", "shared.tools.cli"]
+    made = subprocess.run([*mures, "map", "import", str(tmp_path / "m.yaml"), "--out", str(graph_file),
+                           "--max-region-m", "10"], capture_output=True, text=True)  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    r = subprocess.run([*mures, "evaluate", "--graph", str(graph_file), "--world", str(tmp_path / "m.yaml"),
+                        "--robots", "2", "--searcher", "fhpe-sa", "--episodes", "20", "--target", "lazy:0.5",
+                        "--json"], capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["continuous"]["target"] == "lazy-walk:0.5" and out["captured_fraction"] == 1.0

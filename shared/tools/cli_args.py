@@ -146,8 +146,7 @@ def number_between(lo: float, hi: float) -> Callable[[str], float]:
 
 def building_of(args: argparse.Namespace, graph: Graph) -> Any:
     """``--world MAP.yaml``'s Building for ``graph`` (shared/world/continuous.py), or a CliError:
-    --world without --graph, a target model other than the uniform walk, a graph imported from
-    another map, a map the graph's poses do not fit."""
+    --world without --graph, a graph imported from another map, a map the graph's poses do not fit."""
     import json
     from pathlib import Path
 
@@ -156,8 +155,6 @@ def building_of(args: argparse.Namespace, graph: Graph) -> Any:
 
     if not getattr(args, "graph", None):
         raise CliError("--world goes with --graph: the graph `mures map import` made from that map")
-    if args.target != "uniform":
-        raise CliError("--world's target is the uniform walk in continuous time (--target-dwell, --target-speed)")
     source = json.loads(Path(args.graph).read_text(encoding="utf-8")).get("source") or {}
     try:
         grid = read_map(args.world)

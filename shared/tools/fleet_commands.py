@@ -64,7 +64,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
     if args.world:
         if args.step_delay:
             raise CliError("fleet-sim: --step-delay is the step world's; --world moves robots at --speed")
-        continuous = {"building": building_of(args, graph), "motion": motion_of(args)}
+        continuous = {"building": building_of(args, graph), "motion": motion_of(args, target)}
     try:
         res = run_fleet_sim(
             graph,
@@ -186,7 +186,7 @@ def cmd_world(args: argparse.Namespace) -> int:
     if building is not None:
         from shared.tools.timed_world import TimedWorld
 
-        world: World = TimedWorld(session, args.fleet, building, sensor, motion_of(args), args.step_timeout)
+        world: World = TimedWorld(session, args.fleet, building, sensor, motion_of(args, target), args.step_timeout)
     else:
         world = World(
             session, args.fleet, graph, target, sensor, step_timeout=args.step_timeout, step_delay=args.step_delay
@@ -218,8 +218,9 @@ CONTINUOUS_ABOUT = (
 )
 
 
-def motion_of(args: argparse.Namespace) -> Any:
-    """The continuous world's Motion from the command's flags."""
+def motion_of(args: argparse.Namespace, target: Any) -> Any:
+    """The continuous world's Motion from the command's flags; ``target``: --target's model, which
+    decides where the target goes after each dwell unless it is the uniform walk."""
     from shared.tools.timed_world import Motion
 
     return Motion(
@@ -228,6 +229,7 @@ def motion_of(args: argparse.Namespace) -> Any:
         stay_s=args.stay_seconds,
         target_speed=args.target_speed,
         target_dwell_s=args.target_dwell,
+        target=None if args.target == "uniform" else target,
     )
 
 

@@ -207,7 +207,7 @@ def _evaluate_continuous(args: argparse.Namespace) -> int:
             f"--world flies {', '.join(SEARCHERS)} (the trained policies fly in it as agents: `mures fleet-sim "
             f"--world`), got {args.searcher!r}"
         )
-    graph, _target, sensor = world_of(args)
+    graph, target, sensor = world_of(args)
     world = building_of(args, graph)
     flight = fly(
         world,
@@ -221,6 +221,7 @@ def _evaluate_continuous(args: argparse.Namespace) -> int:
         target_dwell_s=args.target_dwell,
         max_s=args.max_seconds,
         seed=args.seed,
+        target_model=None if args.target == "uniform" else target,
     )
     mean, half = mean_ci95(flight.capture_s)
     summary = {
@@ -237,6 +238,7 @@ def _evaluate_continuous(args: argparse.Namespace) -> int:
             "sensor_range_m": args.range,
             "target_speed_m_s": args.target_speed,
             "target_dwell_s": args.target_dwell,
+            "target": target.kind,
             "max_seconds": args.max_seconds,
         },
         "episodes": args.episodes,

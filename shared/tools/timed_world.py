@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from shared.core.models import Sensor, uniform_walk
+from shared.core.models import Sensor, TargetModel, uniform_walk
 from shared.tools.world import World, _Mission
 from shared.world.continuous import Building, Targets
 
@@ -59,6 +59,7 @@ class Motion:
     target_speed: float = 0.5
     target_dwell_s: float = 10.0
     dt: float = 0.1
+    target: TargetModel | None = None  # where the target goes after a dwell (per step); None: the uniform walk
 
 
 @dataclass
@@ -92,7 +93,8 @@ class TimedWorld(World):
         shortest = min(float(building.length_m.min()) / self.motion.speed, self.motion.stay_s)
         # a robot answered at T reports its next reading at T + a move at the earliest (half that with speed noise)
         self.together_s = min(TOGETHER_S, shortest / (4 if self.motion.speed_cv else 2))
-        super().__init__(session, fleet, building.graph, uniform_walk(building.graph), sensor, step_timeout)
+        target = self.motion.target or uniform_walk(building.graph)
+        super().__init__(session, fleet, building.graph, target, sensor, step_timeout)
 
     # ------------------------------------------------------------------ hooks of World
     def _new_mission(self, msg: dict[str, Any]) -> _Mission:
@@ -100,7 +102,7 @@ class TimedWorld(World):
         rng = np.random.default_rng(seed)  # the readings'
         target_rng = np.random.default_rng([seed, 1 << 32])  # the target's own: its path is the seed's alone
         robots = list(msg.get("robots") or [])
-        targets = Targets.start(self.building, 1, target_rng, self.motion.target_dwell_s)
+        targets = Targets.start(self.building, 1, target_rng, self.motion.target_dwell_s, self.motion.target)
         m = _TimedMission(
             robots=robots,
             rng=rng,
@@ -166,6 +168,7 @@ class TimedWorld(World):
                     m.target_rng,
                     self.motion.target_speed,
                     self.motion.target_dwell_s,
+                    self.motion.target,
                 )
                 m.now_s += self.motion.dt
             t = m.next_t[robot]

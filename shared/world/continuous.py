@@ -45,7 +45,7 @@ from shared.core.belief_filter import TINY, BeliefFilter
 from shared.core.clock import TICK_S, tick_model
 from shared.core.fhpe_sa import HORIZON, FhpeSAPlanner
 from shared.core.graph import Graph
-from shared.core.models import Sensor, uniform_walk
+from shared.core.models import Sensor, TargetModel, uniform_walk
 from shared.floorplan.occupancy import MapError, OccupancyGrid
 from shared.floorplan.sight import view
 from shared.floorplan.travel import path_length_px, window_path
@@ -149,17 +149,30 @@ class Targets:
     left: np.ndarray
 
     @classmethod
-    def start(cls, world: Building, b: int, rng: np.random.Generator, dwell_s: float) -> Targets:
-        """B targets on nodes drawn uniformly (b0), each dwelling an exponential time of mean ``dwell_s``."""
-        at = rng.integers(0, world.graph.n, size=b)
+    def start(
+        cls, world: Building, b: int, rng: np.random.Generator, dwell_s: float, model: TargetModel | None = None
+    ) -> Targets:
+        """B targets on nodes drawn from b0 (uniformly without a ``model``), each dwelling an
+        exponential time of mean ``dwell_s``."""
+        n = world.graph.n
+        at = rng.integers(0, n, size=b) if model is None else rng.choice(n, size=b, p=model.b0 / model.b0.sum())
         return cls(at, np.full(b, -1), np.zeros(b), rng.exponential(dwell_s, size=b))
 
     def advance(
-        self, world: Building, dt: float, moving: np.ndarray, rng: np.random.Generator, speed: float, dwell_s: float
+        self,
+        world: Building,
+        dt: float,
+        moving: np.ndarray,
+        rng: np.random.Generator,
+        speed: float,
+        dwell_s: float,
+        model: TargetModel | None = None,
     ) -> None:
         """One tick of ``dt`` seconds for the targets where ``moving`` (B,) bool: a walking target
         goes on (arriving: it dwells anew), a dwelling one waits, and one whose dwell is over sets
-        off to a uniformly drawn neighbour (one with no neighbour dwells again)."""
+        off to a uniformly drawn neighbour (one with no neighbour dwells again): the uniform walk
+        in continuous time. With a ``model`` (a lazy walk, a model file; per step) the next node is
+        drawn from Gamma_hat's row instead, and drawing its own node means another dwell."""
         g = world.graph
         walking = (self.edge >= 0) & moving
         self.prog[walking] += speed * dt
@@ -171,7 +184,11 @@ class Targets:
         self.left[dwelling] -= dt
         for b in np.flatnonzero(dwelling & (self.left <= 0)):
             u = int(self.at[b])
-            v = int(g.nbr[u, 1 + rng.integers(0, g.deg_closed[u] - 1)]) if g.deg_closed[u] > 1 else u
+            if model is not None:
+                row = model.src == u
+                v = int(rng.choice(model.dst[row], p=model.prob[row] / model.prob[row].sum()))
+            else:
+                v = int(g.nbr[u, 1 + rng.integers(0, g.deg_closed[u] - 1)]) if g.deg_closed[u] > 1 else u
             self.edge[b] = world.edge_of.get((u, v), -1)
             if self.edge[b] < 0:
                 self.left[b] = rng.exponential(dwell_s)
@@ -213,29 +230,33 @@ def fly(
     max_s: float = 1800.0,
     seed: int = 0,
     time_discount: bool = False,
+    target_model: TargetModel | None = None,
 ) -> Flight:
-    """B = ``missions`` missions of ``robots`` robots with ``searcher`` (``SEARCHERS``)."""
+    """B = ``missions`` missions of ``robots`` robots with ``searcher`` (``SEARCHERS``). The target
+    walks the uniform walk in continuous time, or ``target_model`` (``Targets``), which greedy's
+    beliefs and the fhpe-sa plan then use."""
     if searcher not in SEARCHERS:
         raise ValueError(f"searcher must be one of {', '.join(SEARCHERS)}, got {searcher!r}")
     g, b_n, r_n = world.graph, missions, robots
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    gamma = uniform_walk(g).dense()  # the step model's Gamma, for the greedy robots' beliefs
+    model = target_model or uniform_walk(g)
+    gamma = model.dense()  # the step model's Gamma, for the greedy robots' beliefs
     (in0, in1), (out0, out1) = sensor.likelihoods()
-    target = Targets.start(world, b_n, rng, target_dwell_s)
+    target = Targets.start(world, b_n, rng, target_dwell_s, target_model)
     # the robots: heading to (or on) r_at, arriving in r_left seconds; their beliefs (greedy)
     r_at = np.full((b_n, r_n), g.start)
     r_left = np.zeros((b_n, r_n))
-    belief = np.full((b_n, r_n, g.n), 1.0 / g.n)
+    belief = np.tile(model.b0 / model.b0.sum(), (b_n, r_n, 1))
     plan = Sweep(world, r_n) if searcher == "sweep" else None
-    team = TeamPlan(world, r_n, b_n, sensor, speed, dwell_s, time_discount) if searcher == "fhpe-sa" else None
+    team = TeamPlan(world, r_n, b_n, sensor, speed, dwell_s, time_discount, model) if searcher == "fhpe-sa" else None
     waypoint = np.zeros((b_n, r_n), dtype=np.int64)  # (sweep) the index of each robot's next waypoint
     done = np.zeros(b_n, dtype=bool)
     capture_s = np.full(b_n, max_s)
     decisions = ticks = 0
     now = 0.0
     while now < max_s and not done.all():
-        target.advance(world, dt, ~done, rng, target_speed, target_dwell_s)
+        target.advance(world, dt, ~done, rng, target_speed, target_dwell_s, target_model)
         if team is not None:
             team.predict_to(now)
         # the robots that reach a node now: sense, then decide and go on
@@ -278,10 +299,11 @@ class TeamPlan:
         speed: float,
         stay_s: float,
         time_discount: bool,
+        model: TargetModel | None = None,
         tick_s: float = TICK_S,
     ) -> None:
         g = world.graph
-        model = uniform_walk(g)
+        model = model or uniform_walk(g)
         self.step_s = float(np.median(world.length_m)) / speed  # a step of the model: the median move
         self.gamma_tick = tick_model(model, self.step_s, tick_s).dense()
         steps = None
