@@ -115,3 +115,46 @@ def test_filter_on_a_large_grid_stays_normalised():
     for p in range(1, 50):
         b = f.update(p, 0)
     assert b.sum() == pytest.approx(1.0) and b.min() >= 0
+
+
+@pytest.mark.parametrize("detection", ["node", "neighbourhood"])
+def test_sparse_beliefs_agree_with_dense_ones(detection):
+    """Above SPARSE_FROM_NODES the engine keeps Gamma_hat on its support and Lambda as D(p): the
+    same algebra as the dense matrices, to float32 rounding."""
+    from shared.core.graph import builtin_graph
+
+    graph = builtin_graph("museum")
+    model = lazy_walk(graph, 0.3)
+    gen = torch.Generator().manual_seed(0)
+    for sensor in (Sensor(detection=detection), Sensor(eta_fn=0.1, eta_fp=0.05, detection=detection)):
+        dense, sparse = (BatchedBelief(graph, model, sensor, sparse=s) for s in (False, True))
+        assert dense.gamma is not None and sparse.gamma is None
+        pos = torch.randint(0, graph.n, (7, 3), generator=gen)
+        z = torch.rand(7, 3, generator=gen) < 0.3
+        b = torch.softmax(torch.rand(7, 3, graph.n, generator=gen), -1)
+        torch.testing.assert_close(sparse.likelihood(pos, z), dense.likelihood(pos, z), rtol=0, atol=0)
+        torch.testing.assert_close(sparse.predict(b), dense.predict(b))
+        lik = dense.likelihood(pos, z)
+        torch.testing.assert_close(sparse.update(b, lik), dense.update(b, lik))
+        np.testing.assert_allclose(sparse.model(graph, "m").dense(), dense.model(graph, "m").dense(), atol=1e-7)
+
+
+def test_a_ten_thousand_node_floor_runs_in_the_engine_without_an_n_by_n_array():
+    from shared.core.graph import office_graph
+    from shared.engine.searchers import GreedySearcher
+    from shared.engine.sim import SearchSim
+
+    graph = office_graph(10_000, seed=0)
+    model, sensor = lazy_walk(graph, 0.5), Sensor()
+    sim = SearchSim(graph, model, sensor, 2, 4, seed=0, auto_reset=False)
+    greedy = GreedySearcher(graph, model, sensor, seed=0)
+    assert greedy.beliefs.belief.sparse
+    obs = sim.reset()
+    for _ in range(30):
+        obs, _res = sim.step(greedy.act(obs))
+    b = greedy.beliefs._pred
+    assert b is not None and b.shape == (4, 2, graph.n)
+    torch.testing.assert_close(b.sum(-1), torch.ones(4, 2))
+    for holder in (sim, greedy.beliefs.belief):
+        big = [k for k, v in vars(holder).items() if isinstance(v, torch.Tensor) and v.numel() >= graph.n**2 // 100]
+        assert not big, big  # nothing of O(n^2) size (the largest table here is O(n + m))

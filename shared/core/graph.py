@@ -24,8 +24,9 @@ from shared.core.choices import BUILTIN_MAPS
 
 MAX_NODES = 100_000  # the agent's filter is sparse, O(n + m) a step: large maps are fine there
 MAX_EDGES = 1_000_000
-# The engine (simulator, trainer, planners, model files) holds dense (n, n) arrays: at n = 5,000
-# one float64 matrix is 200 MB. Asking for one on a larger map is refused with the limit named.
+# EM, the trainer's networks, the planners and model files hold dense (n, n) arrays: at n = 5,000
+# one float64 matrix is 200 MB. Asking for one on a larger map is refused with the limit named (the
+# simulator and the batched beliefs are sparse above 512 nodes and need none).
 DENSE_MAX_NODES = 5_000
 MAX_LABEL = 2**63 - 1  # labels are stored as int64
 
@@ -163,6 +164,15 @@ class Graph:
             np.cumsum([len(s) for s in sets], out=ptr[1:])
             return ptr, np.array([j for s in sets for j in s], dtype=np.int64)
         raise GraphError(f"unknown detection {detection!r} (expected node, neighbourhood or custom)")
+
+    def detection_table(self, detection: str) -> np.ndarray:
+        """(n, d) int64: D(p) (``detection_sets``) as a table padded by repeating each set's first
+        member, d its largest set: O(n d) where the matrix is O(n^2)."""
+        ptr, idx = self.detection_sets(detection)
+        sizes = np.diff(ptr)
+        table = np.repeat(idx[ptr[:-1]][:, None], int(sizes.max()), axis=1)
+        table[np.repeat(np.arange(self.n), sizes), np.arange(len(idx)) - np.repeat(ptr[:-1], sizes)] = idx
+        return table
 
     def detection_matrix(self, detection: str) -> np.ndarray:
         """(n, n) bool: [p, v] is True iff v is in D(p) (the CSR of ``detection_sets`` as a matrix)."""
@@ -364,3 +374,42 @@ def grid_graph(width: int, height: int, name: str | None = None) -> Graph:
             if y + 1 < height:
                 edges.append([k, k + width])
     return graph_from_dict({"name": name or f"grid{width}x{height}", "nodes": labels, "edges": edges})
+
+
+def office_graph(n: int, seed: int = 0) -> Graph:
+    """An office-like floor of exactly ``n`` nodes (n >= 2), for benchmarks and tests at any size: two
+    parallel corridors joined every tenth corridor node (the loops), one or two rooms off each
+    corridor node and an inner room behind one room in five, grown corridor node by corridor node
+    until n nodes (the seed draws the rooms). Start: the first corridor's first node, label 0."""
+    if n < 2:
+        raise GraphError(f"an office floor needs at least 2 nodes, got {n}")
+    rng = np.random.default_rng(seed)
+    edges: list[list[int]] = []
+    count = 0
+
+    def add(attach: int | None) -> int | None:
+        nonlocal count
+        if count >= n:
+            return None
+        k, count = count, count + 1
+        if attach is not None:
+            edges.append([attach, k])
+        return k
+
+    prev: list[int | None] = [None, None]
+    i = 0
+    while count < n:
+        a = add(prev[0])
+        b = add(prev[1] if prev[1] is not None else a)  # the second corridor starts joined to the first
+        if a is not None and b is not None and i % 10 == 0 and i > 0:
+            edges.append([a, b])  # a loop between the corridors
+        for corridor in (a, b):
+            for _ in range(int(rng.integers(1, 3))):
+                room = add(corridor) if corridor is not None else None
+                if room is not None and rng.random() < 0.2:
+                    add(room)  # an inner room
+        prev = [a, b]
+        i += 1
+    return graph_from_dict(
+        {"name": f"office{n}-{seed}", "nodes": list(range(n)), "edges": edges, "start_node": 0}, source="office_graph"
+    )

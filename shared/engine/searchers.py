@@ -75,16 +75,15 @@ class GreedySearcher:
         self.device = torch.device(device)
         self.tab = _Neighbourhoods(graph, self.device)
         self.beliefs = BeliefTracker(BatchedBelief(graph, model, sensor, self.device))
-        # on the clock (``model`` per tick) the mass is predicted a move's worth of ticks ahead: (Gamma^k)^T b
-        self.ahead = None if lookahead == 1 else torch.linalg.matrix_power(self.beliefs.belief.gamma, lookahead)
+        self.lookahead = lookahead  # on the clock (``model`` per tick): a move's worth of ticks ahead, (Gamma^k)^T b
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(seed)
 
     def act(self, obs: Obs) -> torch.Tensor:
         lik = self.beliefs.belief.likelihood(obs.pos, obs.z, obs.ready)  # (B, N, n); in transit: no reading
-        b, pred = self.beliefs.update(lik, obs.new)  # pred (B, N, n): (Gamma^T b_t)(v), own beliefs
-        if self.ahead is not None:
-            pred = b @ self.ahead
+        _b, pred = self.beliefs.update(lik, obs.new)  # pred (B, N, n): (Gamma^T b_t)(v), own beliefs
+        for _ in range(self.lookahead - 1):
+            pred = self.beliefs.belief.predict(pred)
         cand = self.tab.nbr[obs.pos]  # (B, N, d)
         valid = self.tab.valid[obs.pos]
         mass = torch.gather(pred, 2, cand).masked_fill(~valid, -1.0)

@@ -109,8 +109,9 @@ class SearchSim:
         # graph tables
         self.nbr = torch.as_tensor(graph.nbr, device=dev)  # (n, d) N[p], padded with p
         self.deg = torch.as_tensor(graph.deg_closed, device=dev)  # (n,)
-        self.adj = torch.as_tensor(graph.closed_adjacency, device=dev)  # (n, n)
-        self.detect = torch.as_tensor(graph.detection_matrix(sensor.detection), device=dev)  # [p, e]: e in D(p)
+        # D(p) padded to (n, d) (shared/core/graph.py detection_table): e in D(p) is one row compare,
+        # and nothing here is (n, n), so maps of 10^4 nodes fit
+        self.dsets = torch.as_tensor(graph.detection_table(sensor.detection), device=dev)
         # target sampling: per source row, destinations and cumulative probabilities
         counts = np.bincount(target.src, minlength=graph.n)
         k = int(counts.max())
@@ -138,7 +139,7 @@ class SearchSim:
             ticks = np.asarray(move_ticks)
             if ticks.shape != (graph.n, graph.n):
                 raise ValueError(f"move_ticks: expected an (n, n) = ({graph.n}, {graph.n}) table, got {ticks.shape}")
-            if (ticks[graph.closed_adjacency] < 1).any():
+            if (ticks[np.repeat(np.arange(graph.n), graph.deg_closed), graph.closed_idx] < 1).any():
                 raise ValueError("move_ticks: every move of N[p] must take at least 1 tick")
             self.move_ticks = torch.as_tensor(ticks, dtype=torch.long, device=dev)
         drop = [NEVER if w is None else int(w) for w in (withdraw_at or [None] * n_robots)]
@@ -196,9 +197,7 @@ class SearchSim:
 
     def _observe(self) -> tuple[torch.Tensor, torch.Tensor]:
         """z (B, N) and in_D (B, N) for the current positions and target (sensor of docs/SPEC.md section 1)."""
-        # detect[p, e] for each robot's p and its episode's e, as one gather from the flat table
-        flat = (self.pos * self.n + self.target.unsqueeze(1)).reshape(-1)
-        in_d = self.detect.view(-1).index_select(0, flat).view(self.B, self.N)
+        in_d = (self.dsets[self.pos] == self.target.view(-1, 1, 1)).any(-1)  # (B, N): e in D(p)
         reading = self.active if not self.timed else self.active & self.ready  # robots that read z now
         if self.withdrawals or self.timed:
             in_d = in_d & reading
@@ -268,8 +267,9 @@ class SearchSim:
         if self.timed:
             deciding = deciding & self.ready
         act = torch.where(deciding, actions, self.pos)
-        if self.check_actions and not bool(self.adj[self.pos, act].all()):
-            bad = (~self.adj[self.pos, act]).nonzero()[0]
+        allowed = (self.nbr[self.pos] == act.unsqueeze(-1)).any(-1) if self.check_actions else None  # a in N[p]
+        if allowed is not None and not bool(allowed.all()):
+            bad = (~allowed).nonzero()[0]
             b, i = int(bad[0]), int(bad[1])
             raise ValueError(
                 f"episode slot {b}, robot {i}: action to node {self.graph.labels[int(act[b, i])]} "

@@ -311,10 +311,7 @@ def _check_replicas_agree(policy: TeamPolicy) -> None:
 
 def belief_model(graph: Graph, belief: BatchedBelief, kind: str) -> TargetModel:
     """The BatchedBelief's current (Gamma_hat, b0) as a TargetModel."""
-    g = belief.gamma.double().cpu().numpy()
-    g = g / g.sum(1, keepdims=True)
-    b0 = belief.b0.double().cpu().numpy()
-    return from_matrix(graph, g, b0 / b0.sum(), kind=kind)
+    return belief.model(graph, kind)
 
 
 @torch.no_grad()
@@ -371,8 +368,11 @@ def em_update(
     if world > 1:
         dist.broadcast(gamma, 0)
         dist.broadcast(b0, 0)
-    belief.gamma = gamma.to(device=device, dtype=belief.dtype)
-    belief.b0 = b0.to(device=device, dtype=belief.dtype)
+    if belief.sparse:
+        belief.set_model(from_matrix(graph, gamma.numpy(), b0.numpy(), kind="em"))
+    else:  # the estimate's float64 values as they are, cast once
+        belief.gamma = gamma.to(device=device, dtype=belief.dtype)
+        belief.b0 = b0.to(device=device, dtype=belief.dtype)
     info["seconds"] = round(time.perf_counter() - t0, 3)
     info.setdefault("kind", "em")
     return info

@@ -121,7 +121,7 @@ class WorldModel:
             logits = self.net(torch.nn.functional.one_hot(e, n).float())  # (K, M, n)
             probs = torch.softmax(logits[member, torch.arange(len(e), device=e.device)], -1)
             e_next = torch.multinomial(probs, 1, generator=self.gen).squeeze(1)
-            in_d = core.sim.detect[pos_next, e_next.unsqueeze(1)]  # (M, N)
+            in_d = (core.sim.dsets[pos_next] == e_next.view(-1, 1, 1)).any(-1)  # (M, N): e in D(p)
             u = torch.rand(in_d.shape, generator=self.gen, device=in_d.device)
             sensor = core.scenario.sensor
             z = torch.where(in_d, u >= sensor.eta_fn, u < sensor.eta_fp)
