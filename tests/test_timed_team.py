@@ -161,14 +161,18 @@ def test_a_record_carries_the_clock_of_every_reading_or_of_none():
 
 def test_a_version_trained_on_the_clock_keeps_its_model_per_tick_and_its_own_belief_predicts_each_tick():
     graph = builtin_graph("office")
+    graph = dataclasses.replace(graph, edge_lengths=np.full(graph.m, 4.0))  # a step of 8 s at 0.5 m/s
     step_snap = _snapshot(graph, 3)
     per_tick = tick_model(step_snap.model, step_s=8.0)
     clock_snap = dataclasses.replace(step_snap, model=per_tick, meta={**step_snap.meta, "training": {"speed": 0.5}})
     assert clock_snap.clock == (0.5, 1.0) and step_snap.clock is None
     on_clock = TimedTeamAgent(clock_snap, graph, ROBOTS, "r1", seed=7, searcher="fhpe-sa", step_s=8.0)
     of_steps = TimedTeamAgent(step_snap, graph, ROBOTS, "r1", seed=7, searcher="fhpe-sa", step_s=8.0)
-    # the same team plan's model either way: converted once, never twice
+    # the same team plan's model either way: converted once, never twice; FHPE-SA, which moves once
+    # a step, plans on the model made a step's worth again
     np.testing.assert_allclose(on_clock.collective._filter._prob, of_steps.collective._filter._prob)
+    np.testing.assert_allclose(on_clock.planner.gamma_dense, step_snap.model.dense(), atol=1e-12)
+    np.testing.assert_allclose(of_steps.planner.gamma_dense, step_snap.model.dense())
     nxt = int(graph.nbr[graph.start, 1])
     for agent in (on_clock, of_steps):
         agent.observe_at("r1", 0, graph.start, 0, 0.0)

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from shared.core.clock import TravelTimes, move_ticks
+from shared.core.clock import TravelTimes, move_ticks, step_model, tick_model
 from shared.core.graph import builtin_graph, graph_from_dict
-from shared.core.models import Sensor, uniform_walk
+from shared.core.models import Sensor, lazy_walk, uniform_walk
 from shared.core.records import parse_record
 from shared.engine.estimate import collect_missions
 from shared.engine.evaluate import episode_records, evaluate
@@ -48,6 +48,11 @@ def test_move_ticks_round_each_edge_to_whole_ticks_and_refuse_a_graph_without_le
     assert ticks[0, 0] == ticks[2, 2] == 1 and ticks[0, 2] == 0  # a stay one tick, no edge none
     with pytest.raises(ValueError, match="no edge lengths"):
         move_ticks(builtin_graph("office"), 0.5)
+    fast = lazy_walk(g, 0.5)  # per tick, faster than any step of 8 ticks made a tick's worth
+    made = step_model(fast, step_s=8.0)
+    assert (made.prob >= 0).all() and np.allclose(np.bincount(made.src, weights=made.prob), 1.0)
+    assert made.prob[made.src == made.dst].max() == 0.0  # the stay clipped: it always moves
+    np.testing.assert_allclose(step_model(tick_model(fast, 8.0), 8.0).prob, fast.prob)  # the inverse
     clock = TravelTimes.of(g, 0.5, 1.0)
     assert clock.step_s == pytest.approx(np.median([2.6, 0.2]) / 0.5) and clock.t_max(g.n) == 3 * 3 * 3
 

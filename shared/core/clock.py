@@ -38,6 +38,18 @@ def tick_model(model: TargetModel, step_s: float, tick_s: float = TICK_S) -> Tar
     return TargetModel(model.n, model.src, model.dst, prob, model.b0, f"{model.kind} per {tick_s:g} s tick")
 
 
+def step_model(model: TargetModel, step_s: float, tick_s: float = TICK_S) -> TargetModel:
+    """A model per tick made a step's worth, the inverse of ``tick_model``: Gamma_step = I + (step_s /
+    tick_s)(Gamma_tick - I), where a row's stay would fall below 0 it is clipped to 0 and the row
+    renormalised (a model per tick learned by EM can move faster than uniformization allows). What
+    a planner that moves once a step (FHPE-SA) needs from a team trained on the clock."""
+    r = max(1.0, step_s / tick_s)
+    stay = model.src == model.dst
+    prob = np.clip(r * model.prob + (1.0 - r) * stay, 0.0, None)
+    prob = prob / np.bincount(model.src, weights=prob, minlength=model.n)[model.src]
+    return TargetModel(model.n, model.src, model.dst, prob, model.b0, f"{model.kind} per {step_s:.3g} s step")
+
+
 def move_ticks(graph: Graph, speed: float, tick_s: float = TICK_S) -> np.ndarray:
     """(n, n) int64: the ticks each move of N[p] takes at ``speed`` m/s, its edge's length over the
     speed rounded to whole ticks and at least one (a stay: one tick); 0 where a is not in N[p].

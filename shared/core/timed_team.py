@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from shared.core.clock import TICK_S, tick_model
+from shared.core.clock import TICK_S, move_seconds, step_model, tick_model
+from shared.core.fhpe_sa import HORIZON, FhpeSAPlanner
 from shared.core.graph import Graph
 from shared.core.snapshot_format import SnapshotData
 from shared.core.team import CollectiveBelief, TeamAgent
@@ -58,6 +59,11 @@ class TimedTeamAgent(TeamAgent):
         timeout_s: float = TIMEOUT_S,
         **kw: Any,
     ) -> None:
+        if snap.clock is not None and searcher == "fhpe-sa" and kw.get("planner") is None:
+            # FHPE-SA moves once a step: a version trained on the clock gives it its model a step's worth
+            trained_step_s = move_seconds(graph, snap.clock[0])  # a step at the speed it was trained at
+            plan_model = kw.get("team_model") or step_model(snap.model, trained_step_s, snap.clock[1])
+            kw["planner"] = FhpeSAPlanner(graph, plan_model, snap.sensor, HORIZON)
         super().__init__(snap, graph, robots, me, seed, searcher, **kw)
         self.tick_s, self.step_s, self.timeout_s = tick_s, step_s, timeout_s
         # a team trained on the clock (`mures train --speed`) has its model per tick already, and its
