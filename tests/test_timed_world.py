@@ -211,7 +211,6 @@ def test_world_flags_that_do_not_fit_are_refused_in_one_line(tmp_path):
     for args, says in (
         (["--env", "office", "--world", str(depot)], "--world goes with --graph"),
         (["--graph", str(graph_file), "--world", str(NAV2 / "warehouse.yaml")], "was not imported from"),
-        (["--graph", str(graph_file), "--world", str(depot), "--target", "lazy:0.5"], "uniform walk"),
         (["--graph", str(graph_file), "--world", str(depot), "--step-delay", "1"], "--step-delay"),
     ):
         for command in ("fleet-sim", "world"):
