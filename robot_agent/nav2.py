@@ -21,6 +21,12 @@ no result within ``--nav2-goal-timeout`` (the goal is then cancelled), it stays 
 legal move: staying), and the agent's log says why. A robot that does not answer a goal or a pose
 within ``--nav2-answer-timeout`` is down: the mission ends for it with that reason (BackendError).
 ``detect`` is 1 when the detector published true since the last reading.
+
+``clock`` (the agent's mission clock, docs/deploying.md "Clocks") reads the robot's own: the
+header stamp of its latest pose, in seconds since the pose it began the mission on. So arrivals and
+detections are timed by the robot, under ROS simulated time (``use_sim_time``) too, where the
+robot's seconds are not the agent's; a robot whose poses carry no stamp (all zero) leaves the agent
+its own clock (None).
 """
 
 from __future__ import annotations
@@ -71,6 +77,8 @@ class Nav2Backend:
         detection_topic = getattr(args, "nav2_detection_topic", None) or "detection"
         self.lock = threading.Lock()
         self.pose: tuple[float, float] | None = None
+        self.stamp_s = 0.0  # the latest pose's header stamp, the robot's clock (0: none)
+        self.zero_s: float | None = None  # the stamp the mission began on
         self.detected = False
         self.node = -1
         self.regions = load_regions(getattr(args, "nav2_regions", None), getattr(args, "nav2_map", None))
@@ -80,12 +88,14 @@ class Nav2Backend:
     # callbacks: decode and keep, no Zenoh call (docs/zenoh.md)
     def _on_pose(self, sample: Any) -> None:
         try:
-            p = msg.PoseWithCovarianceStamped.deserialize(bytes(sample.payload.to_bytes())).pose.pose.position
+            m = msg.PoseWithCovarianceStamped.deserialize(bytes(sample.payload.to_bytes()))
         except Exception as exc:
             log.warning("nav2: a pose that is no PoseWithCovarianceStamped: %s", exc)
             return
+        p, stamp = m.pose.pose.position, m.header.stamp
         with self.lock:
             self.pose = (p.x, p.y)
+            self.stamp_s = max(self.stamp_s, stamp.sec + stamp.nanosec * 1e-9)  # a late pose never turns it back
 
     def _on_detection(self, sample: Any) -> None:
         try:
@@ -118,6 +128,7 @@ class Nav2Backend:
         while True:
             with self.lock:
                 pose, self.detected = self.pose, False
+                self.zero_s = self.stamp_s if self.stamp_s > 0 else None
             if pose is not None:
                 break
             if time.monotonic() > deadline:
@@ -133,6 +144,12 @@ class Nav2Backend:
         with self.lock:
             seen, self.detected = self.detected, False
         return int(seen)
+
+    def clock(self) -> float | None:
+        """Seconds on the robot's clock since the mission began (module docstring), or None."""
+        with self.lock:
+            stamp, zero = self.stamp_s, self.zero_s
+        return None if zero is None else max(0.0, stamp - zero)
 
     def move(self, goal: int) -> int:
         """Navigate to ``goal``'s position: ``goal`` once there, the node it was on otherwise."""

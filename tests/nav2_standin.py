@@ -1,7 +1,8 @@
 """A stand-in for Nav2 robots behind zenoh-bridge-ros2dds: what `robot-agent --backend nav2` talks
 to, without ROS. For each robot it answers NavigateToPose's send_goal, get_result and cancel_goal
 queries on the bridge's keys with CDR payloads, drives the robot to the goal's node after
-``--move-delay`` seconds, publishes its pose (amcl_pose) and its detector (std_msgs/Bool: true when
+``--move-delay`` seconds, publishes its pose (amcl_pose, stamped with a robot clock at ``--clock-rate``
+times the wall's) and its detector (std_msgs/Bool: true when
 it stands on the target's node; the target walks one step, uniformly over its closed
 neighbourhood, whenever a goal ends). Faults on purpose: ``--abort r1:3`` aborts robot r1's third
 goal, ``--hang r2:5`` never ends robot r2's fifth (the agent's goal timeout cancels it).
@@ -56,7 +57,12 @@ def main() -> None:
     ap.add_argument("--abort", nargs="*", default=[])
     ap.add_argument("--hang", nargs="*", default=[])
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--clock-rate", type=float, default=0.0,
+        help="stamp poses with a robot clock running at this rate of the wall's (ROS simulated time); 0: no stamps",
+    )  # fmt: skip
     args = ap.parse_args()
+    began = time.monotonic()
     graph = load_graph_file(args.graph)
     rng = random.Random(args.seed)
     aborts, hangs = faults(args.abort), faults(args.hang)
@@ -80,7 +86,9 @@ def main() -> None:
 
     def publish(robot: Robot) -> None:
         x, y = graph.positions[robot.node]
-        pose = msg.PoseWithCovarianceStamped(msg.Header(msg.Time(), "map"))
+        robot_s = 1000.0 + (time.monotonic() - began) * args.clock_rate if args.clock_rate else 0.0
+        stamp = msg.Time(int(robot_s), int((robot_s % 1) * 1e9))
+        pose = msg.PoseWithCovarianceStamped(msg.Header(stamp, "map"))
         pose.pose.pose.position = msg.Point(float(x), float(y), 0.0)
         pubs[robot.rid][0].put(pose.serialize())
         pubs[robot.rid][1].put(msg.Bool(robot.node == target[0]).serialize())

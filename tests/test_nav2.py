@@ -6,6 +6,7 @@ goal and a timed-out one leaving the robot where it was."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import subprocess
 import sys
 from pathlib import Path
@@ -156,6 +157,42 @@ def test_agents_fly_nav2_robots_through_the_bridge_with_an_abort_and_a_timeout(t
         assert "timed out after 1 s; cancelled" in logs["r2"]  # and never ended r2's fifth
         moves = wait_until(lambda: standin_log.read_text().count("succeeded") >= 20 and standin_log.read_text(), 10, "")
         assert "r1 goal 3" in moves and "aborted" in moves and "r2 goal 5: never ends" in moves
+    finally:
+        if fleet is not None:
+            fleet.close()
+        standin.terminate()
+        standin.wait(10)
+
+
+def test_a_nav2_robots_readings_are_timed_by_its_own_clock(tmp_path):
+    """Under ROS simulated time the robot's seconds are not the agent's: with the stand-in's clock at a
+    quarter of the wall's, the agents' records on the mission clock advance at the robot's rate."""
+    depot = ROOT / "examples" / "maps" / "nav2" / "depot.yaml"
+    graph_file = tmp_path / "depot.json"
+    assert mures(["map", "import", str(depot), "--out", str(graph_file), "--quiet"]) == 0
+    graph = load_graph_file(graph_file)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    standin = subprocess.Popen(
+        [sys.executable, str(ROOT / "tests" / "nav2_standin.py"), "--graph", str(graph_file), "--robots", "r1,r2",
+         "--listen", endpoint, "--move-delay", "0.4", "--clock-rate", "0.25"],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+    )  # fmt: skip
+    fleet = None
+    try:
+        assert standin.stdout is not None and standin.stdout.readline().strip() == "ready"
+        agent_extra = ["--backend", "nav2", "--nav2-connect", endpoint, "--team-clock", "seconds"]
+        fleet = launch(graph, ["--graph", str(graph_file)], uniform_walk(graph), Sensor(), 2, tmp_path / "fleet",
+                       agent_extra=agent_extra)  # fmt: skip
+        gaps = []
+        for seed in range(3):
+            m = fleet.fly(["r1", "r2"], seed=seed, max_steps=6, timeout=60)
+            for robot in ("r1", "r2"):
+                steps = fleet.api.get(f"/api/v1/episodes/{robot}/{m['id']}")["steps"]
+                times = [s["time_s"] for s in steps]
+                assert times[0] == 0.0 and times == sorted(times)
+                gaps += [b["time_s"] - a["time_s"] for a, b in itertools.pairwise(steps) if a["node"] != b["node"]]
+        # a move takes 0.4 s of wall time, so 0.1 s of the robot's: its poses' stamps, not the agent's clock
+        assert gaps and 0.0 < float(np.median(gaps)) < 0.25, gaps
     finally:
         if fleet is not None:
             fleet.close()

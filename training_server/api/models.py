@@ -282,6 +282,9 @@ class Step(BaseModel):
     t: int
     node: int
     z: int
+    time_s: float | None = Field(
+        None, description="the reading's time on the mission clock, seconds (records of robots on the clock)"
+    )
 
 
 class Outcome(BaseModel):
