@@ -371,3 +371,18 @@ def test_mures_train_under_torchrun_writes_one_snapshot_from_two_processes(tmp_p
     summary = json.loads((out / "training_summary.json").read_text())
     assert summary["processes"] == 2 and summary["episodes"] >= 1024 and not summary["interrupted"]
     assert load_snapshot(out, builtin_graph("office")).policy.N == 2
+
+
+def test_the_trainers_em_takes_a_dirichlet_prior_that_keeps_a_model_from_few_missions_near_the_walk():
+    """`mures train --em-pseudo-count 5 --em-b0-pseudo-count 5`: the same missions (the same seeds up
+    to the first EM update), the estimate pulled toward the uniform walk, here the truth."""
+    graph = builtin_graph("office")
+    tv = []
+    for prior in (0.0, 5.0):
+        cfg = TrainConfig(robots=2, episodes=512, em_first=256, em_missions=32, seed=3,
+                          em_pseudo_count=prior, em_b0_pseudo_count=prior)  # fmt: skip
+        res = train(graph, uniform_walk(graph), Sensor(), cfg)
+        tv.append(res.summary["em_updates"][0]["mean_row_tv_to_true"])
+    assert tv[1] < 0.5 * tv[0], tv
+    with pytest.raises(ValueError, match="pseudo-counts"):
+        TrainConfig(robots=2, em_pseudo_count=-1.0).check()

@@ -74,6 +74,17 @@ def positive_float(text: str) -> float:
     return v
 
 
+def non_negative(text: str) -> float:
+    """A finite number >= 0 (argparse type)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not v >= 0 or math.isinf(v):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return v
+
+
 def floats(text: str) -> list[float]:
     """One number or comma-separated numbers (one per robot)."""
     try:
@@ -137,6 +148,20 @@ class TrainConfig:
     em_every: int = field(default=100_000, metadata=_opt("episodes between later EM updates", parse=positive_int))
     em_missions: int = field(default=512, metadata=_opt("missions recorded for each EM update", parse=positive_int))
     em_max_iter: int = field(default=300, metadata=_opt("EM forward-backward passes at most", parse=positive_int))
+    em_pseudo_count: float = field(
+        default=0.0,
+        metadata=_opt(
+            "EM's Dirichlet prior: expected transitions added to each entry of Gamma_hat's support (0: maximum "
+            "likelihood, Algorithm 2 as the paper writes it; the server's retraining uses 1)",
+            parse=non_negative,
+        ),
+    )
+    em_b0_pseudo_count: float = field(
+        default=0.0,
+        metadata=_opt(
+            "EM's Dirichlet prior: expected starts added to every node of b0 (the server's: 1)", parse=non_negative
+        ),
+    )
     speed: float | None = field(
         default=None,
         metadata=_opt(
@@ -193,6 +218,8 @@ class TrainConfig:
             raise ValueError("batch and episodes must be positive")
         if self.speed is not None and not (self.speed > 0 and math.isfinite(self.speed)):
             raise ValueError(f"speed must be a number of m/s above 0, got {self.speed}")
+        if not (self.em_pseudo_count >= 0 and self.em_b0_pseudo_count >= 0):
+            raise ValueError("EM's pseudo-counts must be numbers >= 0")
         if not (self.tick > 0 and math.isfinite(self.tick)):
             raise ValueError(f"tick must be a number of seconds above 0, got {self.tick}")
         if self.speed is not None and self.algorithm != "cepg":

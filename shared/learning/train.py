@@ -355,7 +355,14 @@ def em_update(
         tick_s = None if clock is None else clock.tick_s
         recs = episode_records(graph, res, sensor, mission_prefix=f"train-{episodes}", tick_s=tick_s)
         data = collect_missions(((0, r) for r in recs), graph, tick_s=tick_s)
-        est = em(graph, data, max_iter=cfg.em_max_iter, tol=1e-5)
+        est = em(
+            graph,
+            data,
+            max_iter=cfg.em_max_iter,
+            tol=1e-5,
+            pseudo_count=cfg.em_pseudo_count,
+            b0_pseudo_count=cfg.em_b0_pseudo_count,
+        )
         gamma.copy_(torch.as_tensor(est.model.dense()))
         b0.copy_(torch.as_tensor(est.model.b0))
         info.update(
