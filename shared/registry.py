@@ -59,10 +59,10 @@ def searcher_factory(
     greedy and ``policy:DIR`` decide on arrival; a team trained in steps has its model made a tick's
     worth, one trained on the clock must have been trained with the same tick. A team trained on
     the clock is refused without one."""
-    if clock is not None and (team is not None or name in BASELINES):
-        raise ValueError(f"travel times fly random, greedy and policy:DIR as batched searchers, not {name!r} or a team")
+    if clock is not None and name in BASELINES:
+        raise ValueError(f"travel times fly random, greedy and policy:DIR (alone or as a team), not {name!r}")
     if name.startswith("policy:") and team is not None:
-        return _team_factory(name.removeprefix("policy:"), graph, n_robots, team, note)
+        return _team_factory(name.removeprefix("policy:"), graph, n_robots, team, note, clock)
     if name.startswith("policy:"):
         from shared.learning.team_snapshot import PolicySearcher, load_snapshot
 
@@ -119,11 +119,18 @@ class TeamFlight:
 
 
 def _team_factory(
-    path: str, graph: Graph, n_robots: int, team: TeamFlight, note: Callable[[str], None] | None
+    path: str,
+    graph: Graph,
+    n_robots: int,
+    team: TeamFlight,
+    note: Callable[[str], None] | None,
+    clock: TravelTimes | None = None,
 ) -> Callable[[int], Searcher]:
+    """A team flight's searchers: robot agents' ``TeamAgent``s in steps, or their ``TimedTeamAgent``s
+    on the ``clock`` (shared/engine/linked_team.py)."""
     from shared.core.snapshot_format import read_snapshot
     from shared.core.team import team_searcher_of
-    from shared.engine.linked_team import LinkedTeamSearcher
+    from shared.engine.linked_team import LinkedTeamSearcher, TimedLinkedTeamSearcher
     from shared.learning.team_snapshot import torch_weights
 
     snap = read_snapshot(path, graph, legacy=torch_weights)
@@ -133,19 +140,17 @@ def _team_factory(
     if team_note and note:
         note(team_note)
 
-    def make(seed: int) -> Searcher:
-        return LinkedTeamSearcher(
-            snap,
-            graph,
-            n_robots,
-            seed,
-            searcher,
-            team.link_loss,
-            team.link_delay,
-            team.fallback_after,
-            counter=team.steps,
-            team_model=team.model,
+    if clock is None and snap.clock is not None:
+        raise ValueError(
+            f"policy:{path} was trained on the clock ({snap.clock[0]:g} m/s): fly its team on travel times (--clock)"
         )
+
+    def make(seed: int) -> Searcher:
+        args = (searcher, team.link_loss, team.link_delay, team.fallback_after)
+        kw = {"counter": team.steps, "team_model": team.model}
+        if clock is not None:
+            return TimedLinkedTeamSearcher(snap, graph, n_robots, clock, seed, *args, **kw)
+        return LinkedTeamSearcher(snap, graph, n_robots, seed, *args, **kw)
 
     make(0)  # its checks (the link's loss and delay), once, before any simulation
     return make

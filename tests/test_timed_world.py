@@ -191,6 +191,8 @@ def test_a_fleet_on_the_clock_retrains_over_http_on_its_timestamped_records_and_
     assert metrics["em"]["per"] == "1 s tick" and metrics["em"]["records"] == 2 and not metrics["em"]["skipped"]
     assert metrics["gate"]["unit"] == "ticks of 1 s" and metrics["gate"]["current"]["episodes"] == 1000
     assert run["status"] == "succeeded" or run["error"].startswith("evaluation gate: new policy"), run
+    if run["status"] == "succeeded":  # the team's plan against the policy alone, both on the travel times
+        assert metrics["team"]["decided_by"] == "comparison" and metrics["team"]["episodes"] == 200
     # a team trained on the clock flies on it without --team-clock: its records carry the readings' times
     r = mures("train", "--graph", str(graph_file), "--robots", "2", "--episodes", "256", "--em-first", "128",
               "--em-missions", "8", "--speed", "0.5", "--out", str(team), "--quiet")  # fmt: skip

@@ -140,10 +140,21 @@ def test_mures_train_speed_and_evaluate_clock_from_the_command_line(tmp_path):
     out = json.loads(r.stdout)
     assert out["clock"] == {"speed_m_s": 0.5, "tick_s": 1.0, "step_s": pytest.approx(4.0, abs=0.01)}
     assert out["mean_capture_time_s"] == pytest.approx(out["mean_capture_time"]) and out["ci95_halfwidth_s"] > 0
+    # the robots' own team code on the clock (TimedTeamAgent) in the engine: with links up every
+    # decision is on the team's plan
+    r = mures("evaluate", "--graph", str(graph_file), "--robots", "2", "--searcher", f"policy:{team}",
+              "--team-searcher", "fhpe-sa", "--episodes", "16", "--seed", "1", "--clock", "--speed", "0.5",
+              "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    flight = json.loads(r.stdout)["team"]
+    assert flight["coordinated_share"] == 1.0 and flight["own_steps"] == 0 and flight["team_steps"] > 0
     # a team trained on the clock has a model per tick: refused in steps, in one line
     r = mures("evaluate", "--graph", str(graph_file), "--robots", "2", "--searcher", f"policy:{team}",
               "--episodes", "8")  # fmt: skip
     assert r.returncode == 2 and "trained on the clock" in r.stderr and "Traceback" not in r.stderr
+    r = mures("evaluate", "--graph", str(graph_file), "--robots", "2", "--searcher", f"policy:{team}",
+              "--team-searcher", "fhpe-sa", "--episodes", "8")  # fmt: skip
+    assert r.returncode == 2 and "fly its team on travel times (--clock)" in r.stderr, r.stderr
     for args, says in (
         (("train", "--env", "office", "--speed", "0.5"), "no edge lengths"),
         (("train", "--graph", str(graph_file), "--tick", "2"), "give --speed too"),

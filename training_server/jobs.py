@@ -628,20 +628,11 @@ class _TrainingRun:
         the team only if it captures sooner, its paired 95% CI below zero. ``snap``: the new
         version (numpy, ``_version_data``) with the run's EM model as trained under."""
         from shared.engine.evaluate import evaluate, mean_ci95
-        from shared.engine.linked_team import LinkedTeamSearcher
+        from shared.engine.linked_team import LinkedTeamSearcher, TimedLinkedTeamSearcher
 
         p = self.p
         if p.team_searcher == "none":
             return {"team_searcher": "none", "decided_by": "parameter", "links": self.links}
-        if self.clock is not None:  # the engine's team flight counts steps: nothing to compare on the clock yet
-            kept = p.team_searcher if p.team_searcher != "auto" else (self.current.meta.get("team_searcher") or "none")
-            return {
-                "team_searcher": kept,
-                "decided_by": "parameter"
-                if p.team_searcher != "auto"
-                else "on travel times the team's plan is not compared in simulation: the current version's",
-                "links": self.links,
-            }
         loss = self.links["link_loss"] or 0.0
         self.say(
             "gate",
@@ -652,10 +643,21 @@ class _TrainingRun:
         for name, searcher in (("alone", None), ("team", "fhpe-sa")):
 
             def make(seed: int, searcher: str | None = searcher) -> LinkedTeamSearcher:
+                if self.clock is not None:  # the robots' TimedTeamAgents on the map's travel times
+                    return TimedLinkedTeamSearcher(
+                        snap, self.graph, snap.robots, self.clock, seed, searcher, link_loss=loss
+                    )
                 return LinkedTeamSearcher(snap, self.graph, snap.robots, seed, searcher, link_loss=loss)
 
             r = evaluate(
-                self.graph, gate_model, self.sensor, snap.robots, make, episodes=p.team_episodes, seed=p.seed + 1
+                self.graph,
+                gate_model,
+                self.sensor,
+                snap.robots,
+                make,
+                episodes=p.team_episodes,
+                seed=p.seed + 1,
+                clock=self.clock,
             )
             times[name] = np.asarray(r.capture_time, dtype=np.float64)
         diff, half = mean_ci95(times["team"] - times["alone"])

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from shared.core.clock import TravelTimes
 from shared.core.fhpe_sa import FhpeSAPlanner
 from shared.core.graph import Graph
 from shared.core.models import TargetModel
@@ -35,6 +36,7 @@ from shared.core.team import (
     TeamAgent,
     mission_seed,
 )
+from shared.core.timed_team import TimedTeamAgent
 from shared.engine.sim import Obs
 
 # the teammates' observations a robot has heard of over its earlier missions when an evaluation
@@ -143,4 +145,70 @@ class LinkedTeamSearcher:
                 if active[e, i]:
                     out[e, i], mode = agent.act(t, int(pos[e, i]))
                     self.steps[mode] += 1
+        return torch.as_tensor(out)
+
+
+class TimedLinkedTeamSearcher(LinkedTeamSearcher):
+    """The team flown on the mission clock in the engine's travel times (``SearchSim(move_ticks=)``):
+    what `mures evaluate --clock --team-searcher S` runs. Each robot is a ``TimedTeamAgent``
+    (shared/core/timed_team.py), the code a robot agent runs under `--team-clock seconds`. A robot
+    that arrives at tick t reads z at t ``clock.tick_s``, decides at once on what its links have
+    delivered, and sends its observation with its goal to each teammate: lost with probability
+    ``link_loss``, else delivered ``link_delay`` ticks later, and never before the next tick, so
+    robots that decide at the same tick decide on the same information. ``link_delay`` counts ticks."""
+
+    def __init__(self, snap: SnapshotData, graph: Graph, n_robots: int, clock: TravelTimes, *a: Any, **kw: Any) -> None:
+        super().__init__(snap, graph, n_robots, *a, **kw)
+        self.clock = clock
+        self.planner = None  # each TimedTeamAgent builds the planner its version needs (a step's worth)
+        self.timed: dict[int, list[TimedTeamAgent]] = {}
+        self.readings: dict[int, list[int]] = {}  # slot -> each robot's readings so far
+
+    def _begin(self, slot: int) -> None:
+        mission = int(self.rng.integers(2**31))
+        self.timed[slot] = [
+            TimedTeamAgent(
+                self.snap,
+                self.graph,
+                self.robots,
+                r,
+                seed=mission,
+                searcher=self.searcher,
+                step_s=self.clock.step_s,
+                tick_s=self.clock.tick_s,
+                fallback_after=self.fallback_after,
+                own_seed=mission_seed(mission, i),
+                team_model=self.team_model,
+                link_quality_min=self.link_quality_min,
+                link_history=self._history(),
+            )
+            for i, r in enumerate(self.robots)
+        ]
+        self.inbox[slot], self.readings[slot] = [], [0] * self.N
+
+    def act(self, obs: Obs) -> torch.Tensor:
+        pos, z, t_all = obs.pos.numpy(), obs.z.numpy(), obs.t.numpy()
+        active, new, alive = obs.active.numpy(), obs.new.numpy(), obs.alive.numpy()
+        ready = np.ones_like(active) if obs.ready is None else obs.ready.numpy()
+        out = pos.copy()
+        for e in (int(x) for x in np.nonzero(alive)[0]):
+            if new[e] or e not in self.timed:
+                self._begin(e)
+            team, inbox, count, t = self.timed[e], self.inbox[e], self.readings[e], int(t_all[e])
+            now_s = t * self.clock.tick_s
+            due = [m for m in inbox if m[0] <= t]
+            inbox[:] = [m for m in inbox if m[0] > t]
+            for _due, j, sender, k, p, zi, at_s, goal in due:
+                team[j].observe_at(sender, k, p, zi, at_s, goal)
+            deciding = [i for i in range(self.N) if active[e, i] and ready[e, i]]
+            for i in deciding:
+                p, zi = int(pos[e, i]), int(z[e, i])
+                team[i].observe_at(team[i].me, count[i], p, zi, now_s)
+                out[e, i], mode = team[i].act_at(now_s, p)
+                self.steps[mode] += 1
+                sent = (team[i].me, count[i], p, zi, now_s, int(out[e, i]))  # with where the robot is headed
+                for j in range(self.N):
+                    if j != i and self.link_rng.random() >= self.link_loss:
+                        inbox.append((t + max(1, self.link_delay), j, *sent))
+                count[i] += 1
         return torch.as_tensor(out)

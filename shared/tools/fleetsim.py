@@ -585,10 +585,11 @@ def _retrain(fleet: Fleet, params: dict[str, Any], say: Callable[[str], None]) -
         + (f": version {r['version']}" if r["version"] else f" ({r['error']})")
     )
     team = (r.get("metrics") or {}).get("team") or {}
+    unit = ((r.get("metrics") or {}).get("gate") or {}).get("unit", "steps")  # or ticks, on the clock
     if "team_mean_capture_time" in team:
         say(
             f"fleet-sim:   team searcher {team['team_searcher']}: on {team['episodes']} episodes the team "
-            f"captured in {team['team_mean_capture_time']:.2f} steps, the policy alone in "
+            f"captured in {team['team_mean_capture_time']:.2f} {unit}, the policy alone in "
             f"{team['alone_mean_capture_time']:.2f} "
             f"(paired {team['paired_difference']:+.2f} ± {team['paired_ci95']:.2f})"
         )

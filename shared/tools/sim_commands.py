@@ -309,7 +309,8 @@ def add_sim_commands(sub: Any) -> None:
         "travel times",
         "the engine on the mission clock (docs/continuous-world.md, 'Training on the clock'): each move takes its "
         "edge's length (the graph's edge_lengths_m) over --speed in whole ticks, the target moves once a tick, "
-        "capture times in ticks and seconds; random, greedy and policy:DIR (a team trained with or without --speed)",
+        "capture times in ticks and seconds; random, greedy and policy:DIR (a team trained with or without --speed; "
+        "with --team-searcher, flown as robot agents fly it on the mission clock)",
     )
     clock.add_argument("--clock", action="store_true", help="evaluate on travel times at --speed")
     clock.add_argument("--tick", type=positive_number, metavar="S", help="the clock's tick in seconds (1)")
