@@ -101,6 +101,21 @@ def test_each_robot_reads_on_its_own_clock_and_waits_for_no_step_index(tmp_path)
     assert "not robot r1's next" in bad.error and m.next_t["r1"] == 2
 
 
+def test_a_move_held_up_takes_its_stop_on_top_of_its_travel_time(tmp_path):
+    world, graph = _world(tmp_path, stop_prob=1.0, stop_s=30.0)
+    here, there = graph.start, 1 - graph.start
+    walk = world.building.length_m[world.building.edge_of[here, there]] / 0.5
+    _start(world, "m1", ["r1"], seed=4)
+    m = world.missions["m1"]
+    held = [world._travel_s(m, "r1", here, there) - walk for _ in range(400)]
+    assert min(held) > 0 and np.mean(held) == pytest.approx(30.0, rel=0.15)  # every move, 30 s on average
+    assert world._travel_s(m, "r1", here, here) == 1.0  # a stay is not held up
+    (tmp_path / "free").mkdir()
+    free, _graph = _world(tmp_path / "free")
+    _start(free, "m1", ["r1"], seed=4)
+    assert free._travel_s(free.missions["m1"], "r1", here, there) == pytest.approx(walk)
+
+
 def test_the_same_seed_reads_the_same_whatever_order_the_reports_come_in(tmp_path):
     def fly(order: list[str]) -> tuple[list[tuple], dict]:
         world, graph = _world(tmp_path, speed_cv=0.3)

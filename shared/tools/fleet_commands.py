@@ -226,6 +226,8 @@ def motion_of(args: argparse.Namespace, target: Any) -> Any:
     return Motion(
         speed=args.speed,
         speed_cv=args.speed_cv,
+        stop_prob=args.stop_prob,
+        stop_s=args.stop_seconds,
         stay_s=args.stay_seconds,
         target_speed=args.target_speed,
         target_dwell_s=args.target_dwell,

@@ -55,6 +55,8 @@ class Motion:
 
     speed: float = 0.5
     speed_cv: float = 0.0
+    stop_prob: float = 0.0  # a move is held up (a door, a person in the way) with this probability ...
+    stop_s: float = 30.0  # ... for an exponential time of this mean
     stay_s: float = 1.0
     target_speed: float = 0.5
     target_dwell_s: float = 10.0
@@ -133,16 +135,19 @@ class TimedWorld(World):
 
     def _travel_s(self, m: _TimedMission, robot: str, here: int, row: int) -> float:
         """Seconds of ``robot``'s move from row ``here`` to ``row``: length / speed, the speed drawn
-        per move (lognormal, mean ``speed``, coefficient of variation ``speed_cv``, within 0.5-2 x)."""
+        per move (lognormal, mean ``speed``, coefficient of variation ``speed_cv``, within 0.5-2 x),
+        plus a stop with probability ``stop_prob`` (exponential, mean ``stop_s``)."""
         mo = self.motion
         if row == here:
             return mo.stay_s
         speed = mo.speed
+        rng = m.speed_rng[robot]
         if mo.speed_cv:
             sigma = math.sqrt(math.log1p(mo.speed_cv**2))
-            factor = math.exp(sigma * float(m.speed_rng[robot].standard_normal()) - sigma**2 / 2)
+            factor = math.exp(sigma * float(rng.standard_normal()) - sigma**2 / 2)
             speed *= min(max(factor, 0.5), 2.0)
-        return float(self.building.length_m[self.building.edge_of[here, row]]) / speed
+        held = float(rng.exponential(mo.stop_s)) if mo.stop_prob and rng.random() < mo.stop_prob else 0.0
+        return float(self.building.length_m[self.building.edge_of[here, row]]) / speed + held
 
     def _advance(self, mid: str, m: _Mission) -> None:
         """Every robot still flying has reported its next reading: answer the earliest (and those
