@@ -132,7 +132,6 @@ def test_best_trains_the_candidates_and_publishes_the_one_that_captures_soonest(
         ({"team_sizes": [0]}, "team_sizes"),
         ({"budget_fraction": 0}, "budget_fraction"),
         ({"speed": 0.5, "algorithm": "mappo"}, "the MARL baselines count steps"),
-        ({"speed": 0.5, "team_sizes": [1]}, "team_sizes"),
         ({"speed": 0}, "speed"),
     ],
 )

@@ -165,3 +165,27 @@ def test_mures_train_speed_and_evaluate_clock_from_the_command_line(tmp_path):
         if args[0] == "evaluate":
             r = mures(*args, "--robots", "2", "--episodes", "8")
         assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, (args, r.stderr)
+
+
+def test_the_team_on_the_clock_drops_a_withdrawn_teammate_when_told_and_not_otherwise():
+    from test_team import _snapshot
+
+    from shared.engine.linked_team import TimedLinkedTeamSearcher
+
+    graph = _office(np.linspace(1.0, 3.0, builtin_graph("office").m))
+    clock = TravelTimes.of(graph, speed=0.5)
+    snap = _snapshot(graph, 3)
+    target = clock.model(uniform_walk(graph))
+    seen = {}
+    for known in (True, False):
+        made = []
+
+        def make(seed, known=known, made=made):
+            made.append(TimedLinkedTeamSearcher(snap, graph, 3, clock, seed, "fhpe-sa", known_withdrawals=known))
+            return made[-1]
+
+        evaluate(graph, target, Sensor(), 3, make, episodes=4, seed=2, withdraw_at=[None, None, 6], clock=clock)
+        agents = [a for team in made[0].timed.values() for a in team if a.me != "r3"]
+        seen[known] = {frozenset(a.withdrawn) for a in agents}
+        assert made[0].steps["team"] + made[0].steps["partial"] > 0
+    assert seen[True] == {frozenset({"r3"})} and seen[False] == {frozenset()}

@@ -199,8 +199,6 @@ class TrainingParams(BaseModel):
             raise ValueError("candidates must not repeat a method")
         if self.speed is not None and any(m not in ("cepg", "pg") for m in self.methods()):
             raise ValueError("speed retrains CE-PG (cepg or pg) on travel times; the MARL baselines count steps")
-        if self.speed is not None and self.team_sizes:
-            raise ValueError("speed: teams for other sizes (team_sizes) are not trained on travel times yet")
         return self
 
     def hyperparameters_of(self, method: str) -> dict[str, int | float | bool]:
@@ -316,8 +314,6 @@ class _TrainingRun:
             raise ValueError(f"the current version was trained with ticks of {trained[1]:g} s; the server's are 1 s")
         if self.p.speed is None and any(m not in ("cepg", "pg") for m in self.p.methods()):
             raise ValueError("the current version was trained on travel times, which only CE-PG (cepg, pg) trains on")
-        if self.p.speed is None and self.p.team_sizes:
-            raise ValueError("the current version was trained on travel times: team_sizes are not trained on them yet")
         return TravelTimes.of(self.graph, speed, TICK_S)  # ValueError: the map has no edge lengths
 
     def _on_clock(self, snap: Any) -> Any:
@@ -576,9 +572,10 @@ class _TrainingRun:
         The robots fly their own policies on the gate's first ``team_episodes`` episodes under its
         model with N - k robots withdrawn (the last ones, at steps 2, 4, ...), switching and not;
         k is switched to only if switching captures sooner, its paired 95% CI below zero. A mission
-        that starts with k robots flies the team built for k whatever this decides."""
+        that starts with k robots flies the team built for k whatever this decides. On the clock the
+        robots are their ``TimedTeamAgent``s on the travel times, withdrawn at steps' worth of ticks."""
         from shared.engine.evaluate import evaluate, mean_ci95
-        from shared.engine.linked_team import LinkedTeamSearcher
+        from shared.engine.linked_team import LinkedTeamSearcher, TimedLinkedTeamSearcher
 
         N, p, snap = self.current.robots, self.p, version
         smaller = sorted(k for k in version.teams if k < N)
@@ -588,12 +585,17 @@ class _TrainingRun:
             "gate", message=f"robots dropping out on {p.team_episodes} episodes: switching to teams {smaller} or not"
         )
         by_size, switch_to = {}, []
+        step = 1 if self.clock is None else round(self.clock.ticks_per_step)  # on the clock: a step's worth of ticks
         for k in smaller:
-            gone: list[int | None] = [None] * k + [2 * (N - k - i) for i in range(N - k)]
+            gone: list[int | None] = [None] * k + [2 * (N - k - i) * step for i in range(N - k)]
             times = {}
             for name, known in (("switch", True), ("keep", False)):
 
                 def make(seed: int, known: bool = known) -> LinkedTeamSearcher:
+                    if self.clock is not None:
+                        return TimedLinkedTeamSearcher(
+                            snap, self.graph, N, self.clock, seed, None, known_withdrawals=known
+                        )
                     return LinkedTeamSearcher(snap, self.graph, N, seed, None, known_withdrawals=known)
 
                 r = evaluate(
@@ -605,6 +607,7 @@ class _TrainingRun:
                     episodes=p.team_episodes,
                     seed=p.seed + 1,
                     withdraw_at=gone,
+                    clock=self.clock,
                 )
                 times[name] = np.asarray(r.capture_time, dtype=np.float64)
                 self.check()

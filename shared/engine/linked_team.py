@@ -200,6 +200,10 @@ class TimedLinkedTeamSearcher(LinkedTeamSearcher):
             inbox[:] = [m for m in inbox if m[0] > t]
             for _due, j, sender, k, p, zi, at_s, goal in due:
                 team[j].observe_at(sender, k, p, zi, at_s, goal)
+            if self.known_withdrawals:  # its liveliness token gone: its teammates drop it at once
+                for i in np.nonzero(~active[e])[0]:
+                    for mate in team:
+                        mate.withdraw(team[int(i)].me)
             deciding = [i for i in range(self.N) if active[e, i] and ready[e, i]]
             for i in deciding:
                 p, zi = int(pos[e, i]), int(z[e, i])
