@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
+
+from shipped_maps import write_rows  # benchmarks/shipped_maps.py, beside this script
 
 
 def measure(n: int, sparse: bool, batch: int, robots: int, steps: int) -> dict:
@@ -87,10 +87,7 @@ def main() -> None:
         d, s = row.get("dense"), row["sparse"]
         dense = f"{d['ms_per_step']:14.2f} {d['peak_rss_mb']:9.0f}" if d else f"{'-':>14} {'-':>9}"
         print(f"{n:>6} {s['edges']:>6} {dense} {s['ms_per_step']:15.2f} {s['peak_rss_mb']:10.0f}", flush=True)
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    settings = {k: v for k, v in vars(args).items() if k != "one"}
-    out.write_text(json.dumps({"settings": settings, "machine": platform.machine(), "rows": rows}, indent=1) + "\n")
+    out = write_rows(args.json, {k: v for k, v in vars(args).items() if k != "one"}, rows)
     print(f"wrote {out}")
 
 

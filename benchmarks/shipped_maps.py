@@ -4,8 +4,11 @@ imported with `mures map import`'s defaults."""
 
 from __future__ import annotations
 
+import json
+import platform
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from shared.core.graph import Graph, load_graph_file
 from shared.tools.cli import main as mures_main
@@ -35,3 +38,11 @@ def shipped_graphs(workdir: Path) -> Iterator[tuple[str, Path, Graph]]:
             print(f"{name}: {path} not here; skipped")
             continue
         yield name, path, imported(path, workdir)
+
+
+def write_rows(path: str | Path, settings: dict[str, Any], rows: list[dict[str, Any]]) -> Path:
+    """A benchmark's table as JSON: its settings, the machine and one object per row."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"settings": settings, "machine": platform.machine(), "rows": rows}, indent=1) + "\n")
+    return out

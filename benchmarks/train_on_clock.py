@@ -21,8 +21,6 @@ Prints a row per map and N (capture times in seconds) and writes them as JSON.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import subprocess
 import sys
 import tempfile
@@ -31,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 from fleet_in_time import maps  # benchmarks/fleet_in_time.py, beside this script
-from shipped_maps import imported
+from shipped_maps import imported, write_rows
 
 from shared.core.clock import TravelTimes
 from shared.core.models import Sensor, uniform_walk
@@ -107,10 +105,7 @@ def main() -> None:
             print(f"{name:<12} {graph.n:>4} {robots:>2} {cell(row['steps']):>16} {cell(row['clock']):>16} "
                   f"{d_mean:+8.1f} ± {d_half:4.1f} ({d_mean / row['steps']['mean_capture_time_s']:+.0%}) "
                   f"{cell(row['greedy']):>16} {row['random']['mean_capture_time_s']:9.1f}", flush=True)  # fmt: skip
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    settings = {k: v for k, v in vars(args).items() if k != "workdir"}
-    out.write_text(json.dumps({"settings": settings, "machine": platform.machine(), "rows": rows}, indent=1) + "\n")
+    out = write_rows(args.json, {k: v for k, v in vars(args).items() if k != "workdir"}, rows)
     print(f"wrote {out}")
 
 

@@ -52,37 +52,30 @@ def whole_number(text: str) -> int:
     return _int_at_least(text, 0, "a whole number >= 0")
 
 
-def seconds(text: str) -> float:
-    """A number of seconds >= 0 (argparse type)."""
+def _float_where(text: str, ok: Callable[[float], bool], what: str) -> float:
+    """A finite number for which ``ok`` holds (argparse type), else an error naming ``what``."""
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
-    if not v >= 0 or math.isinf(v):
-        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if math.isinf(v) or math.isnan(v) or not ok(v):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
     return v
+
+
+def seconds(text: str) -> float:
+    """A number of seconds >= 0 (argparse type)."""
+    return _float_where(text, lambda v: v >= 0, "a number of seconds >= 0")
 
 
 def positive_float(text: str) -> float:
     """A finite number above 0 (argparse type)."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number above 0, got {text!r}") from None
-    if not v > 0 or math.isinf(v):
-        raise argparse.ArgumentTypeError(f"expected a number above 0, got {text!r}")
-    return v
+    return _float_where(text, lambda v: v > 0, "a number above 0")
 
 
 def non_negative(text: str) -> float:
     """A finite number >= 0 (argparse type)."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not v >= 0 or math.isinf(v):
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return v
+    return _float_where(text, lambda v: v >= 0, "a number >= 0")
 
 
 def floats(text: str) -> list[float]:
