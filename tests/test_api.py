@@ -617,3 +617,32 @@ def test_the_api_docs_load_from_the_server_itself_not_a_cdn(api):
         assert scripts and all(s.startswith("/") for s in scripts), (page, scripts)
         for s in scripts:
             assert c.get(s).status_code == 200, s
+
+
+def test_a_trial_on_the_mission_clock_counts_seconds_and_one_in_steps_counts_steps(api):
+    """A robot's step count on the clock is its own (a robot that stays reads once a second), so a
+    trial whose missions all flew on the clock compares their capture times in seconds."""
+    import json
+
+    srv, _c = api
+    g = srv.graph
+    for mid, arm, pair, seconds in (("a0", "baseline", 0, 30.0), ("a1", "canary", 0, 80.0),
+                                    ("b0", "baseline", 1, 40.0), ("b1", "canary", 1, 90.0)):  # fmt: skip
+        params = {"max_steps": 50, "seed": pair, "canary": {"arm": arm, "pair": pair, "canary_version": 7}}
+        srv.store.add_mission(mid, "default", ["r1"], params, 1)
+        # on the clock the canary's robot stayed often: more seconds, yet fewer of its own steps
+        steps = 3 if arm == "canary" else 9
+        rec = make_record(g, fleet="default", mission_id=mid, robot_id="r1", nodes=[g.start] * steps,
+                          z=[0] * (steps - 1) + [1], sensor=Sensor(), captured=True, capture_time=steps - 1,
+                          captured_by="r1", policy_version=1, times=np.linspace(0.0, seconds, steps))  # fmt: skip
+        srv.store.add_episodes([("default", "r1", mid, 1, steps, True, steps - 1, json.dumps(rec), None)])
+        srv.store.mission_event(mid, {"type": "captured", "captured_by": "r1", "time_s": seconds}, "captured")
+    outcomes = {o["mission_id"]: o for o in srv.store.canary_outcomes("default", 7)}
+    assert {k: srv.store.counted_seconds(o) for k, o in outcomes.items()} == {"a0": 30.0, "a1": 80.0, "b0": 40.0,
+                                                                             "b1": 90.0}  # fmt: skip
+    assert {k: srv.store.counted_capture_time(o) for k, o in outcomes.items()} == {"a0": 8, "a1": 2, "b0": 8, "b1": 2}
+    # the trial's decision: fewer steps but more seconds is worse, and rolled back
+    srv.store.set_setting("canary", json.dumps({"version": 7, "baseline": 1, "run_id": None, "pairs": 2}))
+    decision = srv.check_canary()
+    assert decision["decision"] == "rolled back" and decision["unit"] == "seconds", decision
+    assert decision["canary_mean"] == 85.0 and decision["baseline_mean"] == 35.0

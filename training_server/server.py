@@ -393,17 +393,20 @@ class Server:
         canary = self.canary()
         if canary is None:
             return None
-        arms: dict[int, dict[str, float]] = {}
+        arms: dict[int, dict[str, tuple[float, float | None]]] = {}  # pair -> arm -> (steps, seconds)
         for o in self.store.canary_outcomes(self.fleet, canary["version"]):
             ct = self.store.counted_capture_time(o)
             if ct is not None:  # (stopped or timed out early: no capture time)
-                arms.setdefault(o["pair"], {})[o["arm"]] = ct
+                arms.setdefault(o["pair"], {})[o["arm"]] = (ct, self.store.counted_seconds(o))
         pairs = sorted(k for k, a in arms.items() if {"canary", "baseline"} <= set(a))
         if len(pairs) < canary["pairs"]:
             return None
         used = pairs[: canary["pairs"]]
-        c = [arms[k]["canary"] for k in used]
-        b = [arms[k]["baseline"] for k in used]
+        # seconds where every mission of the pairs flew on the mission clock, else steps
+        on_clock = all(arms[k][arm][1] is not None for k in used for arm in ("canary", "baseline"))
+        pick = 1 if on_clock else 0
+        c = [float(arms[k]["canary"][pick]) for k in used]  # type: ignore[arg-type]
+        b = [float(arms[k]["baseline"][pick]) for k in used]  # type: ignore[arg-type]
         diff, half = mean_ci95([x - y for x, y in zip(c, b, strict=True)])
         keep = diff <= 0
         evidence = {
@@ -412,6 +415,7 @@ class Server:
             "baseline_mean": round(sum(b) / len(b), 3),
             "mean_difference": round(diff, 3),
             "ci95": round(half, 3),
+            "unit": "seconds" if on_clock else "steps",
         }
         with self.version_lock:
             if self.canary() != canary:
@@ -421,11 +425,12 @@ class Server:
                 self.store.set_setting("current_version", str(canary["version"]))
         log.log(
             logging.INFO if keep else logging.WARNING,
-            "canary version %d %s: %.2f vs %.2f steps over %d pairs (difference %+.2f ± %.2f)",
+            "canary version %d %s: %.2f vs %.2f %s over %d pairs (difference %+.2f ± %.2f)",
             canary["version"],
             "kept and made current" if keep else "rolled back: it flew worse than the current version",
             evidence["canary_mean"],
             evidence["baseline_mean"],
+            evidence["unit"],
             len(used),
             diff,
             half,

@@ -587,6 +587,16 @@ class Store:
             return float(outcome["max_steps"])
         return None
 
+    @staticmethod
+    def counted_seconds(outcome: dict[str, Any]) -> float | None:
+        """On the mission clock (``canary_outcomes``' "seconds"): the capture's moment, or the last
+        reading's when the mission ran to its step limit; None where ``counted_capture_time`` is
+        None or the mission was not on the clock. A robot's step count on the clock is its own
+        (a robot that stays reads once a second), so trials compare seconds where both arms have them."""
+        if Store.counted_capture_time(outcome) is None:
+            return None
+        return None if outcome.get("seconds") is None else float(outcome["seconds"])
+
     def canary_outcomes(self, fleet: str, canary_version: int) -> list[dict[str, Any]]:
         """The missions flown for the canary of ``canary_version`` whose every record has arrived:
         their arm and pair (mission params "canary"), step limit, stop reason, and the first capture
@@ -600,20 +610,29 @@ class Store:
             out = []
             for mid, robots, params, ev in rows:
                 recs = conn.execute(
-                    select(e.robot_id, e.captured, e.capture_time).where(e.fleet == fleet, e.mission_id == mid)
+                    select(e.robot_id, e.captured, e.capture_time, e.record).where(
+                        e.fleet == fleet, e.mission_id == mid
+                    )
                 ).all()
-                if not set(_from_json(robots)) <= {r for r, _c, _t in recs}:
+                if not set(_from_json(robots)) <= {r for r, _c, _t, _rec in recs}:
                     continue
-                p, caps = _from_json(params), [t for _r, c, t in recs if c and t is not None]
+                p, caps = _from_json(params), [t for _r, c, t, _rec in recs if c and t is not None]
+                event = _from_json(ev) or {}
+                # robots on the mission clock: the capture's moment, else the last reading's (every record timed)
+                last = [(_from_json(rec) or {}).get("steps", [{}])[-1].get("time_s") for *_x, rec in recs]
+                seconds = event.get("time_s") if caps and event.get("type") == "captured" else None
+                if not caps and last and all(isinstance(x, int | float) for x in last):
+                    seconds = max(last)
                 out.append(
                     {
                         "mission_id": mid,
                         "arm": p["canary"]["arm"],
                         "pair": p["canary"]["pair"],
                         "max_steps": p.get("max_steps"),
-                        "stop_reason": (_from_json(ev) or {}).get("reason"),
+                        "stop_reason": event.get("reason"),
                         "captured": bool(caps),
                         "capture_time": min(caps) if caps else None,
+                        "seconds": seconds,
                     }
                 )
         return out

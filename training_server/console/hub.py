@@ -140,8 +140,8 @@ class Hub:
                         "subject": str(p["version"]),
                         "since": c["decided"],
                         "text": f"version {p['version']} was rolled back after its trial: {c['canary_mean']:.2f} "
-                        f"steps against {c['baseline_mean']:.2f} for version {c['baseline']} over {c['pairs']} "
-                        "pairs of the fleet's missions",
+                        f"{c.get('unit', 'steps')} against {c['baseline_mean']:.2f} for version {c['baseline']} "
+                        f"over {c['pairs']} pairs of the fleet's missions",
                     }
                 )
         for d in self.srv.store.detections(self.srv.fleet, status="pending"):

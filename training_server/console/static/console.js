@@ -773,7 +773,7 @@ pages.policies = async function (ctx) {
           ? [`on trial beside v${c.baseline}: ${c.pairs} pairs of missions`]
           : c.canary_mean !== undefined
             ? [
-                `${c.state}: ${fmtNum(c.canary_mean)} vs ${fmtNum(c.baseline_mean)} steps (v${c.baseline})`,
+                `${c.state}: ${fmtNum(c.canary_mean)} vs ${fmtNum(c.baseline_mean)} ${c.unit || 'steps'} (v${c.baseline})`,
                 el("span", { class: "sub" }, `difference ${c.mean_difference >= 0 ? "+" : ""}${fmtNum(c.mean_difference)} ± ${fmtNum(c.ci95)} over ${c.pairs} pairs`),
               ]
             : [c.state];
