@@ -147,10 +147,11 @@ def _team_factory(
 
     def make(seed: int) -> Searcher:
         args = (searcher, team.link_loss, team.link_delay, team.fallback_after)
-        kw = {"counter": team.steps, "team_model": team.model}
         if clock is not None:
-            return TimedLinkedTeamSearcher(snap, graph, n_robots, clock, seed, *args, **kw)
-        return LinkedTeamSearcher(snap, graph, n_robots, seed, *args, **kw)
+            return TimedLinkedTeamSearcher(
+                snap, graph, n_robots, clock, seed, *args, counter=team.steps, team_model=team.model
+            )
+        return LinkedTeamSearcher(snap, graph, n_robots, seed, *args, counter=team.steps, team_model=team.model)
 
     make(0)  # its checks (the link's loss and delay), once, before any simulation
     return make

@@ -646,3 +646,7 @@ def test_a_trial_on_the_mission_clock_counts_seconds_and_one_in_steps_counts_ste
     decision = srv.check_canary()
     assert decision["decision"] == "rolled back" and decision["unit"] == "seconds", decision
     assert decision["canary_mean"] == 85.0 and decision["baseline_mean"] == 35.0
+    # the fleet's performance per version says the seconds of the missions on the clock
+    perf = _c.get("/api/v1/policies/performance", headers=auth(AG)).json()["items"]
+    v1 = next(p for p in perf if p["version"] == 1)
+    assert v1["missions_on_clock"] == 4 and v1["mean_capture_time_s"] == 60.0 and v1["mean_capture_time"] == 5.0

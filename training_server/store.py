@@ -560,21 +560,35 @@ class Store:
                     select(m.id, m.status, m.params, m.event).where(m.fleet == fleet)
                 ).all()
             }
-        out = []
-        for mid, v_lo, v_hi, captured, ct in per:
-            status, params, ev = info.get(mid, (None, {}, None))
-            out.append(
-                {
-                    "mission_id": mid,
-                    "status": status,
-                    "max_steps": (params or {}).get("max_steps"),
-                    "stop_reason": (ev or {}).get("reason"),
-                    "policy_version": v_lo if v_lo == v_hi else None,  # None: robots flew different versions
-                    "captured": bool(captured),
-                    "capture_time": ct,
-                }
-            )
+            out = []
+            for mid, v_lo, v_hi, captured, ct in per:
+                status, params, ev = info.get(mid, (None, {}, None))
+                out.append(
+                    {
+                        "mission_id": mid,
+                        "status": status,
+                        "max_steps": (params or {}).get("max_steps"),
+                        "stop_reason": (ev or {}).get("reason"),
+                        "policy_version": v_lo if v_lo == v_hi else None,  # None: robots flew different versions
+                        "captured": bool(captured),
+                        "capture_time": ct,
+                        "seconds": self._seconds(conn, fleet, mid, ev or {}, bool(captured)),
+                    }
+                )
         return out
+
+    @staticmethod
+    def _seconds(conn: Connection, fleet: str, mission_id: str, event: dict[str, Any], captured: bool) -> float | None:
+        """A mission on the mission clock in seconds: the capture's moment (its captured message), or,
+        not captured, its last reading's time when every record carries times; None otherwise."""
+        if captured:
+            return event.get("time_s") if event.get("type") == "captured" else None
+        if event.get("reason") != "step limit":  # stopped or timed out early: it counts for nothing
+            return None
+        e = episodes.c
+        rows = conn.execute(select(e.record).where(e.fleet == fleet, e.mission_id == mission_id)).all()
+        last = [(_from_json(rec) or {}).get("steps", [{}])[-1].get("time_s") for (rec,) in rows]
+        return max(last) if last and all(isinstance(x, int | float) for x in last) else None
 
     @staticmethod
     def counted_capture_time(outcome: dict[str, Any]) -> float | None:
@@ -610,19 +624,12 @@ class Store:
             out = []
             for mid, robots, params, ev in rows:
                 recs = conn.execute(
-                    select(e.robot_id, e.captured, e.capture_time, e.record).where(
-                        e.fleet == fleet, e.mission_id == mid
-                    )
+                    select(e.robot_id, e.captured, e.capture_time).where(e.fleet == fleet, e.mission_id == mid)
                 ).all()
-                if not set(_from_json(robots)) <= {r for r, _c, _t, _rec in recs}:
+                if not set(_from_json(robots)) <= {r for r, _c, _t in recs}:
                     continue
-                p, caps = _from_json(params), [t for _r, c, t, _rec in recs if c and t is not None]
+                p, caps = _from_json(params), [t for _r, c, t in recs if c and t is not None]
                 event = _from_json(ev) or {}
-                # robots on the mission clock: the capture's moment, else the last reading's (every record timed)
-                last = [(_from_json(rec) or {}).get("steps", [{}])[-1].get("time_s") for *_x, rec in recs]
-                seconds = event.get("time_s") if caps and event.get("type") == "captured" else None
-                if not caps and last and all(isinstance(x, int | float) for x in last):
-                    seconds = max(last)
                 out.append(
                     {
                         "mission_id": mid,
@@ -632,7 +639,7 @@ class Store:
                         "stop_reason": event.get("reason"),
                         "captured": bool(caps),
                         "capture_time": min(caps) if caps else None,
-                        "seconds": seconds,
+                        "seconds": self._seconds(conn, fleet, mid, event, bool(caps)),  # on the mission clock
                     }
                 )
         return out

@@ -68,6 +68,12 @@ class BatchedBelief:
         else:
             self.gamma = torch.as_tensor(model.dense(), dtype=self.dtype, device=self.device)  # (n, n)
 
+    def dense_gamma(self) -> torch.Tensor:
+        """The dense (n, n) Gamma_hat (a ValueError for sparse beliefs): what needs the matrix itself."""
+        if self.gamma is None:
+            raise ValueError(f"beliefs on {self.n} nodes are sparse: there is no dense Gamma_hat")
+        return self.gamma
+
     def model(self, graph: Graph, kind: str) -> TargetModel:
         """The current (Gamma_hat, b0) as a TargetModel, rows and b0 renormalised in float64."""
         b0 = self.b0.double().cpu().numpy()

@@ -218,6 +218,6 @@ def episode_records(
                     # the robot's own reading index of the capture: its last (on the clock, each robot's own count)
                     capture_time=None if censored else (len(ticks) - 1 if timed else int(result.capture_time[k])),
                     captured_by=None if censored else f"r{int(result.captured_by[k])}",
-                    times=ticks * tick_s if timed else None,
+                    times=None if tick_s is None or not timed else ticks * tick_s,
                 )
             k += 1

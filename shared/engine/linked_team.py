@@ -163,6 +163,8 @@ class TimedLinkedTeamSearcher(LinkedTeamSearcher):
         self.planner = None  # each TimedTeamAgent builds the planner its version needs (a step's worth)
         self.timed: dict[int, list[TimedTeamAgent]] = {}
         self.readings: dict[int, list[int]] = {}  # slot -> each robot's readings so far
+        # slot -> messages (due tick, to, from, its reading's index, node, z, time_s, goal)
+        self.mail: dict[int, list[tuple[int, int, str, int, int, int, float, int]]] = {}
 
     def _begin(self, slot: int) -> None:
         mission = int(self.rng.integers(2**31))
@@ -184,7 +186,7 @@ class TimedLinkedTeamSearcher(LinkedTeamSearcher):
             )
             for i, r in enumerate(self.robots)
         ]
-        self.inbox[slot], self.readings[slot] = [], [0] * self.N
+        self.mail[slot], self.readings[slot] = [], [0] * self.N
 
     def act(self, obs: Obs) -> torch.Tensor:
         pos, z, t_all = obs.pos.numpy(), obs.z.numpy(), obs.t.numpy()
@@ -194,23 +196,24 @@ class TimedLinkedTeamSearcher(LinkedTeamSearcher):
         for e in (int(x) for x in np.nonzero(alive)[0]):
             if new[e] or e not in self.timed:
                 self._begin(e)
-            team, inbox, count, t = self.timed[e], self.inbox[e], self.readings[e], int(t_all[e])
+            team, inbox, count, t = self.timed[e], self.mail[e], self.readings[e], int(t_all[e])
             now_s = t * self.clock.tick_s
             due = [m for m in inbox if m[0] <= t]
             inbox[:] = [m for m in inbox if m[0] > t]
             for _due, j, sender, k, p, zi, at_s, goal in due:
                 team[j].observe_at(sender, k, p, zi, at_s, goal)
             if self.known_withdrawals:  # its liveliness token gone: its teammates drop it at once
-                for i in np.nonzero(~active[e])[0]:
+                for gone in np.nonzero(~active[e])[0]:
                     for mate in team:
-                        mate.withdraw(team[int(i)].me)
+                        mate.withdraw(team[int(gone)].me)
             deciding = [i for i in range(self.N) if active[e, i] and ready[e, i]]
             for i in deciding:
                 p, zi = int(pos[e, i]), int(z[e, i])
                 team[i].observe_at(team[i].me, count[i], p, zi, now_s)
-                out[e, i], mode = team[i].act_at(now_s, p)
+                row, mode = team[i].act_at(now_s, p)
+                out[e, i] = row
                 self.steps[mode] += 1
-                sent = (team[i].me, count[i], p, zi, now_s, int(out[e, i]))  # with where the robot is headed
+                sent = (team[i].me, count[i], p, zi, now_s, row)  # with where the robot is headed
                 for j in range(self.N):
                     if j != i and self.link_rng.random() >= self.link_loss:
                         inbox.append((t + max(1, self.link_delay), j, *sent))

@@ -157,13 +157,14 @@ class EnvCore:
             "b": self.b.clone(),
             "last_reset": self.last_reset.clone(),
             "ended": self._ended.clone(),
-            "gamma": self.belief.gamma.clone(),
+            "gamma": self.belief.dense_gamma().clone(),
             "b0": self.belief.b0.clone(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Continue from ``state_dict()``'s output (a ValueError names a mismatching entry)."""
-        for key, mine in (("b", self.b), ("ended", self._ended), ("gamma", self.belief.gamma), ("b0", self.belief.b0)):
+        gamma = self.belief.dense_gamma()
+        for key, mine in (("b", self.b), ("ended", self._ended), ("gamma", gamma), ("b0", self.belief.b0)):
             theirs = state.get(key)
             if not isinstance(theirs, torch.Tensor) or theirs.shape != mine.shape:
                 raise ValueError(f"environment state {key!r}: expected a tensor of shape {tuple(mine.shape)}")

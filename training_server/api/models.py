@@ -364,6 +364,13 @@ class VersionPerformance(BaseModel):
     captured: int
     mean_capture_time: float | None = Field(description="mean over the missions counted (a miss counts its step limit)")
     ci95: float | None = Field(description="half-width of the 95 % CI of that mean (normal approximation)")
+    missions_on_clock: int = Field(0, description="of the missions counted, those flown on the mission clock")
+    mean_capture_time_s: float | None = Field(
+        None,
+        description="mean capture time in seconds over the missions on the clock (a miss counts its last reading's "
+        "time); null when none was",
+    )
+    ci95_s: float | None = Field(None, description="half-width of the 95 % CI of that mean, seconds")
 
 
 class PerformanceOut(BaseModel):

@@ -63,10 +63,12 @@ def promote(req: PromoteRequest, srv: Srv) -> PolicyVersion:
 def performance(srv: Srv) -> PerformanceOut:
     """Capture time per policy version from the fleet's own missions, with its 95 % CI. A mission
     counts when some robot captured the target or it ran to its step limit (which a miss counts);
-    missions stopped or timed out early, or flown with mixed versions, are left out."""
+    missions stopped or timed out early, or flown with mixed versions, are left out. Missions flown
+    on the mission clock also count in seconds (a robot's step count on the clock is its own)."""
     from shared.engine.evaluate import mean_ci95
 
     times: dict[int, list[float]] = {}
+    seconds: dict[int, list[float]] = {}  # the missions flown on the mission clock
     caught: dict[int, int] = {}
     excluded = 0
     for o in srv.store.mission_outcomes(srv.fleet):
@@ -75,10 +77,13 @@ def performance(srv: Srv) -> PerformanceOut:
             excluded += 1
             continue
         times.setdefault(v, []).append(ct)
+        if (sec := srv.store.counted_seconds(o)) is not None:
+            seconds.setdefault(v, []).append(sec)
         caught[v] = caught.get(v, 0) + int(o["captured"] and o["capture_time"] is not None)
     items = []
     for v in sorted(times):
         mean, half = mean_ci95(times[v])
+        mean_s, half_s = mean_ci95(seconds.get(v, []))
         items.append(
             VersionPerformance(
                 version=v,
@@ -86,6 +91,9 @@ def performance(srv: Srv) -> PerformanceOut:
                 captured=caught.get(v, 0),
                 mean_capture_time=round(mean, 4),
                 ci95=None if math.isnan(half) else round(half, 4),
+                missions_on_clock=len(seconds.get(v, [])),
+                mean_capture_time_s=None if math.isnan(mean_s) else round(mean_s, 3),
+                ci95_s=None if math.isnan(half_s) else round(half_s, 3),
             )
         )
     return PerformanceOut(items=items, excluded=excluded)

@@ -751,7 +751,7 @@ pages.policies = async function (ctx) {
       const g = run && run.metrics ? run.metrics.gate : null;
       const gate = g
         ? [
-            `${g.passed ? "passed" : "failed"}: ${fmtNum(g.new.mean_capture_time)} vs ${fmtNum(g.current.mean_capture_time)} steps`,
+            `${g.passed ? "passed" : "failed"}: ${fmtNum(g.new.mean_capture_time)} vs ${fmtNum(g.current.mean_capture_time)} ${g.unit || "steps"}`,
             el("span", { class: "sub" }, `${g.new.episodes} episodes${g.model ? `, ${g.model}` : ""}`),
           ]
         : [p.run_id ? "—" : "initial"];
@@ -764,7 +764,10 @@ pages.policies = async function (ctx) {
           ]
         : [p.parent ? `from v${p.parent}` : "—"];
       const pf = perfOf[p.version];
-      const ct = pf ? `${fmtNum(pf.mean_capture_time)} ± ${pf.ci95 === null ? "?" : fmtNum(pf.ci95)} (${pf.missions} missions)` : "no missions yet";
+      const onClock = pf && pf.mean_capture_time_s !== null && pf.mean_capture_time_s !== undefined
+        ? `; ${fmtNum(pf.mean_capture_time_s)} s ± ${pf.ci95_s === null ? "?" : fmtNum(pf.ci95_s)} over ${pf.missions_on_clock} on the clock`
+        : "";
+      const ct = pf ? `${fmtNum(pf.mean_capture_time)} steps ± ${pf.ci95 === null ? "?" : fmtNum(pf.ci95)} (${pf.missions} missions${onClock})` : "no missions yet";
       const m = p.meta || {};
       const c = m.canary;
       const trial = !c
