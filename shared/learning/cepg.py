@@ -51,7 +51,8 @@ class Rollout:
     ret (S,) the team's return from t on, or (S, N) one per robot; length (B,) decisions per episode (T_i of Eq. 12);
     capture_time (B,), censored (B,). With travel times t counts ticks and a row is a tick at which
     some robot of the episode stands on a node: ``decided`` (S, N) marks the robots that decide
-    there (None: every robot, the paper's model).
+    there, and ``decisions`` (B, N) counts each robot's decisions in each episode, its T_i of Eq. 12
+    (None: every robot decides at every row, the paper's model, and T_i is ``length``).
     """
 
     pos: torch.Tensor
@@ -64,6 +65,7 @@ class Rollout:
     capture_time: torch.Tensor
     censored: torch.Tensor
     decided: torch.Tensor | None = None
+    decisions: torch.Tensor | None = None
 
 
 @torch.no_grad()
@@ -113,8 +115,9 @@ def rollout(
     capture_time = obs.t
     pos, bel, act, t, ep = (torch.cat(logs[k]) for k in names[:-1])
     decided = torch.cat(logs["decided"]) if logs["decided"] else None
+    decisions = None if decided is None else torch.zeros(B, N, device=sim.device).index_add_(0, ep, decided.float())
     ret = -(capture_time[ep] - t).to(torch.float32)  # reward -1 per step (tick) until capture
-    return Rollout(pos, bel, act, t, ep, ret, capture_time, capture_time, censored, decided)
+    return Rollout(pos, bel, act, t, ep, ret, capture_time, capture_time, censored, decided, decisions)
 
 
 @dataclass
@@ -200,8 +203,11 @@ def cross_entropy_term(
     smooth = torch.where(mask, (1 - eps) * own_s.exp() + eps * uniform, 1.0)  # pi~_i; 1 outside N[p]: log 0
     h = -(pi_j * torch.log(smooth).unsqueeze(2)).sum(-1)  # (K, N_i, N_j): H(pi_j, pi~_i) at each state
     h_i = (h * pairs).sum(-1) / max(N - 1, 1)  # (K, N): (1/(N-1)) sum_{j != i}; 0 for a single robot
-    T_i = ro.length[ro.episode[sub]].clamp_min(1).to(torch.float32)  # (K,): each decision's episode length
-    return weight * (h_i / T_i.unsqueeze(1)).sum(0) / B  # the 1/T_i of Eq. 12, then the mean over episodes
+    if ro.decisions is None:
+        T_i = ro.length[ro.episode[sub]].clamp_min(1).to(torch.float32).unsqueeze(1)  # (K, 1): its episode's length
+    else:  # travel times: (K, N) each robot's own decisions in the episode
+        T_i = ro.decisions[ro.episode[sub]].clamp_min(1)
+    return weight * (h_i / T_i).sum(0) / B  # the 1/T_i of Eq. 12, then the mean over episodes
 
 
 def cepg_loss(
