@@ -39,10 +39,10 @@ from shared.registry import searcher_factory
 MURES = [sys.executable, "-m", "shared.tools.cli"]
 
 
-def train(graph_file: Path, robots: int, episodes: int, out: Path, *extra: str) -> float:
-    """`mures train` into ``out`` unless it is there; the seconds it took (0 when cached)."""
+def train(graph_file: Path, robots: int, episodes: int, out: Path, *extra: str) -> float | None:
+    """`mures train` into ``out`` unless it is there; the seconds it took (None when it was there)."""
     if out.exists():
-        return 0.0
+        return None
     t0 = time.perf_counter()
     args = ["train", "--graph", str(graph_file), "--robots", str(robots), "--episodes", str(episodes), "--seed", "0",
             "--out", str(out), "--quiet", *extra]  # fmt: skip
@@ -99,7 +99,7 @@ def main() -> None:
                 row[key] = {"mean_capture_time_s": mean, "ci95_halfwidth_s": half}
             d_mean, d_half = mean_ci95(diff)
             row["clock_minus_steps_s"] = {"mean": d_mean, "ci95_halfwidth": d_half}
-            row["training_wall_s"] = {k: round(v, 1) for k, v in wall.items()}
+            row["training_wall_s"] = {k: None if v is None else round(v, 1) for k, v in wall.items()}
             rows.append(row)
 
             print(f"{name:<12} {graph.n:>4} {robots:>2} {cell(row['steps']):>16} {cell(row['clock']):>16} "
