@@ -95,29 +95,21 @@ def test_grid_and_custom_sensing():
     assert sorted(idx[ptr[2] : ptr[3]]) == [1, 2]  # unlisted nodes default to N[p]
 
 
-def test_a_map_too_large_for_dense_arrays_is_refused_by_the_engine_with_the_limit(tmp_path):
+def test_a_map_too_large_for_dense_arrays_is_simulated_sparse_and_refused_where_arrays_are_dense(tmp_path):
     big = {"name": "corridor", "nodes": list(range(6000)), "edges": [[i, i + 1] for i in range(5999)]}
     g = graph_from_dict(big)  # the agent's sparse filter takes it
-    with pytest.raises(GraphError, match=r"6000 nodes: the engine holds dense n x n arrays .* at most 5000"):
+    with pytest.raises(GraphError, match=r"6000 nodes: training, EM and the planners hold dense n x n arrays .* 5000"):
         g.closed_adjacency  # noqa: B018
     path = tmp_path / "corridor.json"
     path.write_text(json.dumps(big))
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "shared.tools.cli",
-            "evaluate",
-            "--graph",
-            str(path),
-            "--robots",
-            "1",
-            "--searcher",
-            "random",
-            "--episodes",
-            "2",
-        ],
-        capture_output=True,
-        text=True,
-    )
+
+    def mures(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "shared.tools.cli", *args], capture_output=True, text=True)
+
+    # the simulator and the reference searchers are sparse: they take it
+    r = mures("evaluate", "--graph", str(path), "--robots", "1", "--searcher", "random", "--episodes", "2")
+    assert r.returncode == 0 and "T_max = 18000" in r.stdout, r.stderr
+    # training holds (n, n) arrays: refused in one line, naming the limit, before anything is written
+    r = mures("train", "--graph", str(path), "--robots", "1", "--episodes", "256", "--out", str(tmp_path / "team"))
     assert r.returncode == 2 and "at most 5000" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "team").exists()

@@ -6,6 +6,7 @@ table of candidates, and a run that resumes from its checkpoint after a server r
 from __future__ import annotations
 
 import json
+import re
 import signal
 from pathlib import Path
 
@@ -131,13 +132,27 @@ def test_best_trains_the_candidates_and_publishes_the_one_that_captures_soonest(
         ({"hyperparameters": {"sac": {"lr": 0.1}}}, "hyperparameters"),
         ({"team_sizes": [0]}, "team_sizes"),
         ({"budget_fraction": 0}, "budget_fraction"),
-        ({"speed": 0.5, "algorithm": "mappo"}, "the MARL baselines count steps"),
         ({"speed": 0}, "speed"),
     ],
 )
 def test_bad_training_parameters_are_refused_naming_the_problem(body, names):
     with pytest.raises(ValueError, match=names):
         TrainingParams.model_validate(body)
+
+
+def test_a_run_on_travel_times_names_what_cannot_train_on_them():
+    from training_server.jobs import run_speed
+
+    assert run_speed(TrainingParams.model_validate({}), None) is None
+    assert run_speed(TrainingParams.model_validate({}), (0.4, 1.0)) == 0.4  # the current version's speed
+    assert run_speed(TrainingParams.model_validate({"speed": 0.7}), (0.4, 1.0)) == 0.7
+    for body, trained, says in (
+        ({"speed": 0.5, "algorithm": "mappo"}, None, "speed retrains CE-PG (cepg, pg) on travel times only; mappo"),
+        ({"algorithm": "best", "candidates": ["pg", "masac"]}, (0.5, 1.0), "trained on travel times: CE-PG"),
+        ({}, (0.5, 2.0), "ticks of 2 s"),
+    ):
+        with pytest.raises(ValueError, match=re.escape(says)):
+            run_speed(TrainingParams.model_validate(body), trained)
 
 
 def test_an_unknown_hyperparameter_fails_the_run_at_once_naming_it(fleet):

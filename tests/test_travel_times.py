@@ -48,6 +48,8 @@ def test_move_ticks_round_each_edge_to_whole_ticks_and_refuse_a_graph_without_le
     assert ticks[0, 0] == ticks[2, 2] == 1 and ticks[0, 2] == 0  # a stay one tick, no edge none
     with pytest.raises(ValueError, match="no edge lengths"):
         move_ticks(builtin_graph("office"), 0.5)
+    with pytest.raises(ValueError, match="give a robot's real speed"):  # a speed in the wrong unit
+        move_ticks(g, 1e-9)
     fast = lazy_walk(g, 0.5)  # per tick, faster than any step of 8 ticks made a tick's worth
     made = step_model(fast, step_s=8.0)
     assert (made.prob >= 0).all() and np.allclose(np.bincount(made.src, weights=made.prob), 1.0)

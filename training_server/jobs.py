@@ -178,7 +178,7 @@ class TrainingParams(BaseModel):
     promote: bool = Field(True, description="make the new version current")
     speed: float | None = Field(
         None,
-        gt=0.0,
+        ge=0.01,
         le=100.0,
         allow_inf_nan=False,
         description="retrain on the mission clock at this robot speed in m/s (docs/continuous-world.md, 'Training "
@@ -197,8 +197,6 @@ class TrainingParams(BaseModel):
     def _distinct(self) -> TrainingParams:
         if len(set(self.candidates or ())) != len(self.candidates or ()):
             raise ValueError("candidates must not repeat a method")
-        if self.speed is not None and any(m not in ("cepg", "pg") for m in self.methods()):
-            raise ValueError("speed retrains CE-PG (cepg or pg) on travel times; the MARL baselines count steps")
         return self
 
     def hyperparameters_of(self, method: str) -> dict[str, int | float | bool]:
@@ -275,6 +273,26 @@ def measured_links(records: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def run_speed(params: TrainingParams, trained: tuple[float, float] | None) -> float | None:
+    """The robot speed a run trains on travel times at: ``speed``, else the current version's
+    (``trained``: its training's (speed, tick), None for a version trained in steps); None for a
+    run in steps. A ValueError names a run that cannot: one of the MARL baselines on travel times
+    (the body is valid: such a run fails at once, as one with an unknown hyperparameter does), or a
+    version trained with another tick than the agents' 1 s."""
+    from shared.core.clock import TICK_S
+
+    speed = params.speed if params.speed is not None else (trained[0] if trained else None)
+    if speed is None:
+        return None
+    if trained is not None and abs(trained[1] - TICK_S) > 1e-9:
+        raise ValueError(f"the current version was trained with ticks of {trained[1]:g} s; the agents' are 1 s")
+    steps_only = [m for m in params.methods() if m not in ("cepg", "pg")]
+    if steps_only:
+        why = "speed retrains" if params.speed is not None else "the current version was trained on travel times:"
+        raise ValueError(f"{why} CE-PG (cepg, pg) on travel times only; {', '.join(steps_only)} count steps")
+    return speed
+
+
 class _TrainingRun:
     """One training run, in the training process: EM on the fleet's records, its teams trained
     in simulation under the estimated model (training_server/methods.py), the evaluation gate,
@@ -306,15 +324,8 @@ class _TrainingRun:
         """The run's travel times (``speed``, or the current version's), or None: steps."""
         from shared.core.clock import TICK_S, TravelTimes
 
-        trained = self.current.clock
-        speed = self.speed = self.p.speed if self.p.speed is not None else (trained[0] if trained else None)
-        if speed is None:
-            return None
-        if trained is not None and abs(trained[1] - TICK_S) > 1e-9:
-            raise ValueError(f"the current version was trained with ticks of {trained[1]:g} s; the server's are 1 s")
-        if self.p.speed is None and any(m not in ("cepg", "pg") for m in self.p.methods()):
-            raise ValueError("the current version was trained on travel times, which only CE-PG (cepg, pg) trains on")
-        return TravelTimes.of(self.graph, speed, TICK_S)  # ValueError: the map has no edge lengths
+        speed = self.speed = run_speed(self.p, self.current.clock)
+        return None if speed is None else TravelTimes.of(self.graph, speed, TICK_S)  # ValueError: no edge lengths
 
     def _on_clock(self, snap: Any) -> Any:
         """A team to evaluate on the run's travel times: one trained in steps gets its model made a

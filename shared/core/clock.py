@@ -17,6 +17,7 @@ from shared.core.graph import Graph
 from shared.core.models import TargetModel
 
 TICK_S = 1.0  # the mission clock's tick
+MAX_MOVE_TICKS = 100_000  # a move longer than this many ticks is a speed given in the wrong unit
 
 
 def move_seconds(graph: Graph, speed: float) -> float:
@@ -60,9 +61,15 @@ def move_ticks(graph: Graph, speed: float, tick_s: float = TICK_S) -> np.ndarray
         raise ValueError(
             f"{graph.name} has no edge lengths: travel times need a graph from `mures map import` (edge_lengths_m)"
         )
+    per_move = np.asarray(graph.edge_lengths) / (speed * tick_s)
+    if not np.isfinite(per_move).all() or per_move.max() > MAX_MOVE_TICKS:
+        raise ValueError(
+            f"at {speed:g} m/s a move of {graph.name} would take up to {per_move.max():.3g} ticks of {tick_s:g} s "
+            f"(at most {MAX_MOVE_TICKS:,}): give a robot's real speed"
+        )
     ticks = np.zeros((graph.n, graph.n), dtype=np.int64)
     np.fill_diagonal(ticks, 1)
-    k = np.maximum(1, np.rint(np.asarray(graph.edge_lengths) / (speed * tick_s))).astype(np.int64)
+    k = np.maximum(1, np.rint(per_move)).astype(np.int64)
     u, v = graph.edges[:, 0], graph.edges[:, 1]
     ticks[u, v] = k
     ticks[v, u] = k

@@ -123,11 +123,11 @@ class Graph:
         except KeyError:
             raise GraphError(f"node {label} is not in graph {self.name!r}") from None
 
-    def require_dense(self, what: str = "the engine") -> None:
+    def require_dense(self, what: str = "training, EM and the planners") -> None:
         """Refuse (GraphError, the limit named) a dense (n, n) array on a map above DENSE_MAX_NODES."""
         if self.n > DENSE_MAX_NODES:
             raise GraphError(
-                f"map {self.name!r} has {self.n} nodes: {what} holds dense n x n arrays "
+                f"map {self.name!r} has {self.n} nodes: {what} hold dense n x n arrays "
                 f"({self.n**2 * 8 / 1e9:.1f} GB for one float64 matrix) and takes at most {DENSE_MAX_NODES} nodes"
             )
 

@@ -81,7 +81,7 @@ def make_scenario(
         graph = load_graph_file(map)
     else:
         graph = builtin_graph(str(map))
-    graph.require_dense("the environment")
+    graph.require_dense("the environments")
     if not isinstance(robots, int) or isinstance(robots, bool) or robots < 1:
         raise ValueError(f"robots must be a positive integer, got {robots!r}")
     true_model = target if isinstance(target, TargetModel) else parse_target(graph, target)
