@@ -196,6 +196,7 @@ class TeamAgent:
         team_model: TargetModel | None = None,
         link_quality_min: float = LINK_QUALITY_MIN,
         link_history: LinkHistory | None = None,
+        collective_model: TargetModel | None = None,
     ) -> None:
         if searcher is not None and searcher not in TEAM_SEARCHERS:
             raise ValueError(f"team searcher {searcher!r}: expected one of {', '.join(TEAM_SEARCHERS)}")
@@ -211,7 +212,8 @@ class TeamAgent:
         self.own = PolicyAgent(team, graph, self.index, seed=self.seed if own_seed is None else own_seed, team=True)
         self.flown_for = team.robots if team is not snap else len(self.robots)  # the team size its policy is built for
         model = team_model or snap.model  # the team's (Gamma_hat, b0); the own policy keeps its own
-        self.collective = CollectiveBelief(graph, model, snap.sensor, self.robots)
+        # the collective belief's model: the plan's, unless given (on the mission clock: per tick)
+        self.collective = CollectiveBelief(graph, collective_model or model, snap.sensor, self.robots)
         if searcher == "fhpe-sa" and planner is None:
             planner = FhpeSAPlanner(graph, model, snap.sensor, HORIZON)
         self.planner = planner

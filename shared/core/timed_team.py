@@ -34,7 +34,7 @@ from shared.core.clock import TICK_S, move_seconds, step_model, tick_model
 from shared.core.fhpe_sa import HORIZON, FhpeSAPlanner
 from shared.core.graph import Graph
 from shared.core.snapshot_format import SnapshotData
-from shared.core.team import CollectiveBelief, TeamAgent
+from shared.core.team import TeamAgent
 
 TIMEOUT_S = 120.0  # a teammate not heard for this long leaves the team's plan (a move takes 4-25 s)
 LATE_S = 2.0  # a teammate's observation arriving this long after its reading's decision time is late
@@ -59,22 +59,21 @@ class TimedTeamAgent(TeamAgent):
         timeout_s: float = TIMEOUT_S,
         **kw: Any,
     ) -> None:
+        if snap.clock is not None and abs(snap.clock[1] - tick_s) > 1e-9:
+            raise ValueError(f"the version was trained with ticks of {snap.clock[1]:g} s, the agent's are {tick_s:g} s")
         if snap.clock is not None and searcher == "fhpe-sa" and kw.get("planner") is None:
             # FHPE-SA moves once a step: a version trained on the clock gives it its model a step's worth
             trained_step_s = move_seconds(graph, snap.clock[0])  # a step at the speed it was trained at
             plan_model = kw.get("team_model") or step_model(snap.model, trained_step_s, snap.clock[1])
             kw["planner"] = FhpeSAPlanner(graph, plan_model, snap.sensor, HORIZON)
-        super().__init__(snap, graph, robots, me, seed, searcher, **kw)
-        self.tick_s, self.step_s, self.timeout_s = tick_s, step_s, timeout_s
         # a team trained on the clock (`mures train --speed`) has its model per tick already, and its
         # own belief predicts every tick between readings; a --team-model, like a team of steps, is per step
         self.per_tick = snap.clock is not None and kw.get("team_model") is None
         self.snap_per_tick = snap.clock is not None  # the own policy's belief uses the version's model
-        if snap.clock is not None and abs(snap.clock[1] - tick_s) > 1e-9:
-            raise ValueError(f"the version was trained with ticks of {snap.clock[1]:g} s, the agent's are {tick_s:g} s")
         model = kw.get("team_model") or snap.model
-        model = model if self.per_tick else tick_model(model, step_s, tick_s)
-        self.collective = CollectiveBelief(graph, model, snap.sensor, self.robots)
+        kw["collective_model"] = model if self.per_tick else tick_model(model, step_s, tick_s)  # Gamma per tick
+        super().__init__(snap, graph, robots, me, seed, searcher, **kw)
+        self.tick_s, self.step_s, self.timeout_s = tick_s, step_s, timeout_s
         self.own_tick = 0  # the tick of this robot's latest reading
         self.heard_s = {r: -math.inf for r in self.robots if r != me}  # each teammate's latest reading's time
         self.goal: dict[str, int] = {}  # each robot's latest known node: where it is headed
