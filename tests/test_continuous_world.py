@@ -189,3 +189,12 @@ def test_a_lazy_target_or_a_model_files_target_walks_its_model_in_continuous_tim
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["continuous"]["target"] == "lazy-walk:0.5" and out["captured_fraction"] == 1.0
+
+
+def test_hold_ups_make_the_batched_missions_later(tmp_path):
+    grid, graph = _two_rooms(tmp_path)
+    world = building(grid, graph, sensor_range_m=4.0)
+    free = fly(world, "sweep", 1, 200, seed=3)
+    held = fly(world, "sweep", 1, 200, seed=3, stop_prob=1.0, stop_s=60.0)  # every move held up a minute
+    assert free.captured.all() and held.captured.all()
+    assert held.capture_s.mean() > free.capture_s.mean() + 20.0, (held.capture_s.mean(), free.capture_s.mean())

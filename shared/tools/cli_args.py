@@ -118,8 +118,7 @@ def device_of(name: str) -> Any:
 
 def add_continuous_args(p: argparse.ArgumentParser, about: str, noise: bool = False) -> Any:
     """The continuous world's flags (docs/continuous-world.md) in a group of their own, introduced by
-    ``about``; ``noise`` adds --speed-cv and the hold-ups (--stop-prob, --stop-seconds). Returns the
-    group, for a command's own additions."""
+    ``about``; ``noise`` adds --speed-cv. Returns the group, for a command's own additions."""
     g = p.add_argument_group("continuous world", about)
     g.add_argument("--world", metavar="MAP.yaml", help="the map the --graph was imported from")
     g.add_argument("--speed", type=positive_number, default=0.5, metavar="M_PER_S", help="robots' speed (0.5)")
@@ -131,16 +130,16 @@ def add_continuous_args(p: argparse.ArgumentParser, about: str, noise: bool = Fa
             metavar="CV",
             help="each move's speed drawn with this coefficient of variation (0: every move at --speed)",
         )
-        g.add_argument(
-            "--stop-prob",
-            type=number_between(0.0, 1.0),
-            default=0.0,
-            metavar="P",
-            help="each move is held up with probability P (a door, a person in the way; default 0)",
-        )
-        g.add_argument(
-            "--stop-seconds", type=positive_number, default=30.0, metavar="S", help="a hold-up's mean length (30)"
-        )
+    g.add_argument(
+        "--stop-prob",
+        type=number_between(0.0, 1.0),
+        default=0.0,
+        metavar="P",
+        help="each move is held up with probability P (a door, a person in the way; default 0)",
+    )
+    g.add_argument(
+        "--stop-seconds", type=positive_number, default=30.0, metavar="S", help="a hold-up's mean length (30)"
+    )
     g.add_argument("--stay-seconds", type=positive_number, default=1.0, metavar="S", help="a step that stays (1)")
     g.add_argument("--range", type=positive_number, default=4.0, metavar="M", help="sensor range, metres (4)")
     g.add_argument("--target-speed", type=positive_number, default=0.5, metavar="M_PER_S", help="(0.5)")

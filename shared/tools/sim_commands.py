@@ -222,6 +222,8 @@ def _evaluate_continuous(args: argparse.Namespace) -> int:
         max_s=args.max_seconds,
         seed=args.seed,
         target_model=None if args.target == "uniform" else target,
+        stop_prob=args.stop_prob,
+        stop_s=args.stop_seconds,
     )
     mean, half = mean_ci95(flight.capture_s)
     summary = {
@@ -239,6 +241,8 @@ def _evaluate_continuous(args: argparse.Namespace) -> int:
             "target_speed_m_s": args.target_speed,
             "target_dwell_s": args.target_dwell,
             "target": target.kind,
+            "stop_prob": args.stop_prob,
+            "stop_s": args.stop_seconds,
             "max_seconds": args.max_seconds,
         },
         "episodes": args.episodes,

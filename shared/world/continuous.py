@@ -231,10 +231,13 @@ def fly(
     seed: int = 0,
     time_discount: bool = False,
     target_model: TargetModel | None = None,
+    stop_prob: float = 0.0,
+    stop_s: float = 30.0,
 ) -> Flight:
     """B = ``missions`` missions of ``robots`` robots with ``searcher`` (``SEARCHERS``). The target
     walks the uniform walk in continuous time, or ``target_model`` (``Targets``), which greedy's
-    beliefs and the fhpe-sa plan then use."""
+    beliefs and the fhpe-sa plan then use. A move is held up with probability ``stop_prob`` for an
+    exponential time of mean ``stop_s`` (as in the world served to the agents)."""
     if searcher not in SEARCHERS:
         raise ValueError(f"searcher must be one of {', '.join(SEARCHERS)}, got {searcher!r}")
     g, b_n, r_n = world.graph, missions, robots
@@ -279,6 +282,9 @@ def fly(
             decisions += len(bs)
             moves = zip(here.tolist(), nxt.tolist(), strict=True)
             travel = np.array([world.length_m[world.edge_of[p, q]] / speed if p != q else dwell_s for p, q in moves])
+            if stop_prob:  # hold-ups: a move (not a stay) held up with probability stop_prob (drawn only then)
+                held = (rng.random(len(travel)) < stop_prob) & (nxt != here)
+                travel = travel + np.where(held, rng.exponential(stop_s, len(travel)), 0.0)
             r_at[bs, rs] = nxt
             r_left[bs, rs] += travel
         now += dt
