@@ -53,6 +53,7 @@ from typing import Any, Protocol
 import zenoh
 
 from shared.core.graph import Graph
+from shared.core.records import is_seconds
 from shared.core.wire import sim_key
 
 NAV2_BACKEND = "robot_agent.nav2:Nav2Backend"  # `--backend nav2` (it imports this module: loaded by name)
@@ -250,7 +251,7 @@ class CheckedBackend:
         value = self._call("clock")
         if value is None:
             return None
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 <= float(value) < float("inf"):
+        if not is_seconds(value):
             raise BackendError(f"backend clock() returned {value!r}; expected seconds (a finite number >= 0) or None")
         return float(value)
 

@@ -130,7 +130,7 @@ def _team_factory(
     on the ``clock`` (shared/engine/linked_team.py)."""
     from shared.core.snapshot_format import read_snapshot
     from shared.core.team import team_searcher_of
-    from shared.engine.linked_team import LinkedTeamSearcher, TimedLinkedTeamSearcher
+    from shared.engine.linked_team import linked_team
     from shared.learning.team_snapshot import torch_weights
 
     snap = read_snapshot(path, graph, legacy=torch_weights)
@@ -146,12 +146,19 @@ def _team_factory(
         )
 
     def make(seed: int) -> Searcher:
-        args = (searcher, team.link_loss, team.link_delay, team.fallback_after)
-        if clock is not None:
-            return TimedLinkedTeamSearcher(
-                snap, graph, n_robots, clock, seed, *args, counter=team.steps, team_model=team.model
-            )
-        return LinkedTeamSearcher(snap, graph, n_robots, seed, *args, counter=team.steps, team_model=team.model)
+        return linked_team(
+            snap,
+            graph,
+            n_robots,
+            seed,
+            searcher,
+            clock,
+            link_loss=team.link_loss,
+            link_delay=team.link_delay,
+            fallback_after=team.fallback_after,
+            counter=team.steps,
+            team_model=team.model,
+        )
 
     make(0)  # its checks (the link's loss and delay), once, before any simulation
     return make

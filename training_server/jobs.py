@@ -324,7 +324,7 @@ class _TrainingRun:
         """The run's travel times (``speed``, or the current version's), or None: steps."""
         from shared.core.clock import TICK_S, TravelTimes
 
-        speed = self.speed = run_speed(self.p, self.current.clock)
+        speed = run_speed(self.p, self.current.clock)
         return None if speed is None else TravelTimes.of(self.graph, speed, TICK_S)  # ValueError: no edge lengths
 
     def _on_clock(self, snap: Any) -> Any:
@@ -528,7 +528,7 @@ class _TrainingRun:
             self.folder,
             on_progress,
             self.stopping,
-            speed=self.speed,
+            speed=None if self.clock is None else self.clock.speed,
         )
         if team is None:
             raise _Cancelled if self.cancel.is_set() else _Paused
@@ -586,7 +586,7 @@ class _TrainingRun:
         that starts with k robots flies the team built for k whatever this decides. On the clock the
         robots are their ``TimedTeamAgent``s on the travel times, withdrawn at steps' worth of ticks."""
         from shared.engine.evaluate import evaluate, mean_ci95
-        from shared.engine.linked_team import LinkedTeamSearcher, TimedLinkedTeamSearcher
+        from shared.engine.linked_team import LinkedTeamSearcher, linked_team
 
         N, p, snap = self.current.robots, self.p, version
         smaller = sorted(k for k in version.teams if k < N)
@@ -603,11 +603,7 @@ class _TrainingRun:
             for name, known in (("switch", True), ("keep", False)):
 
                 def make(seed: int, known: bool = known) -> LinkedTeamSearcher:
-                    if self.clock is not None:
-                        return TimedLinkedTeamSearcher(
-                            snap, self.graph, N, self.clock, seed, None, known_withdrawals=known
-                        )
-                    return LinkedTeamSearcher(snap, self.graph, N, seed, None, known_withdrawals=known)
+                    return linked_team(snap, self.graph, N, seed, None, self.clock, known_withdrawals=known)
 
                 r = evaluate(
                     self.graph,
@@ -642,7 +638,7 @@ class _TrainingRun:
         the team only if it captures sooner, its paired 95% CI below zero. ``snap``: the new
         version (numpy, ``_version_data``) with the run's EM model as trained under."""
         from shared.engine.evaluate import evaluate, mean_ci95
-        from shared.engine.linked_team import LinkedTeamSearcher, TimedLinkedTeamSearcher
+        from shared.engine.linked_team import LinkedTeamSearcher, linked_team
 
         p = self.p
         if p.team_searcher == "none":
@@ -657,11 +653,7 @@ class _TrainingRun:
         for name, searcher in (("alone", None), ("team", "fhpe-sa")):
 
             def make(seed: int, searcher: str | None = searcher) -> LinkedTeamSearcher:
-                if self.clock is not None:  # the robots' TimedTeamAgents on the map's travel times
-                    return TimedLinkedTeamSearcher(
-                        snap, self.graph, snap.robots, self.clock, seed, searcher, link_loss=loss
-                    )
-                return LinkedTeamSearcher(snap, self.graph, snap.robots, seed, searcher, link_loss=loss)
+                return linked_team(snap, self.graph, snap.robots, seed, searcher, self.clock, link_loss=loss)
 
             r = evaluate(
                 self.graph,

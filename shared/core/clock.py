@@ -20,15 +20,20 @@ TICK_S = 1.0  # the mission clock's tick
 MAX_MOVE_TICKS = 100_000  # a move longer than this many ticks is a speed given in the wrong unit
 
 
+def edge_lengths(graph: Graph) -> np.ndarray:
+    """(m,) the graph's edge lengths in metres; ValueError for a graph without them."""
+    if graph.edge_lengths is None or not len(graph.edge_lengths):
+        raise ValueError(
+            f"{graph.name} has no edge lengths: the mission clock needs a graph from `mures map import` "
+            "(edge_lengths_m)"
+        )
+    return np.asarray(graph.edge_lengths)
+
+
 def move_seconds(graph: Graph, speed: float) -> float:
     """The seconds one step of the model lasts: the graph's median edge length (along free space)
     over the robot's speed. ValueError for a graph without edge lengths."""
-    if graph.edge_lengths is None or not len(graph.edge_lengths):
-        raise ValueError(
-            f"{graph.name} has no edge lengths: --team-clock seconds needs a graph from `mures map import` "
-            "(edge_lengths_m)"
-        )
-    return float(np.median(graph.edge_lengths)) / speed
+    return float(np.median(edge_lengths(graph))) / speed
 
 
 def tick_model(model: TargetModel, step_s: float, tick_s: float = TICK_S) -> TargetModel:
@@ -57,11 +62,7 @@ def move_ticks(graph: Graph, speed: float, tick_s: float = TICK_S) -> np.ndarray
     ValueError for a graph without edge lengths or a speed or tick that is not above 0."""
     if not speed > 0 or not tick_s > 0:
         raise ValueError(f"speed and tick must be above 0, got {speed} m/s and {tick_s} s")
-    if graph.edge_lengths is None or not len(graph.edge_lengths):
-        raise ValueError(
-            f"{graph.name} has no edge lengths: travel times need a graph from `mures map import` (edge_lengths_m)"
-        )
-    per_move = np.asarray(graph.edge_lengths) / (speed * tick_s)
+    per_move = edge_lengths(graph) / (speed * tick_s)
     if not np.isfinite(per_move).all() or per_move.max() > MAX_MOVE_TICKS:
         raise ValueError(
             f"at {speed:g} m/s a move of {graph.name} would take up to {per_move.max():.3g} ticks of {tick_s:g} s "
@@ -83,11 +84,12 @@ class TravelTimes:
     ticks: np.ndarray  # (n, n) int64: ``move_ticks``
     tick_s: float  # the clock's tick
     step_s: float  # the seconds one step of the model lasts (``move_seconds``)
+    speed: float  # the robots' speed, m/s
 
     @classmethod
     def of(cls, graph: Graph, speed: float, tick_s: float = TICK_S) -> TravelTimes:
         """ValueError for a graph without edge lengths or a speed or tick not above 0."""
-        return cls(move_ticks(graph, speed, tick_s), tick_s, move_seconds(graph, speed))
+        return cls(move_ticks(graph, speed, tick_s), tick_s, move_seconds(graph, speed), speed)
 
     @property
     def ticks_per_step(self) -> float:

@@ -9,6 +9,7 @@ short stable code (for counting rejections) and whose message says what is wrong
 from __future__ import annotations
 
 import json
+import numbers
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -173,12 +174,17 @@ def _step_time(st: dict[str, Any], k: int, times: np.ndarray | None) -> np.ndarr
     ts = st.get("time_s")
     if times is None or ts is None:
         raise RecordError("time", f"step t={k}: time_s on some steps only (every step has one, or none does)")
-    if isinstance(ts, bool) or not isinstance(ts, int | float) or not 0 <= ts < float("inf"):
+    if not is_seconds(ts):
         raise RecordError("time", f"step t={k}: time_s must be a finite number of seconds >= 0, got {_show(ts)}")
     if k and ts < times[k - 1]:
         raise RecordError("time", f"step t={k}: time_s {ts} is before the step before it ({times[k - 1]:g})")
     times[k] = float(ts)
     return times
+
+
+def is_seconds(v: Any) -> TypeGuard[float]:
+    """A time on the mission clock: a finite real number >= 0 (a JSON true is not one)."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and 0 <= float(v) < float("inf")
 
 
 def _count(v: Any) -> TypeGuard[int]:

@@ -68,10 +68,9 @@ class TimedTeamAgent(TeamAgent):
             kw["planner"] = FhpeSAPlanner(graph, plan_model, snap.sensor, HORIZON)
         # a team trained on the clock (`mures train --speed`) has its model per tick already, and its
         # own belief predicts every tick between readings; a --team-model, like a team of steps, is per step
-        self.per_tick = snap.clock is not None and kw.get("team_model") is None
-        self.snap_per_tick = snap.clock is not None  # the own policy's belief uses the version's model
+        per_tick = snap.clock is not None and kw.get("team_model") is None
         model = kw.get("team_model") or snap.model
-        kw["collective_model"] = model if self.per_tick else tick_model(model, step_s, tick_s)  # Gamma per tick
+        kw["collective_model"] = model if per_tick else tick_model(model, step_s, tick_s)  # Gamma per tick
         super().__init__(snap, graph, robots, me, seed, searcher, **kw)
         self.tick_s, self.step_s, self.timeout_s = tick_s, step_s, timeout_s
         self.own_tick = 0  # the tick of this robot's latest reading
@@ -91,7 +90,7 @@ class TimedTeamAgent(TeamAgent):
             if t == 0:
                 self.own.reset(p, z)
             else:  # per tick: every tick since its last reading; per step: one step
-                self.own.observe(p, z, k - self.own_tick if self.snap_per_tick else 1)
+                self.own.observe(p, z, k - self.own_tick if self.snap.clock is not None else 1)
             self.own_tick = k
         if robot not in self.robots:
             return

@@ -39,7 +39,7 @@ import argparse
 import json
 from typing import Any
 
-from shared.core.records import ID_RE
+from shared.core.records import ID_RE, is_seconds
 
 DEFAULT_FLEET = "default"
 DEFAULT_ZENOH_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -83,7 +83,7 @@ def _seconds_or_none(value: Any) -> tuple[float | None, str]:
     """An optional ``time_s``: (None, "") when absent, (seconds, "") when a finite number >= 0, else a reason."""
     if value is None:
         return None, ""
-    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value < float("inf"):
+    if not is_seconds(value):
         return None, "'time_s' must be a finite number of seconds >= 0"
     return float(value), ""
 

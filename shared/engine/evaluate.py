@@ -197,15 +197,15 @@ def episode_records(
     travel times gives each robot's readings only (the ticks it stood on a node), each with its
     ``time_s`` (tick k at k ``tick_s``), as a robot on the mission clock records them.
     """
+    if tick_s is None and any(tr.ready is not None for tr in result.trajectories):
+        raise ValueError("a run with travel times makes records on the clock: give tick_s")
     k = 0
     for tr in result.trajectories:
+        timed = tr.ready is not None
         for b in range(tr.pos.shape[1]):
             length, censored = int(tr.length[b]), bool(result.censored[k])
             for i in range(tr.pos.shape[2]):
-                ticks = np.arange(length) if tr.ready is None else np.flatnonzero(tr.ready[:length, b, i])
-                timed = tr.ready is not None
-                if timed and tick_s is None:
-                    raise ValueError("a run with travel times makes records on the clock: give tick_s")
+                ticks = np.flatnonzero(tr.ready[:length, b, i]) if tr.ready is not None else np.arange(length)
                 yield make_record(
                     graph,
                     fleet=fleet,

@@ -49,6 +49,8 @@ class LinkedTeamSearcher:
     ``searcher`` ("fhpe-sa", "c-cepg", or None: each on its own policy) over links that lose a
     message with probability ``link_loss`` and delay it by ``link_delay`` steps."""
 
+    shares_planner = True  # one planner for every robot (the plan's model is the team's)
+
     def __init__(
         self,
         snap: SnapshotData,
@@ -80,7 +82,8 @@ class LinkedTeamSearcher:
         self.team_model, self.link_quality_min, self.history_sent = team_model, link_quality_min, history_sent
         self.known_withdrawals = known_withdrawals
         model = team_model or snap.model
-        self.planner = FhpeSAPlanner(graph, model, snap.sensor) if searcher == "fhpe-sa" else None
+        shared = searcher == "fhpe-sa" and self.shares_planner
+        self.planner = FhpeSAPlanner(graph, model, snap.sensor) if shared else None
         self.teams: dict[int, list[TeamAgent]] = {}  # slot -> the episode's robots
         self.inbox: dict[int, list[tuple[int, int, str, int, int, int]]] = {}  # slot -> (due, to, from, t, p, z)
         # robot-steps flown on the team's plan and on a robot's own policy, over every episode
@@ -157,10 +160,11 @@ class TimedLinkedTeamSearcher(LinkedTeamSearcher):
     ``link_loss``, else delivered ``link_delay`` ticks later, and never before the next tick, so
     robots that decide at the same tick decide on the same information. ``link_delay`` counts ticks."""
 
+    shares_planner = False  # each TimedTeamAgent builds the planner its version needs (a step's worth)
+
     def __init__(self, snap: SnapshotData, graph: Graph, n_robots: int, clock: TravelTimes, *a: Any, **kw: Any) -> None:
         super().__init__(snap, graph, n_robots, *a, **kw)
         self.clock = clock
-        self.planner = None  # each TimedTeamAgent builds the planner its version needs (a step's worth)
         self.timed: dict[int, list[TimedTeamAgent]] = {}
         self.readings: dict[int, list[int]] = {}  # slot -> each robot's readings so far
         # slot -> messages (due tick, to, from, its reading's index, node, z, time_s, goal)
@@ -219,3 +223,20 @@ class TimedLinkedTeamSearcher(LinkedTeamSearcher):
                         inbox.append((t + max(1, self.link_delay), j, *sent))
                 count[i] += 1
         return torch.as_tensor(out)
+
+
+def linked_team(
+    snap: SnapshotData,
+    graph: Graph,
+    n_robots: int,
+    seed: int,
+    searcher: str | None,
+    clock: TravelTimes | None = None,
+    **kw: Any,
+) -> LinkedTeamSearcher:
+    """The robots' team flight: in steps (``LinkedTeamSearcher``), or on the mission clock when the
+    evaluation runs on ``clock``'s travel times (``TimedLinkedTeamSearcher``). ``kw``: the links
+    and the rest, as both take them."""
+    if clock is not None:
+        return TimedLinkedTeamSearcher(snap, graph, n_robots, clock, seed, searcher, **kw)
+    return LinkedTeamSearcher(snap, graph, n_robots, seed, searcher, **kw)

@@ -163,7 +163,7 @@ def train(
         curve.add(n_eps, ct_sum, cens_sum, ce)
         if episodes >= next_em:  # Algorithm 2's model update, by EM on the team's own missions
             em_log.append(em_update(graph, target, sensor, cfg, policy, belief, episodes, rank, world, device, clock))
-            model = belief_model(graph, belief, em_log[-1].get("kind", "em"))
+            model = belief.model(graph, em_log[-1].get("kind", "em"))
             next_em = episodes + cfg.em_every
         stop = bool(should_stop and should_stop())
         if curve.due(episodes) or episodes >= cfg.episodes or stop:
@@ -309,11 +309,6 @@ def _check_replicas_agree(policy: TeamPolicy) -> None:
         raise RuntimeError("data-parallel replicas diverged: weights differ between processes")
 
 
-def belief_model(graph: Graph, belief: BatchedBelief, kind: str) -> TargetModel:
-    """The BatchedBelief's current (Gamma_hat, b0) as a TargetModel."""
-    return belief.model(graph, kind)
-
-
 @torch.no_grad()
 def em_update(
     graph: Graph,
@@ -336,7 +331,7 @@ def em_update(
     gamma = torch.empty(graph.n, graph.n, dtype=torch.float64)
     b0 = torch.empty(graph.n, dtype=torch.float64)
     if rank == 0:
-        current = belief_model(graph, belief, "current")
+        current = belief.model(graph, "current")
         snap = Snapshot(
             meta={"variant": cfg.variant, "robots": cfg.robots}, policy=policy, model=current, sensor=sensor
         )

@@ -37,7 +37,7 @@ from shared.envs.mures_v0 import MuresTorchEnv
 from shared.learning.config import CHECKPOINT_EVERY_S, TrainConfig
 from shared.learning.marl.checkpoint import Checkpointer, StateHolder
 from shared.learning.policy import NEG_INF, TeamPolicy
-from shared.learning.train import TrainResult, belief_model, em_update
+from shared.learning.train import TrainResult, em_update
 
 Progress = Callable[[dict[str, Any]], None]
 
@@ -376,7 +376,7 @@ class MarlRun:
 
     def result(self, extra: dict[str, Any] | None = None) -> TrainResult:
         wall = time.perf_counter() - self.t0
-        model = belief_model(self.graph, self.belief, self.model_kind) if self.cfg.belief == "em" else self.target
+        model = self.belief.model(self.graph, self.model_kind) if self.cfg.belief == "em" else self.target
         summary = {
             "algorithm": self.name,
             "episodes": self.episodes,
