@@ -899,7 +899,9 @@ class Supervisor:
             return
 
         def finish(status: str, phase: str, **fields: Any) -> None:
-            """The run's end: its status and last phase, the learning curve kept."""
+            """The run's end: its staging directory removed first (whoever reads the status sees the
+            run's files gone), then its status and last phase, the learning curve kept."""
+            shutil.rmtree(staging, ignore_errors=True)
             store.update_run(run_id, status=status, finished=now, progress={"phase": phase, "curve": curve}, **fields)
 
         if result["type"] == "cancelled":
@@ -928,5 +930,4 @@ class Supervisor:
                 srv.start_canary(version, parent, run_id, params.canary_pairs)
             finish("succeeded", "canary" if staged else "done", metrics=result["metrics"], version=version)
             log.info("training run %s succeeded: version %d%s", run_id, version, " (on trial)" * staged)
-        shutil.rmtree(staging, ignore_errors=True)
         RunFolder(folder).remove()
