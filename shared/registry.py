@@ -16,7 +16,28 @@ from shared.core.models import Sensor, TargetModel
 from shared.engine.searchers import REFERENCE_SEARCHERS, GreedySearcher, RandomSearcher, Searcher
 from shared.planners import BASELINES, make_baseline
 
-SEARCHERS = REFERENCE_SEARCHERS + BASELINES  # plus policy:DIR
+SEARCHERS = REFERENCE_SEARCHERS + BASELINES  # plus the trained ones, POLICY_NAMES
+POLICY_NAMES = ("general", "general:DIR", "policy:DIR")  # the shipped general policy, another one, a team
+
+
+def _general_factory(
+    name: str,
+    graph: Graph,
+    model: TargetModel,
+    sensor: Sensor,
+    n_robots: int,
+    device: torch.device | str,
+    clock: TravelTimes | None,
+) -> Callable[[int], Searcher]:
+    """`general` (the shipped general policy) or `general:DIR`: every robot flies it on its own
+    belief with ``model``, as `greedy` does (shared/learning/general.py)."""
+    from shared.core.snapshot_format import load_general, shipped_general_path
+    from shared.learning.general import GeneralSearcher
+
+    if clock is not None:
+        raise ValueError("the general policy decides in steps: evaluate it without --clock")
+    policy = load_general(shipped_general_path() if name == "general" else name.removeprefix("general:"))
+    return lambda seed: GeneralSearcher(policy, graph, model, sensor, n_robots, seed=seed, device=device)
 
 
 def make_searcher(
@@ -35,7 +56,7 @@ def make_searcher(
         return RandomSearcher(graph, seed=seed, device=device)
     if name == "greedy":
         return GreedySearcher(graph, model, sensor, seed=seed, device=device)
-    raise ValueError(f"unknown searcher {name!r} (expected one of {', '.join((*SEARCHERS, 'policy:DIR'))})")
+    raise ValueError(f"unknown searcher {name!r} (expected one of {', '.join((*SEARCHERS, *POLICY_NAMES))})")
 
 
 def searcher_factory(
@@ -85,6 +106,8 @@ def searcher_factory(
         return lambda seed: PolicySearcher(snap, graph, sensor, n_robots, seed=seed, device=device)
     if team is not None:
         raise ValueError(f"team flight (--team-searcher, --link-loss, --link-delay) flies a policy:DIR, not {name!r}")
+    if name == "general" or name.startswith("general:"):
+        return _general_factory(name, graph, model, sensor, n_robots, device, clock)
 
     def make(seed: int) -> Searcher:
         if name == "greedy" and clock is not None:  # its choice looks a step's worth of ticks ahead
@@ -92,7 +115,7 @@ def searcher_factory(
         return make_searcher(name, graph, model, sensor, seed=seed, device=device, n_robots=n_robots)
 
     if name not in SEARCHERS:
-        raise ValueError(f"unknown searcher {name!r} (expected one of {', '.join((*SEARCHERS, 'policy:DIR'))})")
+        raise ValueError(f"unknown searcher {name!r} (expected one of {', '.join((*SEARCHERS, *POLICY_NAMES))})")
     try:
         make(0)
     except ValueError as exc:

@@ -34,8 +34,17 @@ ROBOTS = ["r1", "r2", "r3"]
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
     graph = builtin_graph("office")
+    # untrained: what these tests measure is a per-map team's retraining from scratch (the general
+    # policy's first version and fine-tune have their own, tests/test_general_policy.py)
     f = launch(
-        graph, ["--env", "office"], uniform_walk(graph), Sensor(), 3, tmp_path_factory.mktemp("fleet"), step_timeout=3.0
+        graph,
+        ["--env", "office"],
+        uniform_walk(graph),
+        Sensor(),
+        3,
+        tmp_path_factory.mktemp("fleet"),
+        step_timeout=3.0,
+        server_extra=["--init-policy", "untrained"],
     )
     yield f
     f.close()

@@ -59,7 +59,7 @@ def _snapshot(fleet, version):
 def test_each_methods_team_is_published_and_flown_by_the_robots(fleet, method):
     run = fleet.api.post("/api/v1/training-runs", {"algorithm": method, "min_missions": 1, "seed": 3, **TINY})
     done = _finished(fleet.api, run["id"])
-    assert done["status"] == "succeeded", done
+    assert done["status"] == "succeeded", done.get("error")
     assert done["metrics"]["chosen"] == method and done["metrics"]["train"]["episodes"] >= 256
     meta = _snapshot(fleet, done["version"]).meta
     assert meta["algorithm"] == ("cepg" if method == "pg" else method)

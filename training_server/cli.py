@@ -3,7 +3,7 @@
 
     training-server (--env office|museum | --graph FILE) [--data-dir DIR] [--database-url URL]
                     [--http HOST:PORT] [--zenoh-listen ENDPOINT] [--zenoh-config FILE] [--fleet NAME]
-                    [--operator-token-file F] [--agent-token-file F] [--robots N] [--init-policy DIR]
+                    [--operator-token-file F] [--agent-token-file F] [--robots N] [--init-policy DIR|general|untrained]
                     [--mission-timeout S]
     training-server rotate-token ROLE | robots add|revoke|list [ID] | kit ...
 
@@ -209,7 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--operator-token-file", help="operator bearer token (default: created in the data dir)")
     p.add_argument("--agent-token-file", help="agent bearer token (default: created in the data dir)")
     p.add_argument("--robots", type=int, default=4, help="networks in the initial policy (default 4)")
-    p.add_argument("--init-policy", metavar="DIR", help="start from this snapshot (mures train) instead of untrained")
+    p.add_argument(
+        "--init-policy",
+        metavar="DIR",
+        help="the first version: a snapshot (mures train), `general` (the default: the shipped general policy, for "
+        "any building and team size, fine-tuned by the retraining) or `untrained` (a per-map team of random networks)",
+    )
     p.add_argument("--eta-fn", type=float, default=0.0, help="sensor false-negative rate of the initial policy")
     p.add_argument("--eta-fp", type=float, default=0.0, help="sensor false-positive rate of the initial policy")
     p.add_argument("--detection", choices=DETECTIONS, default="node")

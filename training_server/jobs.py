@@ -337,6 +337,10 @@ class _TrainingRun:
     def run(self) -> dict[str, Any]:
         for method in self.p.methods():  # a misnamed hyperparameter fails the run now, not after EM
             check_hyperparameters(method, self.p.hyperparameters_of(method))
+        if self.current.general and set(self.p.team_sizes or ()) - {self.current.robots}:
+            raise ValueError(
+                "the current version is the general policy, which flies every team size: leave out team_sizes"
+            )
         model, gate_model, em_info = self.models()
         self.check()
         N = self.current.robots
@@ -704,7 +708,8 @@ class _TrainingRun:
             algorithm=meta.get("algorithm", "cepg"),
             team_searcher=team_searcher,
             teams=version.teams,
-            switch_to=switch_to,
+            switch_to=None if version.general else switch_to,  # the general network flies every team size
+            robots=version.robots,
         )
 
 

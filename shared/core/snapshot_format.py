@@ -50,6 +50,9 @@ from shared.core.belief_filter import BeliefFilter
 from shared.core.choices import ALGORITHMS, TEAM_SEARCHERS, VARIANTS
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
+from shared.core.graph_policy import FEATURES, SCALES, GeneralAgent, draw
+from shared.core.graph_policy import PARAMS as GENERAL_PARAMS
+from shared.core.graph_policy import param_shapes as general_shapes
 from shared.core.models import ModelError, Sensor, TargetModel, from_matrix
 
 FORMAT = "mures.policy/1"
@@ -59,6 +62,12 @@ META = "policy.json"
 SUMMARY = "training_summary.json"
 PARAMS = ("w_pos", "w_bel", "b1", "w2", "b2")
 MAX_TEAM = 64  # the largest team size a snapshot may hold a team for
+
+
+GENERAL = "general"  # policy.json "architecture" of a snapshot that holds the general policy
+GENERAL_FORMAT = "mures.general/1"  # a general policy on its own, for any building: general.json
+GENERAL_META = "general.json"
+GENERAL_WEIGHTS = "general.safetensors"
 
 
 def team_file(k: int) -> str:
@@ -101,6 +110,12 @@ class TeamInfo:
         return int(self.meta["robots"])
 
     @property
+    def general(self) -> bool:
+        """The general policy (one network for any building and team size, shared/core/graph_policy.py)
+        rather than N networks shaped by this map."""
+        return self.meta.get("architecture") == GENERAL
+
+    @property
     def clock(self) -> tuple[float, float] | None:
         """(speed m/s, tick s) of a team trained on the mission clock (`mures train --speed`), whose
         belief model is per tick; None for a team trained in steps, whose model is per step."""
@@ -115,7 +130,7 @@ class TeamInfo:
         return robot % self.robots
 
     def team_note(self, k: int) -> str | None:
-        if k > self.robots:
+        if k > self.robots and not self.general:
             return (
                 f"snapshot trained for {self.robots} robots, running {k}: robot i runs network i mod {self.robots}, "
                 "so some robots share a policy"
@@ -140,12 +155,17 @@ class SnapshotData(TeamInfo):
         """Whether robots left k switch to the team built for k when teammates drop out
         mid-mission: the version holds one, and its ``switch_to`` (decided when it was trained)
         names k, or it has none (every team)."""
+        if self.general:  # the same network, with the robots left as its team
+            return k != self.robots
         listed = self.meta.get("switch_to")
         return k in self.teams and k != self.robots and (listed is None or k in listed)
 
     def team_for(self, k: int) -> SnapshotData:
         """The snapshot as flown by a mission of ``k`` robots: its team built for k where it holds
         one (meta's robots and hidden then k's), else itself (robot i on network i, or i mod N)."""
+        if self.general and k != self.robots:  # every team size flies the one network, each robot with its role
+            return SnapshotData(meta={**self.meta, "robots": k, "flown_for": k}, model=self.model, sensor=self.sensor,
+                                weights=self.weights)  # fmt: skip
         weights = self.teams.get(k)
         if weights is None or k == self.robots:
             return self
@@ -167,6 +187,7 @@ def write_snapshot(
     team_searcher: str | None = None,
     teams: dict[int, Weights] | None = None,
     switch_to: list[int] | None = None,
+    robots: int | None = None,
 ) -> Path:
     """Write a snapshot directory atomically (an existing one at ``path`` is replaced).
     ``algorithm`` names the method that trained the team (ALGORITHMS); every one runs the same way.
@@ -174,13 +195,24 @@ def write_snapshot(
     together when their links allow; without one, a c-cepg team flies c-cepg and the others none.
     ``teams``: the weights of teams built for other team sizes k (k networks each), flown by
     missions of k robots (``SnapshotData.team_for``); ``switch_to``: the sizes among them that
-    robots left switch to when teammates drop out mid-mission (None: every one)."""
+    robots left switch to when teammates drop out mid-mission (None: every one). ``weights`` of the
+    general policy (``GENERAL_PARAMS``) make a snapshot of architecture "general" flown by ``robots``
+    robots (any team size flies it; it holds no teams)."""
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}")
     if algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algorithm!r}")
-    robots, n, hidden = weights["w_pos"].shape
-    _check_shapes(weights, param_shapes(n, robots, hidden), str(path))
+    names: tuple[str, ...]
+    general = set(weights) == set(GENERAL_PARAMS)
+    if general:
+        if teams or robots is None:
+            raise ValueError("a general policy's snapshot names its robots and holds no teams (it flies every size)")
+        hidden, names = int(weights["b1"].shape[0]), GENERAL_PARAMS
+        _check_shapes(weights, general_shapes(hidden), str(path))
+    else:
+        robots, n, hidden = weights["w_pos"].shape
+        names = PARAMS
+        _check_shapes(weights, param_shapes(n, robots, hidden), str(path))
     blobs = {}
     for k, team in sorted((teams or {}).items()):
         if not 1 <= k <= MAX_TEAM or k == robots:
@@ -189,8 +221,8 @@ def write_snapshot(
         blobs[k] = save_safetensors({name: np.ascontiguousarray(team[name], dtype=np.float32) for name in PARAMS})
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    blob = save_safetensors({k: np.ascontiguousarray(weights[k], dtype=np.float32) for k in PARAMS})
-    meta = {
+    blob = save_safetensors({k: np.ascontiguousarray(weights[k], dtype=np.float32) for k in names})
+    meta: dict[str, Any] = {
         "format": FORMAT,
         "graph_id": graph.graph_id,
         "map": graph.name,
@@ -208,6 +240,8 @@ def write_snapshot(
         "weights": {"file": WEIGHTS, "sha256": sha256_hex(blob), "bytes": len(blob)},
         "summary": summary,
     }
+    if general:
+        meta["architecture"] = GENERAL
     if blobs:
         meta["teams"] = {
             str(k): {
@@ -266,6 +300,9 @@ def read_meta(path: str | Path) -> dict[str, Any]:
             raise SnapshotError(f"{where}/{META}: missing field {key!r}")
     if meta["variant"] not in VARIANTS:
         raise SnapshotError(f"{where}: unknown variant {meta['variant']!r}")
+    if meta.get("architecture", GENERAL) != GENERAL:
+        got = meta["architecture"]
+        raise SnapshotError(f"{where}/{META}: unknown architecture {got!r} (expected {GENERAL!r} or none)")
     w = meta["weights"]
     if not isinstance(w, dict) or w.get("file", LEGACY_WEIGHTS) not in (WEIGHTS, LEGACY_WEIGHTS):
         raise SnapshotError(f"{where}/{META}: weights must name {WEIGHTS} (or the older {LEGACY_WEIGHTS})")
@@ -316,7 +353,15 @@ def read_snapshot(path: str | Path, graph: Graph, legacy: Callable[[bytes], Weig
         raise
     except Exception as exc:  # safetensors and torch raise several types for a bad file
         raise SnapshotError(f"{where}/{name}: cannot be read as weights ({exc})") from None
-    _check_shapes(weights, param_shapes(graph.n, int(meta["robots"]), int(meta["hidden"])), f"{where}/{name}")
+    general = meta.get("architecture") == GENERAL
+    if general:
+        names: tuple[str, ...] = GENERAL_PARAMS
+        _check_shapes(weights, general_shapes(int(meta["hidden"])), f"{where}/{name}")
+        if meta.get("teams"):
+            raise SnapshotError(f"{where}/{META}: a general policy flies every team size itself and holds no teams")
+    else:
+        names = PARAMS
+        _check_shapes(weights, param_shapes(graph.n, int(meta["robots"]), int(meta["hidden"])), f"{where}/{name}")
     try:
         m = meta["model"]
         model = from_matrix(graph, np.asarray(m["gamma"], dtype=np.float64), m["b0"], kind=m.get("kind", "matrix"))
@@ -328,7 +373,7 @@ def read_snapshot(path: str | Path, graph: Graph, legacy: Callable[[bytes], Weig
     listed = meta.get("switch_to")
     if listed is not None and (not isinstance(listed, list) or not set(listed) <= set(teams)):
         raise SnapshotError(f"{where}/{META}: switch_to must list team sizes the snapshot holds a team for")
-    return SnapshotData(meta=meta, weights={k: weights[k] for k in PARAMS}, model=model, sensor=sensor, teams=teams)
+    return SnapshotData(meta=meta, weights={k: weights[k] for k in names}, model=model, sensor=sensor, teams=teams)
 
 
 def _read_teams(path: Path, meta: dict[str, Any], n: int) -> dict[int, Weights]:
@@ -425,16 +470,21 @@ class PolicyAgent:
             raise SnapshotError(
                 "a c-cepg policy needs every robot's observations: fly it in a team (shared.core.team.TeamAgent)"
             )
-        self.fly(snap, robot)
         self.graph = graph
         self.filter = BeliefFilter(graph, snap.model, snap.sensor)
         self.rng = np.random.default_rng(seed)
         self.greedy_actions = greedy_actions
         self.belief: np.ndarray | None = None
+        self.fly(snap, robot)
 
     def fly(self, snap: SnapshotData, robot: int) -> None:
         """Decide from now on with network ``snap.network_for(robot)`` of ``snap`` (a team of the
         same version for another team size: the belief, its model and the generator are kept)."""
+        self.general: GeneralAgent | None = None
+        if snap.general:  # one network: robot i of the snapshot's robots, with its role
+            self.general = GeneralAgent(snap.weights, self.graph, robot % snap.robots, snap.robots, self.rng,
+                                        self.greedy_actions)  # fmt: skip
+            return
         k = snap.network_for(robot)
         W = {name: np.asarray(w[k], dtype=np.float64) for name, w in snap.weights.items()}
         self.w_pos, self.w_bel, self.b1 = W["w_pos"], W["w_bel"], W["b1"]  # (n, H), (n, H), (H,)
@@ -454,11 +504,71 @@ class PolicyAgent:
         one): a ~ pi_i(. | onehot(p), b) (Algorithm 1, line 3)."""
         b = self.belief if belief is None else belief
         assert b is not None, "reset() first"
+        if self.general is not None:
+            return self.general.act(p, b)
         nbrs = self.graph.closed(p)
         h = np.maximum(self.w_pos[p] + b @ self.w_bel + self.b1, 0.0)
-        logits = h @ self.w2[:, nbrs] + self.b2[nbrs]
-        if self.greedy_actions:
-            return int(nbrs[int(np.argmax(logits))])
-        w = np.exp(logits - logits.max())
-        c = np.cumsum(w)
-        return int(nbrs[min(int(np.searchsorted(c, self.rng.random() * c[-1], side="right")), len(nbrs) - 1)])
+        return draw(nbrs, h @ self.w2[:, nbrs] + self.b2[nbrs], self.rng, self.greedy_actions)
+
+
+@dataclass
+class GeneralPolicy:
+    """The general policy on its own (no map, no model; docs/SPEC.md section 8): its float32 weights
+    (shared/core/graph_policy.py ``param_shapes``) and general.json's metadata (training command,
+    configuration, pool, learning curve)."""
+
+    weights: Weights
+    meta: dict[str, Any]
+
+    @property
+    def hidden(self) -> int:
+        return int(self.weights["b1"].shape[0])
+
+
+def save_general(path: str | Path, weights: Weights, meta: dict[str, Any]) -> Path:
+    """Write a general policy directory (``GENERAL_META`` beside ``GENERAL_WEIGHTS``), each file atomically."""
+    out = Path(path)
+    out.mkdir(parents=True, exist_ok=True)
+    blob = save_safetensors({k: np.ascontiguousarray(weights[k], dtype=np.float32) for k in GENERAL_PARAMS})
+    full = {
+        **meta,
+        "format": GENERAL_FORMAT,
+        "features": list(FEATURES),
+        "scales": list(SCALES),
+        "hidden": int(weights["b1"].shape[0]),
+        "weights": {"file": GENERAL_WEIGHTS, "sha256": sha256_hex(blob), "bytes": len(blob)},
+    }
+    atomic_write(out / GENERAL_WEIGHTS, blob)
+    atomic_write(out / GENERAL_META, json.dumps(full, indent=1) + "\n")
+    return out
+
+
+def load_general(path: str | Path) -> GeneralPolicy:
+    """Read and check a general policy directory; a ``SnapshotError`` names what is wrong."""
+    where = Path(path)
+    try:
+        meta = json.loads((where / GENERAL_META).read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise SnapshotError(f"{where}: no general policy here ({GENERAL_META}: {exc.strerror or exc})") from None
+    except ValueError as exc:
+        raise SnapshotError(f"{where / GENERAL_META}: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("format") != GENERAL_FORMAT:
+        got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise SnapshotError(f"{where / GENERAL_META}: expected format {GENERAL_FORMAT!r}, got {got!r}")
+    if meta.get("features") != list(FEATURES) or meta.get("scales") != list(SCALES):
+        raise SnapshotError(f"{where / GENERAL_META}: its features are not this version's ({', '.join(FEATURES)})")
+    hidden = meta.get("hidden")
+    if not isinstance(hidden, int) or isinstance(hidden, bool) or hidden < 1:
+        raise SnapshotError(f"{where / GENERAL_META}: hidden must be a positive integer, got {hidden!r}")
+    raw = _checked_file(where, GENERAL_WEIGHTS, (meta.get("weights") or {}).get("sha256"))
+    try:
+        weights = dict(load_safetensors(raw))
+    except Exception as exc:  # safetensors raises several types for a bad file
+        raise SnapshotError(f"{where / GENERAL_WEIGHTS}: cannot be read as weights ({exc})") from None
+    _check_shapes(weights, general_shapes(hidden), str(where / GENERAL_WEIGHTS))
+    return GeneralPolicy(weights, meta)
+
+
+def shipped_general_path() -> Path:
+    """The general policy shipped with the project (trained by `mures train-general`)."""
+    return Path(__file__).resolve().parent / "policies" / "general"

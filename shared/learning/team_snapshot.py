@@ -23,10 +23,12 @@ from shared.core.files import atomic_write
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
 from shared.core.snapshot_format import (
+    GENERAL,
     LEGACY_WEIGHTS,
     META,
     PARAMS,
     WEIGHTS,
+    GeneralPolicy,
     SnapshotData,
     SnapshotError,
     TeamInfo,
@@ -46,17 +48,22 @@ __all__ = ["PolicySearcher", "Snapshot", "SnapshotError", "convert_snapshot", "l
 
 @dataclass
 class Snapshot(TeamInfo):
-    """A snapshot's team of networks as a torch module."""
+    """A snapshot's team of networks as a torch module (the general policy bound to the map and
+    its robots, shared/learning/general.py ``GraphTeam``, for a snapshot of architecture "general")."""
 
-    policy: TeamPolicy
+    policy: Any  # TeamPolicy | GraphTeam
 
     def to_data(self) -> SnapshotData:
         """The numpy view the robot agent runs (float32 weights, as a snapshot stores them)."""
         return SnapshotData(meta=self.meta, weights=policy_weights(self.policy), model=self.model, sensor=self.sensor)
 
 
-def policy_weights(policy: TeamPolicy) -> Weights:
-    """A TeamPolicy's parameters as float32 numpy arrays, keyed as in a snapshot."""
+def policy_weights(policy: Any) -> Weights:
+    """A TeamPolicy's (or GraphTeam's) parameters as float32 numpy arrays, keyed as in a snapshot."""
+    from shared.learning.general import GraphTeam
+
+    if isinstance(policy, GraphTeam):
+        return policy.net.numpy_weights()
     return {k: v.detach().cpu().to(torch.float32).numpy() for k, v in policy.named_parameters()}
 
 
@@ -85,7 +92,9 @@ def save_snapshot(
     summary gains ``trained_with`` (``provenance``) unless it has one."""
     summary = {**summary, "trained_with": summary.get("trained_with") or provenance()}
     weights = policy_weights(policy)
-    return write_snapshot(path, graph, weights, model, sensor, variant, beta, config, summary, algorithm, team_searcher)
+    return write_snapshot(
+        path, graph, weights, model, sensor, variant, beta, config, summary, algorithm, team_searcher, robots=policy.N
+    )
 
 
 def provenance() -> dict[str, Any]:
@@ -119,6 +128,11 @@ def _processor_name() -> str:
 def load_snapshot(path: str | Path, graph: Graph, device: torch.device | str = "cpu") -> Snapshot:
     """Load and check a snapshot for ``graph`` (either weights format) as a TeamPolicy."""
     data = read_snapshot(path, graph, legacy=torch_weights)
+    if data.general:
+        from shared.learning.general import GeneralNet, GraphTeam
+
+        team = GraphTeam(GeneralNet.from_weights(data.weights), graph, data.robots).to(device)
+        return Snapshot(meta=data.meta, policy=team, model=data.model, sensor=data.sensor)
     policy = TeamPolicy(graph.n, data.robots, torch.as_tensor(graph.adjacency()), hidden=int(data.meta["hidden"]))
     with torch.no_grad():
         for k, p in policy.named_parameters():
@@ -199,3 +213,20 @@ class PolicySearcher:
         if self.greedy_actions:
             return logits.argmax(-1)
         return sample(torch.softmax(logits, dim=-1), self.gen)
+
+
+def general_snapshot(
+    policy: GeneralPolicy,
+    graph: Graph,
+    robots: int,
+    model: TargetModel,
+    sensor: Sensor,
+    device: torch.device | str = "cpu",
+) -> Snapshot:
+    """The general policy as a snapshot of this map for ``robots`` robots flying on ``model``:
+    what `mures train --init general` fine-tunes and what a training server flies first."""
+    from shared.learning.general import GeneralNet, GraphTeam
+
+    team = GraphTeam(GeneralNet.from_weights(policy.weights), graph, robots).to(device)
+    meta = {"architecture": GENERAL, "variant": "cepg", "robots": robots, "hidden": team.H, "general": policy.meta}
+    return Snapshot(meta=meta, policy=team, model=model, sensor=sensor)

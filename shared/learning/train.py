@@ -214,10 +214,19 @@ def clock_of(graph: Graph, cfg: TrainConfig) -> TravelTimes | None:
     return TravelTimes.of(graph, cfg.speed, cfg.tick)
 
 
-def _initial_policy(graph: Graph, cfg: TrainConfig, init_policy: Snapshot | None, device: torch.device) -> TeamPolicy:
+def _initial_policy(graph: Graph, cfg: TrainConfig, init_policy: Snapshot | None, device: torch.device) -> Any:
     """The team's networks, seeded (identical initial weights on every process) or warm-started
-    from ``init_policy``'s weights."""
+    from ``init_policy``'s weights (a TeamPolicy; for the general policy, its network bound to this
+    map and cfg.robots robots, any number: shared/learning/general.py ``GraphTeam``)."""
     torch.manual_seed(cfg.seed)
+    if init_policy is not None and init_policy.general:  # fine-tune the general policy on this map
+        import copy
+
+        from shared.learning.general import GraphTeam
+
+        if len(set(cfg.per_robot(cfg.lr, "lr"))) > 1:
+            raise ValueError("the general policy is one network for every robot: give one learning rate")
+        return GraphTeam(copy.deepcopy(init_policy.policy.net), graph, cfg.robots).to(device)
     policy = TeamPolicy(graph.n, cfg.robots, torch.as_tensor(graph.adjacency()), hidden=cfg.hidden).to(device)
     if init_policy is not None:
         if init_policy.robots != cfg.robots or init_policy.policy.H != policy.H:

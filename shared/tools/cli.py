@@ -26,6 +26,7 @@ from shared.tools.cli_args import CliError, add_map_args
 from shared.tools.estimate_command import add_estimate_command
 from shared.tools.experiment_commands import add_experiment_commands
 from shared.tools.fleet_commands import add_fleet_commands
+from shared.tools.general_command import add_general_command
 from shared.tools.map_commands import add_map_commands
 from shared.tools.sim_commands import add_sim_commands
 from shared.tools.train_command import add_train_command
@@ -64,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_sim_commands(sub)
     add_estimate_command(sub)
     add_train_command(sub)
+    add_general_command(sub)
     add_fleet_commands(sub)
 
     add_experiment_commands(sub)

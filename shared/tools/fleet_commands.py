@@ -41,7 +41,10 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         raise CliError("--server needs --zenoh-connect ENDPOINT and --token-file FILE (the operator token)")
     # every K missions: the server's floor of missions before a run (50) lowered to the K flown since the last
     retrain: dict[str, Any] = {"episodes": args.retrain_episodes, "min_missions": max(1, args.retrain_every)}
-    server_extra = ["--init-policy", str(Path(args.init_policy).resolve())] if args.init_policy else []
+    named = args.init_policy in (None, "general", "untrained")  # the server's own first versions
+    server_extra = [] if args.init_policy is None else ["--init-policy", args.init_policy]
+    if not named:
+        server_extra = ["--init-policy", str(Path(args.init_policy).resolve())]
     if args.map_image:  # the server checks it against the graph, in one line, before the fleet starts
         if not args.graph:
             raise CliError("fleet-sim: --map-image goes with --graph (a graph made by `mures map import`)")
@@ -57,7 +60,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         if not args.world:
             raise CliError("fleet-sim: --team-clock seconds goes with --world (the continuous world keeps the clock)")
         agent_extra += ["--team-clock", "seconds", "--speed", str(args.speed)]
-    init_clock = load_snapshot(args.init_policy, graph).clock if args.init_policy else None
+    init_clock = None if named else load_snapshot(args.init_policy, graph).clock
     if args.world and (args.team_clock == "seconds" or init_clock is not None):
         retrain["speed"] = args.speed  # the fleet flies on the clock: retrain on the map's travel times
     continuous = {}
@@ -257,7 +260,12 @@ def add_fleet_commands(sub: Any) -> None:
     p.add_argument(
         "--retrains", type=positive_int, default=None, metavar="R", help="retrain at most R times (default: no limit)"
     )
-    p.add_argument("--init-policy", metavar="DIR", help="the server's first policy (default: untrained)")
+    p.add_argument(
+        "--init-policy",
+        metavar="DIR",
+        help="the server's first policy: a snapshot, `general` (the default: the shipped general policy) or "
+        "`untrained`",
+    )
     p.add_argument(
         "--map-image",
         metavar="MAP.yaml",

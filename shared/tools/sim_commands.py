@@ -269,7 +269,10 @@ def add_sim_commands(sub: Any) -> None:
     p = sub.add_parser("evaluate", help="evaluate a searcher in simulation and print capture-time statistics")
     add_world_args(p)
     p.add_argument(
-        "--searcher", required=True, help="random, greedy, fhpe, fhpe-sa, milp, d-milp, oracle, or policy:DIR"
+        "--searcher",
+        required=True,
+        help="random, greedy, fhpe, fhpe-sa, milp, d-milp, oracle, general (the shipped general policy), "
+        "general:DIR or policy:DIR",
     )
     p.add_argument("--episodes", type=positive_int, default=1500, help="episodes (default 1500)")
     p.add_argument("--json", action="store_true", help="print one JSON object")

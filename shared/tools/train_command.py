@@ -84,7 +84,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         from shared.core.models import load_model_file
 
         init_model = load_model_file(graph, args.model)
-    init_policy = load_snapshot(args.init, graph) if args.init else None
+    init_policy = _init_policy(args, graph, target, sensor) if args.init else None
     cfg, hyper = _checked_config(args, device)
     clock_text = _clock_text(graph, cfg)
     torch.set_num_threads(args.threads)
@@ -107,6 +107,20 @@ def cmd_train(args: argparse.Namespace) -> int:
     code = 130 if res.interrupted else 0
     leave_process_group(code)  # under torchrun: ends this process with ``code``
     return code
+
+
+def _init_policy(args: argparse.Namespace, graph: Any, target: Any, sensor: Any) -> Any:
+    """--init's snapshot, or the general policy (``general``: the shipped one, ``general:DIR``)
+    bound to this map and --robots, to fine-tune."""
+    if args.init == "general" or args.init.startswith("general:"):
+        from shared.core.snapshot_format import load_general, shipped_general_path
+        from shared.learning.team_snapshot import general_snapshot
+
+        if args.algorithm != "cepg":
+            raise CliError(f"--init {args.init}: the general policy fine-tunes with cepg, not {args.algorithm}")
+        where = shipped_general_path() if args.init == "general" else args.init.removeprefix("general:")
+        return general_snapshot(load_general(where), graph, args.robots, target, sensor)
+    return load_snapshot(args.init, graph)
 
 
 def _clock_text(graph: Any, cfg: Any) -> str:
@@ -273,7 +287,12 @@ def add_train_command(sub: Any) -> None:
         "else none; the training server decides for its own versions)",
     )
     p.add_argument("--model", metavar="model.json", help="Gamma_hat_0 and b0 for the beliefs (default I, uniform)")
-    p.add_argument("--init", metavar="DIR", help="start from this snapshot's weights (CE-PG)")
+    p.add_argument(
+        "--init",
+        metavar="DIR",
+        help="start from this snapshot's weights (CE-PG); `general` fine-tunes the shipped general policy on this "
+        "map (`general:DIR` another one), its snapshot flown by any number of robots",
+    )
     p.add_argument(
         "--hp",
         action="append",

@@ -1,0 +1,93 @@
+"""The general policy fine-tuned on a paper map for a fixed time, against that map's own CE-PG team
+of results/fig7 (trained from scratch, 4x10^5 episodes) on the same protocol (1500 episodes, seed 1).
+
+    python benchmarks/general_finetune.py [--maps office,museum] [--robots 4] [--minutes 10]
+                                          [--json results/general_policy/finetune.json]
+
+For each map and N: `mures train --env MAP --robots N --init general --episodes E --seed 0` (CE-PG
+with EM in the loop, the trainer's defaults, as the fig7 teams; E is what ``--minutes`` buys at the
+rate a short probe run measures on this machine), then `mures evaluate --searcher policy:DIR` and
+`--searcher general` on the same episodes. Prints the capture times and the fine-tune's wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def mures(*args: str) -> str:
+    r = subprocess.run([sys.executable, "-m", "shared.tools.cli", *args], capture_output=True, text=True, cwd=ROOT)
+    if r.returncode != 0:
+        raise SystemExit(f"mures {' '.join(args)} failed:\n{r.stderr[-2000:]}")
+    return r.stdout
+
+
+def evaluate(env: str, robots: int, searcher: str) -> dict:
+    out = mures("evaluate", "--env", env, "--robots", str(robots), "--searcher", searcher, "--episodes", "1500",
+                "--seed", "1", "--json")  # fmt: skip
+    return json.loads(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--maps", default="office,museum")
+    ap.add_argument("--robots", default="4")
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--json", default=str(ROOT / "results" / "general_policy" / "finetune.json"))
+    args = ap.parse_args()
+    fig7 = {}
+    with open(ROOT / "results" / "fig7" / "fig7.csv", encoding="utf-8") as f:
+        for r in csv.DictReader(f):
+            fig7[(r["map"], int(r["robots"]), r["method"])] = (
+                float(r["mean_capture_time"]),
+                float(r["ci95_halfwidth"]),
+            )
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for env in args.maps.split(","):
+            for N in (int(x) for x in args.robots.split(",")):
+                probe = Path(tmp) / f"probe-{env}-{N}"
+                t0 = time.perf_counter()
+                mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", "2048",
+                      "--seed", "0", "--quiet", "--out", str(probe))  # fmt: skip
+                rate = 2048 / (time.perf_counter() - t0)
+                episodes = int(rate * args.minutes * 60 * 0.9) // 256 * 256  # 10 % left for EM and start-up
+                out = Path(tmp) / f"{env}-{N}"
+                t0 = time.perf_counter()
+                mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", str(episodes),
+                      "--seed", "0", "--quiet", "--out", str(out))  # fmt: skip
+                wall = time.perf_counter() - t0
+                tuned = evaluate(env, N, f"policy:{out}")
+                zero = evaluate(env, N, "general")
+                cepg, cepg_h = fig7[(env, N, "cepg")]
+                row = {
+                    "map": env,
+                    "robots": N,
+                    "finetune_episodes": episodes,
+                    "finetune_wall_s": round(wall, 1),
+                    "finetuned": round(tuned["mean_capture_time"], 3),
+                    "finetuned_ci95": round(tuned["ci95_halfwidth"], 3),
+                    "zero_shot": round(zero["mean_capture_time"], 3),
+                    "zero_shot_ci95": round(zero["ci95_halfwidth"], 3),
+                    "cepg_fig7": cepg,
+                    "cepg_fig7_ci95": cepg_h,
+                }
+                print(f"{env} N={N}: fine-tuned {row['finetuned']:.2f} ± {row['finetuned_ci95']:.2f} "
+                      f"({episodes:,} episodes, {wall:.0f} s), zero-shot {row['zero_shot']:.2f}, "
+                      f"fig7 CE-PG {cepg:.2f} ± {cepg_h:.2f}", flush=True)  # fmt: skip
+                rows.append(row)
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps({"minutes": args.minutes, "rows": rows}, indent=1) + "\n", encoding="utf-8")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,437 @@
+"""Training the general policy (shared/core/graph_policy.py) with CE-PG on many buildings, and flying
+it as a batched searcher (docs/general-policy.md).
+
+One network for every building and team size. ``GraphTeam`` binds it to one graph and team size N
+with the interface the CE-PG rollout and loss expect of a team (shared/learning/cepg.py: ``N``,
+``mask``, ``logits``, ``cross_probs``), so the update is Eq. 9-13 as written there: robot i's
+policy is the network with role i, pi_j(. | s^i) in the cross-entropy term is the network with
+role j on robot i's state (a constant for robot i's gradient, Eq. 10), and J's units are divided
+by the building's own scale (``j_unit``: the running mean capture time of that building and team),
+so that buildings of 30 and of 300 rooms weigh alike in one update.
+
+Recipe (``GeneralConfig``): a pool of generated office floors (``office_graph``, sizes log-uniform
+in [min_nodes, max_nodes], N in [1, max_robots]; the paper's maps are never in it). First an
+imitation phase (``imitate``, R2PS's pull toward a planner, as a start): FHPE-SA, which plans on
+every robot's observations with the true model, flies ``imitation_episodes`` episodes on each pool
+building and the network is fitted to its moves by cross-entropy (each robot's features on the
+collective belief, with its role). Then CE-PG: each update draws one building and team size from
+the pool, flies a batch of episodes with the network's stochastic policy, each robot on its own
+belief, and takes one Adam step. The target is the uniform walk and the robots' beliefs use it (the model a
+fleet flies before EM has learned one is its own business: the network reads the belief, whatever
+model made it). The skip connection starts at "move toward the most likely node" (weight
+``-SKIP_INIT`` on ``mode_distance_change``), so the first rollouts end; RL changes it from there.
+
+Checkpoints (``checkpoint.pt`` in the output directory, every ``checkpoint_every`` seconds; removed
+once the policy is written) hold the network, the optimiser, the update count and the random state:
+the same command started again after a kill goes on from the last one.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from shared.core.fhpe_sa import FhpeSAPlanner
+from shared.core.graph import Graph, office_graph
+from shared.core.graph_policy import FEATURES, PARAMS, distances_of, move_features, roles
+from shared.core.models import Sensor, TargetModel, uniform_walk
+from shared.core.snapshot_format import GeneralPolicy, load_general, save_general
+from shared.engine.batched_belief import BatchedBelief, BeliefTracker
+from shared.engine.sim import Obs, SearchSim
+from shared.learning.cepg import cepg_loss, rollout
+from shared.learning.policy import NEG_INF, sample
+
+SKIP_INIT = 3.0
+FEATURE_CHUNK = 1 << 22  # rows x d x n elements of hop distances gathered at once (16 MB of float32)
+CHECKPOINT = "checkpoint.pt"
+
+
+class GeneralNet(nn.Module):
+    """The general policy's network in torch (``graph_policy.scores`` is its numpy twin):
+    (..., d, F) -> (..., d), an MLP F -> H -> H -> 1 plus a linear skip."""
+
+    def __init__(self, hidden: int = 64) -> None:
+        super().__init__()
+        F = len(FEATURES)
+        k1, k2 = 1 / math.sqrt(F), 1 / math.sqrt(hidden)
+        self.w1 = nn.Parameter(torch.empty(F, hidden).uniform_(-k1, k1))
+        self.b1 = nn.Parameter(torch.zeros(hidden))
+        self.w2 = nn.Parameter(torch.empty(hidden, hidden).uniform_(-k2, k2))
+        self.b2 = nn.Parameter(torch.zeros(hidden))
+        self.w3 = nn.Parameter(torch.empty(hidden).uniform_(-k2, k2) * 0.1)
+        skip = torch.zeros(F)
+        skip[FEATURES.index("mode_distance_change")] = -SKIP_INIT
+        self.skip = nn.Parameter(skip)
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        h = torch.relu(feats @ self.w1 + self.b1)
+        h = torch.relu(h @ self.w2 + self.b2)
+        return h @ self.w3 + feats @ self.skip
+
+    def numpy_weights(self) -> dict[str, np.ndarray]:
+        return {k: getattr(self, k).detach().cpu().numpy().astype(np.float32) for k in PARAMS}
+
+    @classmethod
+    def from_weights(cls, weights: dict[str, np.ndarray]) -> GeneralNet:
+        """The network with these float32 weights (a snapshot's or a general policy's)."""
+        net = cls(int(weights["b1"].shape[0]))
+        with torch.no_grad():
+            for k in PARAMS:
+                getattr(net, k).copy_(torch.as_tensor(np.ascontiguousarray(weights[k])))
+        return net
+
+
+class GraphTeam:
+    """The network bound to one graph and a team of N: the team interface of shared/learning/cepg.py.
+    Features are computed without gradient (they hold no parameters), in chunks; the network runs
+    on them with gradient."""
+
+    def __init__(self, net: GeneralNet, graph: Graph, n_robots: int, device: torch.device | str = "cpu") -> None:
+        graph.require_dense("the general policy's batched features")
+        self.net, self.graph, self.N, self.n = net, graph, n_robots, graph.n
+        self.device = torch.device(device)
+        self.dist = distances_of(graph)
+        self.nbr = torch.as_tensor(graph.nbr, device=self.device)  # (n, d)
+        self.valid = torch.arange(graph.nbr.shape[1], device=self.device) < torch.as_tensor(
+            graph.deg_closed, device=self.device
+        ).unsqueeze(1)  # (n, d)
+        mask = torch.zeros(graph.n, graph.n, dtype=torch.bool, device=self.device)
+        mask[torch.arange(graph.n).unsqueeze(1).expand_as(self.nbr), self.nbr] = True
+        self.mask = mask  # (n, n): a in N[p]
+        self.role = torch.as_tensor(roles(n_robots))  # (N,)
+
+    @property
+    def H(self) -> int:
+        return int(self.net.b1.shape[0])
+
+    def parameters(self) -> Iterator[nn.Parameter]:
+        return self.net.parameters()
+
+    def to(self, device: torch.device | str) -> GraphTeam:
+        """The network on ``device`` (its features are computed in numpy and moved there)."""
+        self.device = torch.device(device)
+        self.net.to(self.device)
+        for name in ("nbr", "valid", "mask", "role"):
+            setattr(self, name, getattr(self, name).to(self.device))
+        return self
+
+    def features(self, pos: torch.Tensor, belief: torch.Tensor, role: torch.Tensor | None = None) -> torch.Tensor:
+        """pos (S, k), belief (S, k, n) -> (S, k, d, F); robot slot j has role ``role[j]`` (default: i)."""
+        S, k = pos.shape
+        role = (self.role if role is None else role).expand(S, k)
+        p, b, r = pos.cpu().numpy(), belief.detach().cpu().numpy(), role.cpu().numpy()
+        rows = max(1, FEATURE_CHUNK // (k * self.graph.nbr.shape[1] * self.n))
+        out = [
+            move_features(self.graph, self.dist, p[a : a + rows], b[a : a + rows], r[a : a + rows], np.full(1, self.N))
+            for a in range(0, S, rows)
+        ]
+        if not out:  # no states (the cross-entropy term found no shared ones)
+            return torch.zeros(0, k, self.graph.nbr.shape[1], len(FEATURES), device=self.device)
+        return torch.from_numpy(np.concatenate(out)).to(self.device)
+
+    def _full(self, pos: torch.Tensor, slot_scores: torch.Tensor) -> torch.Tensor:
+        """Slot scores (..., d) at nodes pos (...) -> logits over the n nodes, NEG_INF outside N[p]."""
+        s = slot_scores.masked_fill(~self.valid[pos], NEG_INF)
+        out = torch.full((*pos.shape, self.n), NEG_INF, dtype=s.dtype, device=s.device)
+        return out.scatter_reduce(-1, self.nbr[pos], s, reduce="amax")  # padded slots repeat p: keep the largest
+
+    def logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """Each robot's policy on its own state: pos (S, N), belief (S, N, n) -> (S, N, n)."""
+        return self._full(pos, self.net(self.features(pos, belief)))
+
+    def logits_for(self, nets: torch.Tensor, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """Robot slot k flies with role ``nets[k]``: pos (B, k), belief (B, k, n) -> (B, k, n)."""
+        return self._full(pos, self.net(self.features(pos, belief, self.role[nets])))
+
+    @torch.no_grad()
+    def cross_probs(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """pi_j(. | s^i) for every pair: (K, N) , (K, N, n) -> (K, N_i, N_j, n)."""
+        K, N = pos.shape
+        feats = self.features(pos, belief).unsqueeze(2).repeat(1, 1, N, 1, 1)  # (K, N_i, N_j, d, F)
+        feats[..., FEATURES.index("role")] = self.role.view(1, 1, N, 1).to(feats)
+        pos_ij = pos.unsqueeze(2).expand(K, N, N)
+        return torch.softmax(self._full(pos_ij, self.net(feats)), dim=-1)
+
+
+class GeneralSearcher:
+    """`general`: every robot flies the general policy on its own belief (Eq. 1 with ``model``, as
+    `greedy` does), sampling its move (or the most likely with ``greedy_actions``)."""
+
+    name = "general"
+
+    def __init__(
+        self,
+        policy: GeneralPolicy,
+        graph: Graph,
+        model: TargetModel,
+        sensor: Sensor,
+        n_robots: int,
+        seed: int = 0,
+        device: torch.device | str = "cpu",
+        greedy_actions: bool = False,
+    ) -> None:
+        self.team = GraphTeam(GeneralNet.from_weights(policy.weights).to(device), graph, n_robots, device)
+        self.beliefs = BeliefTracker(BatchedBelief(graph, model, sensor, device))
+        self.greedy_actions = greedy_actions
+        self.gen = torch.Generator(device=torch.device(device))
+        self.gen.manual_seed(seed)
+
+    @torch.no_grad()
+    def act(self, obs: Obs) -> torch.Tensor:
+        lik = self.beliefs.belief.likelihood(obs.pos, obs.z, obs.ready)
+        b, _pred = self.beliefs.update(lik, obs.new)  # (B, N, n)
+        logits = self.team.logits(obs.pos, b)
+        if self.greedy_actions:
+            return logits.argmax(-1)
+        return sample(torch.softmax(logits, dim=-1), self.gen)
+
+
+@dataclass
+class GeneralConfig:
+    """`mures train --general`'s recipe (module docstring)."""
+
+    episodes: int = 60_000
+    min_nodes: int = 20
+    max_nodes: int = 240
+    max_robots: int = 8
+    pool: int = 48  # generated buildings in the pool
+    batch_elements: int = 24_000  # episodes per update: this over n, within [16, 256]
+    lr: float = 3e-3
+    lr_final: float = 0.1  # the learning rate decays linearly to this share of lr
+    beta: float = 0.9  # Eq. 9: weight of J against the cross-entropy term
+    eps: float = 0.1  # the smoothing of pi_i inside the cross entropy (shared/learning/cepg.py)
+    hidden: int = 64
+    imitation_episodes: int = 32  # per pool building, flown by FHPE-SA for the imitation phase (0: none)
+    imitation_epochs: int = 20
+    seed: int = 0
+    checkpoint_every: float = 300.0
+    init: str = ""  # a general policy directory to go on from (its weights; no imitation phase)
+
+    def check(self) -> None:
+        if not 2 <= self.min_nodes <= self.max_nodes:
+            raise ValueError(f"expected 2 <= min_nodes <= max_nodes, got {self.min_nodes} and {self.max_nodes}")
+        if self.max_robots < 1 or self.pool < 1 or self.episodes < 1:
+            raise ValueError("episodes, pool and max_robots must be at least 1")
+        if self.imitation_episodes < 0 or self.imitation_epochs < 0:
+            raise ValueError("imitation_episodes and imitation_epochs must be at least 0")
+        if not 0.0 < self.beta <= 1.0:
+            raise ValueError(f"beta must be in (0, 1], got {self.beta}")
+
+
+@dataclass
+class _Building:
+    """One pool entry: a generated floor and team size, with its simulator, beliefs and scale."""
+
+    graph: Graph
+    robots: int
+    sim: SearchSim
+    belief: BatchedBelief
+    team: GraphTeam
+    scale: float | None = None  # running mean capture time (J's unit for this entry)
+
+
+def training_pool(cfg: GeneralConfig, net: GeneralNet) -> list[_Building]:
+    """The pool of generated buildings: seeds 10_000 + k (the evaluations use other seeds)."""
+    rng = np.random.default_rng(cfg.seed)
+    sensor = Sensor()
+    pool = []
+    for k in range(cfg.pool):
+        n = round(math.exp(rng.uniform(math.log(cfg.min_nodes), math.log(cfg.max_nodes))))
+        robots = int(rng.integers(1, cfg.max_robots + 1))
+        graph = office_graph(n, seed=10_000 + k)
+        target = uniform_walk(graph)
+        batch = int(np.clip(cfg.batch_elements // n, 16, 256))
+        sim = SearchSim(
+            graph, target, sensor, robots, batch, seed=cfg.seed * 7_919 + k, auto_reset=False,
+            check_actions=False, details=False,
+        )  # fmt: skip
+        pool.append(_Building(graph, robots, sim, BatchedBelief(graph, target, sensor), GraphTeam(net, graph, robots)))
+    return pool
+
+
+@torch.no_grad()
+def imitation_data(b: _Building, episodes: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """FHPE-SA's decisions on one pool building (shared/core/fhpe_sa.py: sequential allocation of
+    5-step paths on the collective belief, Eq. 6, with the true model), as the network sees them:
+    each robot's features on that belief with its role, and the slot of N[p] FHPE-SA chose for it.
+    Returns features (M, d, F), target slots (M,) and valid slots (M, d) over the M robot-decisions
+    of ``episodes`` episodes."""
+    graph, sensor = b.graph, b.sim.sensor
+    target = uniform_walk(graph)
+    planner = FhpeSAPlanner(graph, target, sensor)
+    sim = SearchSim(graph, target, sensor, b.robots, episodes, seed=seed, auto_reset=False, details=False)
+    tracker = BeliefTracker(BatchedBelief(graph, target, sensor, dtype=torch.float64))
+    rng = np.random.default_rng(seed)
+    pos_log, bel_log, act_log = [], [], []
+    obs = sim.reset()
+    while True:
+        lik = tracker.belief.collective_likelihood(obs.pos, obs.z, obs.active).unsqueeze(1)  # (B, 1, n)
+        bel, _pred = tracker.update(lik, obs.new)
+        going = (sim.alive & ~sim.pending).nonzero().squeeze(1)
+        if going.numel() == 0:
+            break
+        act = obs.pos.clone()
+        for e in going.tolist():
+            act[e] = torch.as_tensor(planner.plan(bel[e, 0].numpy(), obs.pos[e].numpy(), obs.active[e].numpy(), rng))
+        pos_log.append(obs.pos[going])
+        bel_log.append(bel[going, 0].float())
+        act_log.append(act[going])
+        obs, _res = sim.step(act)
+    pos, act = torch.cat(pos_log), torch.cat(act_log)  # (M', N)
+    belief = torch.cat(bel_log).unsqueeze(1).expand(-1, b.robots, -1)  # every robot on the collective belief
+    feats = b.team.features(pos, belief).flatten(0, 1)  # (M' N, d, F)
+    cand, valid = b.team.nbr[pos].flatten(0, 1), b.team.valid[pos].flatten(0, 1)  # (M, d)
+    slot = ((cand == act.reshape(-1, 1)) & valid).float().argmax(1)  # the first slot holding the teacher's move
+    return feats, slot, valid
+
+
+def imitate(net: GeneralNet, pool: list[_Building], cfg: GeneralConfig, say: Callable[[str], None]) -> dict[str, Any]:
+    """The imitation phase (R2PS's pull toward a planner, as a start): FHPE-SA flies
+    ``imitation_episodes`` episodes on every pool building, and the network is fitted to its moves
+    by cross-entropy for ``imitation_epochs`` epochs. Returns the phase's figures."""
+    t0 = time.perf_counter()
+    parts = []
+    for k, b in enumerate(pool):
+        parts.append(imitation_data(b, cfg.imitation_episodes, seed=cfg.seed * 7_919 + 50_000 + k))
+        say(f"imitation: FHPE-SA on building {k + 1}/{len(pool)} ({b.graph.n} nodes, N = {b.robots})")
+    d = max(p[0].shape[1] for p in parts)  # buildings differ in their largest |N[p]|: pad to the largest
+    feats = torch.cat([nn.functional.pad(p[0], (0, 0, 0, d - p[0].shape[1])) for p in parts])
+    slot = torch.cat([p[1] for p in parts])
+    valid = torch.cat([nn.functional.pad(p[2], (0, d - p[2].shape[1])) for p in parts])
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    gen = torch.Generator()
+    gen.manual_seed(cfg.seed)
+    loss = torch.tensor(0.0)
+    for epoch in range(cfg.imitation_epochs):
+        order = torch.randperm(slot.shape[0], generator=gen)
+        for a in range(0, slot.shape[0], 2048):
+            i = order[a : a + 2048]
+            logits = net(feats[i]).masked_fill(~valid[i], NEG_INF)
+            loss = nn.functional.cross_entropy(logits, slot[i])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        say(f"imitation: epoch {epoch + 1}/{cfg.imitation_epochs}, cross-entropy {float(loss.detach()):.3f}")
+    with torch.no_grad():
+        agree = float((net(feats).masked_fill(~valid, NEG_INF).argmax(1) == slot).float().mean())
+    return {
+        "decisions": int(slot.shape[0]),
+        "agreement": round(agree, 4),
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def train_general(
+    cfg: GeneralConfig,
+    out: str | Path,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    command: str = "",
+    say: Callable[[str], None] = lambda _text: None,
+) -> dict[str, Any]:
+    """Train the general policy into ``out`` (module docstring); returns the training summary.
+    ``progress`` gets the learning curve's points, ``say`` the imitation phase's lines."""
+    cfg.check()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    net = GeneralNet(cfg.hidden)
+    state: dict[str, Any] = {"episodes": 0, "updates": 0, "wall_seconds": 0.0, "curve": []}
+    if cfg.init:
+        start = load_general(cfg.init)
+        if start.hidden != cfg.hidden:
+            raise ValueError(f"init {cfg.init} has {start.hidden} hidden units, this run {cfg.hidden}")
+        net = GeneralNet.from_weights(start.weights)
+        state["imitation"] = {"from": cfg.init, "training": start.meta.get("training", {}).get("command")}
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    pool = training_pool(cfg, net)
+    pick = random.Random(cfg.seed)
+    gen = torch.Generator()
+    gen.manual_seed(cfg.seed * 104_729)
+    ckpt = out / CHECKPOINT
+    if ckpt.is_file():  # go on from the last checkpoint
+        saved = torch.load(ckpt, weights_only=False)
+        if saved["config"] != asdict(cfg):
+            raise ValueError(f"{ckpt} was written by a run with other settings: remove it or use another directory")
+        net.load_state_dict(saved["net"])
+        opt.load_state_dict(saved["opt"])
+        state = saved["state"]
+        pick.setstate(saved["pick"])
+        gen.set_state(saved["gen"])
+        for b, (scale, sim_state) in zip(pool, saved["pool"], strict=True):
+            b.scale = scale
+            b.sim.gen.set_state(sim_state)
+    t0, last_ckpt = time.perf_counter() - state["wall_seconds"], time.perf_counter()
+    window: list[float] = []
+
+    def checkpoint() -> None:
+        state["wall_seconds"] = time.perf_counter() - t0
+        blob = {
+            "config": asdict(cfg),
+            "net": net.state_dict(),
+            "opt": opt.state_dict(),
+            "state": state,
+            "pick": pick.getstate(),
+            "gen": gen.get_state(),
+            "pool": [(b.scale, b.sim.gen.get_state()) for b in pool],
+        }
+        torch.save(blob, ckpt.with_suffix(".tmp"))
+        ckpt.with_suffix(".tmp").replace(ckpt)
+
+    if cfg.imitation_episodes and cfg.imitation_epochs and "imitation" not in state:
+        state["imitation"] = imitate(net, pool, cfg, say)
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)  # RL starts with fresh moments
+        checkpoint()
+    while state["episodes"] < cfg.episodes:
+        b = pool[pick.randrange(len(pool))]
+        ro = rollout(b.sim, b.team, b.belief, False, gen)  # type: ignore[arg-type]  # B episodes on one building
+        mean_ct = float(ro.capture_time.float().mean())
+        b.scale = mean_ct if b.scale is None else 0.9 * b.scale + 0.1 * mean_ct
+        beta = torch.full((b.robots,), cfg.beta)
+        terms = cepg_loss(b.team, ro, beta, cfg.eps, j_unit=max(b.scale, 1.0))  # type: ignore[arg-type]  # Eq. 9-13
+        lr = cfg.lr * (1.0 - (1.0 - cfg.lr_final) * min(1.0, state["episodes"] / cfg.episodes))
+        for group in opt.param_groups:
+            group["lr"] = lr
+        opt.zero_grad()
+        (terms.loss / b.robots).backward()
+        nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        state["episodes"] += int(ro.length.numel())
+        state["updates"] += 1
+        window.append(mean_ct / max(b.graph.n, 1))
+        if state["updates"] % 20 == 0 or state["episodes"] >= cfg.episodes:
+            point = {
+                "episodes": state["episodes"],
+                "updates": state["updates"],
+                "capture_time_per_node": round(float(np.mean(window)), 4),
+                "wall_seconds": round(time.perf_counter() - t0, 1),
+                "total": cfg.episodes,
+            }
+            state["curve"].append(point)
+            window.clear()
+            if progress:
+                progress(point)
+        if time.perf_counter() - last_ckpt > cfg.checkpoint_every:
+            checkpoint()
+            last_ckpt = time.perf_counter()
+    summary = {
+        "config": asdict(cfg),
+        "episodes": state["episodes"],
+        "updates": state["updates"],
+        "wall_seconds": round(time.perf_counter() - t0, 1),
+        "pool": [{"nodes": b.graph.n, "robots": b.robots, "name": b.graph.name} for b in pool],
+        "learning_curve": state["curve"],
+        "imitation": state.get("imitation"),
+        "command": command,
+    }
+    save_general(out, net.numpy_weights(), {"training": summary})
+    ckpt.unlink(missing_ok=True)  # done: the same command trains afresh
+    return summary

@@ -1,0 +1,99 @@
+"""`mures train-general`: the general policy trained with CE-PG on many generated buildings
+(shared/learning/general.py), written as a general policy directory; progress on stderr, a
+checkpoint in the output directory that the same command goes on from after a kill or Ctrl-C."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from dataclasses import fields
+from typing import Any
+
+import torch
+
+from shared.learning.config import positive_int, whole_number
+from shared.tools.cli_args import CliError
+
+
+def cmd_train_general(args: argparse.Namespace) -> int:
+    from shared.learning.general import GeneralConfig, train_general
+
+    cfg = GeneralConfig(**{f.name: getattr(args, f.name) for f in fields(GeneralConfig)})
+    try:
+        cfg.check()
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    torch.set_num_threads(args.threads)
+    print(
+        f"training the general policy: {cfg.episodes:,} episodes on {cfg.pool} generated floors of "
+        f"{cfg.min_nodes}-{cfg.max_nodes} nodes, teams of 1-{cfg.max_robots}, into {args.out}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+    def progress(p: dict[str, Any]) -> None:
+        rate = p["episodes"] / max(p["wall_seconds"], 1e-9)
+        eta = (p["total"] - p["episodes"]) / max(rate, 1e-9)
+        print(
+            f"{p['episodes']:>9,}/{p['total']:,} episodes  {rate:5.0f} eps/s  capture time / n "
+            f"{p['capture_time_per_node']:.3f}  ETA {max(eta, 0):5.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    command = "mures " + shlex.join(sys.argv[1:])
+    try:
+        summary = train_general(
+            cfg,
+            args.out,
+            None if args.quiet else progress,
+            command=command,
+            say=(lambda _t: None) if args.quiet else (lambda t: print(t, file=sys.stderr, flush=True)),
+        )
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    print(f"wrote {args.out} ({summary['episodes']:,} episodes, {summary['wall_seconds']:.0f} s)", file=sys.stderr)
+    return 0
+
+
+def add_general_command(sub: Any) -> None:
+    """`mures train-general` and its parser: one flag per GeneralConfig field."""
+    from shared.learning.general import GeneralConfig
+
+    p = sub.add_parser(
+        "train-general",
+        help="train the general policy (any building, any team size) on generated floors",
+        description=__doc__,
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="general policy directory to write (and checkpoint in)")
+    helps = {
+        "episodes": "training episodes in all",
+        "min_nodes": "smallest generated floor",
+        "max_nodes": "largest generated floor",
+        "max_robots": "teams of 1 to this many robots",
+        "pool": "generated floors in the training pool",
+        "batch_elements": "episodes per update: this over the floor's n (16 to 256)",
+        "lr": "Adam's learning rate",
+        "lr_final": "the learning rate decays linearly to this share of --lr",
+        "beta": "Eq. 9's weight of J against the cross-entropy term",
+        "eps": "smoothing of pi_i inside the cross entropy",
+        "hidden": "hidden units of each of the network's two layers",
+        "imitation_episodes": "episodes FHPE-SA flies on each pool building for the imitation phase (0: none)",
+        "imitation_epochs": "epochs of fitting the network to FHPE-SA's moves",
+        "seed": "random seed",
+        "checkpoint_every": "seconds between checkpoints",
+        "init": "a general policy directory to go on from (its weights, no imitation phase)",
+    }
+    for f in fields(GeneralConfig):
+        counts = ("seed", "imitation_episodes", "imitation_epochs")  # may be 0
+        kind: Any = (whole_number if f.name in counts else positive_int) if f.type in ("int", int) else float
+        if f.name == "init":
+            kind = str
+        p.add_argument(
+            "--" + f.name.replace("_", "-"), dest=f.name, type=kind, default=f.default,
+            help=f"{helps[f.name]} (default {f.default})",
+        )  # fmt: skip
+    p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=cmd_train_general)

@@ -1,0 +1,226 @@
+"""The general policy: one network for any building and team size (shared/core/graph_policy.py,
+shared/learning/general.py, `mures train-general`, `--searcher general`)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections import deque
+
+import numpy as np
+import pytest
+import torch
+
+from shared.core.graph import builtin_graph, office_graph
+from shared.core.graph_policy import Distances, GeneralAgent, hop_distances
+from shared.core.models import Sensor, uniform_walk
+from shared.core.snapshot_format import GENERAL_META as META
+from shared.core.snapshot_format import GENERAL_WEIGHTS as WEIGHTS
+from shared.core.snapshot_format import SnapshotError, load_general, save_general, shipped_general_path
+from shared.engine.evaluate import evaluate, means_differ
+from shared.learning.general import CHECKPOINT, GeneralConfig, GeneralNet, GraphTeam, train_general
+from shared.registry import searcher_factory
+
+
+def _bfs(graph, s: int) -> np.ndarray:
+    dist = np.full(graph.n, -1)
+    dist[s] = 0
+    todo = deque([s])
+    while todo:
+        u = todo.popleft()
+        for v in graph.closed(u):
+            if dist[v] < 0:
+                dist[v] = dist[u] + 1
+                todo.append(v)
+    return dist
+
+
+def test_hop_distances_are_breadth_first_search_and_rows_match_the_table():
+    graph = builtin_graph("museum")
+    got = hop_distances(graph, np.arange(graph.n))
+    want = np.stack([_bfs(graph, s) for s in range(graph.n)])
+    assert np.array_equal(got, want)
+    table = Distances(graph)
+    rows = Distances(graph, all_pairs=False)  # the row-by-row path large buildings take
+    nodes = np.array([[3, 0], [graph.n - 1, 3]])
+    assert np.array_equal(rows.rows(nodes), table.rows(nodes))
+    assert rows.rows(nodes).shape == (2, 2, graph.n)
+
+
+def test_the_robots_numpy_decision_is_the_trainers_network(tmp_path):
+    """GeneralAgent (numpy, what a robot runs) and GraphTeam (torch, what trains) give the same
+    logits on the same states, for every robot of the team."""
+    graph = office_graph(80, seed=3)
+    torch.manual_seed(0)
+    net = GeneralNet(16)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    team = GraphTeam(net, graph, 3)
+    policy = load_general(save_general(tmp_path / "g", net.numpy_weights(), {}))
+    rng = np.random.default_rng(0)
+    pos = torch.as_tensor(rng.integers(0, graph.n, size=(5, 3)))
+    belief = torch.as_tensor(rng.dirichlet(np.ones(graph.n) * 0.2, size=(5, 3)), dtype=torch.float32)
+    with torch.no_grad():
+        logits = team.logits(pos, belief)  # (5, 3, n)
+    for s in range(5):
+        for i in range(3):
+            agent = GeneralAgent(policy.weights, graph, i, 3)
+            p = int(pos[s, i])
+            want = logits[s, i, graph.closed(p)].double().numpy()
+            assert np.allclose(agent.logits(p, belief[s, i].double().numpy()), want, atol=1e-4)
+            assert (logits[s, i] > -1e8).sum() == len(graph.closed(p))  # only N[p] is allowed
+
+
+def test_a_bad_general_policy_directory_is_named(tmp_path):
+    with pytest.raises(SnapshotError, match="no general policy here"):
+        load_general(tmp_path)
+    good = save_general(tmp_path / "g", GeneralNet(8).numpy_weights(), {})
+    meta = json.loads((good / META).read_text())
+    (good / META).write_text(json.dumps({**meta, "format": "mures.policy/1"}))
+    with pytest.raises(SnapshotError, match="expected format"):
+        load_general(good)
+    (good / META).write_text(json.dumps(meta))
+    blob = bytearray((good / WEIGHTS).read_bytes())
+    blob[-1] ^= 1
+    (good / WEIGHTS).write_bytes(bytes(blob))
+    with pytest.raises(SnapshotError, match="sha256"):
+        load_general(good)
+    (good / META).write_text("{")
+    with pytest.raises(SnapshotError, match="not valid JSON"):
+        load_general(good)
+
+
+def _tiny(**kw) -> GeneralConfig:
+    base = dict(episodes=800, min_nodes=12, max_nodes=20, max_robots=3, pool=3, batch_elements=200, hidden=8,
+                imitation_episodes=2, imitation_epochs=2)  # fmt: skip
+    return GeneralConfig(**{**base, **kw})
+
+
+def test_a_killed_training_run_goes_on_from_its_checkpoint_to_the_same_weights(tmp_path):
+    whole = train_general(_tiny(), tmp_path / "whole")
+    assert whole["imitation"]["decisions"] > 0 and 0.0 <= whole["imitation"]["agreement"] <= 1.0
+
+    class Killed(Exception):
+        pass
+
+    def kill(point):
+        if point["updates"] >= 20:
+            raise Killed
+
+    with pytest.raises(Killed):
+        train_general(_tiny(checkpoint_every=0.0), tmp_path / "again", progress=kill)
+    assert (tmp_path / "again" / CHECKPOINT).is_file()
+    with pytest.raises(ValueError, match="other settings"):
+        train_general(_tiny(checkpoint_every=0.0, seed=5), tmp_path / "again")
+    again = train_general(_tiny(checkpoint_every=0.0), tmp_path / "again")
+    assert again["episodes"] == whole["episodes"]
+    assert not (tmp_path / "again" / CHECKPOINT).exists()
+    a, b = load_general(tmp_path / "whole").weights, load_general(tmp_path / "again").weights
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_the_shipped_general_policy_beats_greedy_on_a_floor_it_never_saw():
+    """Zero shot, paired on the same 200 episodes: a generated floor of 150 nodes (the training pool's
+    seeds start at 10,000), a team of 3."""
+    graph = office_graph(150, seed=2)
+    target, sensor = uniform_walk(graph), Sensor()
+    runs = {
+        name: evaluate(graph, target, sensor, 3, searcher_factory(name, graph, target, sensor, 3), 200, seed=4)
+        for name in ("general", "greedy")
+    }
+    general, greedy = runs["general"].capture_time, runs["greedy"].capture_time
+    differ, _z = means_differ(general, greedy)
+    assert differ and general.mean() < 0.8 * greedy.mean()
+
+
+def test_train_general_and_evaluate_general_from_the_command_line(tmp_path):
+    out = tmp_path / "gen"
+    cmd = [sys.executable, "-m", "shared.tools.cli", "train-general", "--out", str(out), "--episodes", "300"]
+    cmd += ["--min-nodes", "12", "--max-nodes", "16", "--pool", "2", "--max-robots", "2", "--hidden", "8"]
+    cmd += ["--imitation-episodes", "2", "--imitation-epochs", "1"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "episodes" in r.stderr and "ETA" in r.stderr and "imitation: FHPE-SA on building 2/2" in r.stderr
+    assert json.loads((out / META).read_text())["training"]["command"].startswith("mures train-general")
+    ev = [sys.executable, "-m", "shared.tools.cli", "evaluate", "--env", "museum", "--robots", "5"]
+    r = subprocess.run(
+        [*ev, "--searcher", f"general:{out}", "--episodes", "50", "--json"], capture_output=True, text=True
+    )
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["episodes"] == 50 and res["robots"] == 5 and res["searcher"] == f"general:{out}"
+    r = subprocess.run([*ev, "--searcher", f"general:{tmp_path}", "--episodes", "5"], capture_output=True, text=True)
+    assert r.returncode != 0 and "no general policy here" in r.stderr and "Traceback" not in r.stderr
+    bad = [sys.executable, "-m", "shared.tools.cli", "train-general", "--out", str(tmp_path / "x")]
+    r = subprocess.run([*bad, "--min-nodes", "50", "--max-nodes", "10"], capture_output=True, text=True)
+    assert r.returncode == 2 and "min_nodes <= max_nodes" in r.stderr and not (tmp_path / "x").exists()
+
+
+def test_the_shipped_policy_is_there():
+    policy = load_general(shipped_general_path())
+    assert policy.meta["training"]["command"].startswith("mures train-general")
+
+
+def test_a_server_without_init_policy_flies_the_general_policy_and_fine_tunes_it(tmp_path):
+    """fleet-sim's server starts with no --init-policy: version 1 is the general policy bound to the
+    map, the robot agents fly it from the first mission (their capture times agree with `mures
+    evaluate` of the same snapshot), and the retraining fine-tunes it (the gate then decides, as for
+    any run)."""
+    work = tmp_path / "work"
+    cmd = [sys.executable, "-m", "shared.tools.cli", "fleet-sim", "--env", "museum", "--robots", "3"]
+    cmd += ["--missions", "48", "--retrain-every", "40", "--retrain-episodes", "256", "--seed", "0"]
+    r = subprocess.run([*cmd, "--workdir", str(work), "--json"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout)
+    assert out["policy_versions_used"][0] == 1
+    flown = out["by_policy_version"]["1"]
+    assert flown["missions"] >= 40
+    v1 = work / "server" / "policies" / "v1" / "snapshot"
+    meta = json.loads((v1 / "policy.json").read_text())
+    assert meta["architecture"] == "general" and meta["robots"] == 3
+    ev = [sys.executable, "-m", "shared.tools.cli", "evaluate", "--env", "museum", "--robots", "3"]
+    r = subprocess.run([*ev, "--searcher", f"policy:{v1}", "--episodes", "1000", "--seed", "5", "--json"],
+                       capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    batched = json.loads(r.stdout)
+    se = ((flown["ci95_halfwidth"] / 1.96) ** 2 + (batched["ci95_halfwidth"] / 1.96) ** 2) ** 0.5
+    assert abs(flown["mean_capture_time"] - batched["mean_capture_time"]) < 3.29 * se, (flown, batched)
+    run = out["training_runs"][0]
+    assert run["metrics"]["train"]["episodes"] >= 256  # the general network trained on this map's EM model
+    assert run["status"] == "succeeded" or run["error"].startswith("evaluation gate")
+    for p in (work / "server" / "policies").glob("v*/snapshot/policy.json"):  # every version is the one network
+        assert json.loads(p.read_text())["architecture"] == "general"
+
+
+def test_a_snapshot_of_the_general_policy_flies_any_team_size(tmp_path):
+    """The general policy bound to a map is a snapshot like any other (docs/SPEC.md section 8) with
+    architecture "general": read back with its checks, flown by PolicyAgent for every team size,
+    robots left after a drop-out keep the same network, and it holds no teams."""
+    from shared.core.snapshot_format import PolicyAgent, read_snapshot, write_snapshot
+    from shared.learning.team_snapshot import general_snapshot, load_snapshot, save_snapshot
+
+    graph = builtin_graph("office")
+    snap = general_snapshot(load_general(shipped_general_path()), graph, 3, uniform_walk(graph), Sensor())
+    where = save_snapshot(tmp_path / "v1", snap.policy, graph, snap.model, Sensor(), "cepg", [1.0] * 3, {}, {})
+    data = read_snapshot(where, graph)
+    assert data.general and data.robots == 3 and set(data.weights) == {"w1", "b1", "w2", "b2", "w3", "skip"}
+    assert data.team_for(5).robots == 5 and data.switches_to(2) and data.team_note(7) is None
+    rng = np.random.default_rng(0)
+    for k in (1, 3, 5):
+        flown = data.team_for(k)
+        for i in range(k):
+            agent = PolicyAgent(flown, graph, i, seed=i)
+            agent.reset(graph.start, 0)
+            b = rng.dirichlet(np.ones(graph.n))
+            assert agent.act(graph.start, b) in graph.closed(graph.start)
+    again = load_snapshot(where, graph)
+    assert again.general and np.array_equal(again.to_data().weights["w1"], data.weights["w1"])
+    with pytest.raises(ValueError, match="holds no teams"):
+        write_snapshot(tmp_path / "x", graph, data.weights, data.model, Sensor(), "cepg", [1.0], {}, {},
+                       teams={2: data.weights}, robots=3)  # fmt: skip
+    meta = json.loads((where / "policy.json").read_text())
+    (where / "policy.json").write_text(json.dumps({**meta, "architecture": "transformer"}))
+    with pytest.raises(SnapshotError, match="unknown architecture 'transformer'"):
+        read_snapshot(where, graph)
