@@ -16,10 +16,11 @@ $(STAMP): pyproject.toml constraints.txt
 
 # The main job on embedded defaults: the whole product on loopback (about 2 min on 2 cores).
 # A training server, a simulated world and 4 robot-agent processes on MUSEUM fly 100 missions on
-# the untrained initial policy, retrain over HTTP (EM on the fleet's own records, CE-PG, the
-# evaluation gate), fly 100 missions on the new version, and print the capture times of both.
+# an untrained per-map team, retrain it from scratch over HTTP (EM on the fleet's own records,
+# CE-PG, the evaluation gate), fly 100 missions on the new version, and print the capture times of
+# both. (A server's own default first version is the general policy, docs/general-policy.md.)
 demo: $(STAMP)
-	$(VENV)/bin/mures fleet-sim --env museum --robots 4 --missions 200 --retrain-every 100 --retrain-episodes 30000 --seed 0
+	$(VENV)/bin/mures fleet-sim --env museum --robots 4 --missions 200 --retrain-every 100 --retrain-episodes 30000 --seed 0 --init-policy untrained
 
 # The offline trainer alone: train a 4-robot CE-PG team on MUSEUM (about a minute), then evaluate
 # it and the reference searchers on the same 1500 episodes.

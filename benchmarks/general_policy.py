@@ -2,7 +2,7 @@
 it never saw: the paper's maps against their own CE-PG teams, and generated floors of 100-1,000
 nodes against greedy, random and FHPE-SA (true model, every observation), with its decision time.
 
-    python benchmarks/general_policy.py [--policy DIR] [--parts maps,generated,decision]
+    python benchmarks/general_policy.py [--policy DIR] [--parts maps,generated,withdrawals,decision]
                                         [--episodes 1500] [--generated-episodes 300] [--fhpe-episodes 10]
                                         [--json results/general_policy/general_policy.json]
 
@@ -12,7 +12,12 @@ results/fig7/fig7.csv). The general policy and greedy fly with the true model, a
 fig7; "untrained" is the network before training (its skip connection alone: move toward the most
 likely node), to show what training added.
 generated: ``office_graph(n, seed=1)`` (the training pool uses seeds from 10,000), N = 2, 4, 8; every
-searcher on the same episodes (seed 1: the same target walks), paired differences to greedy.
+searcher on the same episodes (seed 1: the same target walks), paired differences to greedy;
+FHPE-SA on the first ``--fhpe-episodes`` of them (a third as many at 1,000 nodes).
+withdrawals: N = 5 on OFFICE and MUSEUM with robots withdrawn at fixed steps, the schedules and
+episodes of results/team_switching/<map>-N5-simulated.json (`benchmarks/team_switching.py
+--simulated`): the general policy against that benchmark's per-map teams (switching, keeping the
+5-robot team, the team built for the robots left).
 decision: milliseconds one robot's numpy decision takes (``GeneralAgent.act``, one thread) at
 2,000 nodes, with the hop-distance table built once and row by row (cold).
 """
@@ -46,10 +51,11 @@ def say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
-def run(graph, robots: int, name: str, episodes: int, seed: int = 1) -> dict:
+def run(graph, robots: int, name: str, episodes: int, seed: int = 1, withdraw_at: list | None = None) -> dict:
     target, sensor = uniform_walk(graph), Sensor()
     t0 = time.perf_counter()
-    res = evaluate(graph, target, sensor, robots, searcher_factory(name, graph, target, sensor, robots), episodes, seed)
+    factory = searcher_factory(name, graph, target, sensor, robots)
+    res = evaluate(graph, target, sensor, robots, factory, episodes, seed, withdraw_at=withdraw_at)
     s = res.summary()
     return {
         "searcher": name.split(":")[0],
@@ -126,15 +132,49 @@ def part_generated(policy: str, untrained: str, episodes: int, fhpe_episodes: in
                 row[f"{k}_censored"] = r["censored_fraction"]
             row["general_vs_greedy"] = paired(res["general"], res["greedy"])
             row["general_vs_untrained"] = paired(res["general"], res["untrained"])
-            if fhpe_episodes:
-                f = run(graph, N, "fhpe-sa", fhpe_episodes)
+            k = fhpe_episodes if n < 1000 else max(1, fhpe_episodes // 3)  # its plans take long on 1,000 nodes
+            if k:
+                f = run(graph, N, "fhpe-sa", k)
                 row["fhpe_sa"], row["fhpe_sa_ci95"], row["fhpe_sa_episodes"] = (
-                    f["mean_capture_time"], f["ci95_halfwidth"], fhpe_episodes,
-                )  # fmt: skip
+                    f["mean_capture_time"],
+                    f["ci95_halfwidth"],
+                    k,
+                )
                 row["fhpe_sa_wall_seconds"] = f["wall_seconds"]
             say(f"  n={n} N={N}: " + ", ".join(f"{k} {row[k]:.1f}" for k in ("general", "untrained", "greedy", "random"))
-                + (f", fhpe-sa {row['fhpe_sa']:.1f} ({fhpe_episodes} eps)" if fhpe_episodes else "")
+                + (f", fhpe-sa {row['fhpe_sa']:.1f} ({k} eps)" if k else "")
                 + f"; general/greedy {row['general_vs_greedy']['ratio']:.2f}")  # fmt: skip
+            rows.append(row)
+    return rows
+
+
+def part_withdrawals(policy: str, episodes: int) -> list[dict]:
+    """Robots withdrawn mid-mission (results/team_switching/<map>-N5-simulated.json's schedules, the
+    same episodes): the general policy's robots left keep the one network as a team of the robots
+    left, against that benchmark's per-map teams switching to the team built for them, keeping the
+    5-robot team, and the team built for k flown by k robots from the start."""
+    rows = []
+    for name in ("office", "museum"):
+        ref = json.loads((ROOT / "results" / "team_switching" / f"{name}-N5-simulated.json").read_text())
+        graph = builtin_graph(name)
+        by_schedule: dict = {}
+        for r in ref["rows"]:
+            by_schedule.setdefault(tuple(r["withdrawn_at"]), {})[r["setting"].split(",")[0]] = r["mean_capture_time"]
+        for schedule, settings in by_schedule.items():
+            gen = run(graph, 5, f"general:{policy}", episodes, withdraw_at=list(schedule))
+            left = sum(x is None for x in schedule)
+            row = {
+                "map": name,
+                "withdrawn_at": list(schedule),
+                "robots_left": left,
+                "general": gen["mean_capture_time"],
+                "general_ci95": gen["ci95_halfwidth"],
+                "switching": settings.get("switching"),
+                "five_robot_team": settings.get("the 5-robot team"),
+                "built_for_k_from_the_start": settings.get(f"the team built for {left}"),
+            }
+            say(f"  {name}, {left} left: general {row['general']:.2f} ± {row['general_ci95']:.2f}, switching "
+                f"{row['switching']}, keeping the 5-robot team {row['five_robot_team']}")  # fmt: skip
             rows.append(row)
     return rows
 
@@ -166,7 +206,7 @@ def part_decision(policy: str, nodes: int = 2000, decisions: int = 200) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--policy", default=str(shipped_general_path()))
-    ap.add_argument("--parts", default="maps,generated,decision")
+    ap.add_argument("--parts", default="maps,generated,withdrawals,decision")
     ap.add_argument("--episodes", type=int, default=1500)
     ap.add_argument("--generated-episodes", type=int, default=300)
     ap.add_argument("--fhpe-episodes", type=int, default=10)
@@ -188,6 +228,9 @@ def main() -> None:
             sizes = [int(x) for x in args.sizes.split(",")]
             rows = part_generated(args.policy, str(untrained), args.generated_episodes, args.fhpe_episodes, sizes)
             out["generated"] = rows
+        if "withdrawals" in parts:
+            say("robots withdrawn mid-mission:")
+            out["withdrawals"] = part_withdrawals(args.policy, args.episodes)
     if "decision" in parts:
         out["decision"] = part_decision(args.policy)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -47,6 +47,7 @@ def fleet(tmp_path_factory):
         ROBOTS,
         tmp_path_factory.mktemp("console-fleet"),
         step_delay=0.15,  # a visible pace
+        server_extra=["--init-policy", "untrained"],  # the seeded missions below are this version's
     )
     yield f
     f.close()

@@ -55,15 +55,66 @@ def office_floor(seed: int, resolution: float = 0.05) -> Floor:
     W = margin * 2 + wall * 2 + px(length)
     image = np.full((H, W), UNKNOWN, dtype=np.uint8)
     rooms = np.zeros((H, W), dtype=np.int32)
-    left, right = margin + wall, W - margin - wall
-    top = margin + wall
+    image[margin : H - margin, margin : W - margin] = OCCUPIED  # the walls, then the spaces cut out
+    _wing(image, rooms, rng, px, margin + wall, margin + wall, W - margin - wall, corridor, depth, 0)
+    _scan_noise(image, rng)
+    rooms[image != FREE] = 0
+    return Floor(image=image, rooms=rooms, resolution=resolution)
+
+
+def office_building(seed: int, size_m: float = 98.0, resolution: float = 0.05) -> Floor:
+    """A square office building of ``size_m`` metres a side (a 98 m one is a 1,960 x 1,960 px map
+    at 5 cm): wings of the office floor's kind (a corridor between two rows of rooms) stacked from
+    top to bottom, their corridors joined by a hall along the building's left side; the same for the
+    same ``seed``."""
+    rng = np.random.default_rng(seed)
+    px = lambda metres: max(1, round(metres / resolution))  # noqa: E731
+    margin, wall, hall = px(1.0), px(WALL_M), px(2.4)
+    size = px(size_m)
+    image = np.full((size, size), UNKNOWN, dtype=np.uint8)
+    rooms = np.zeros((size, size), dtype=np.int32)
+    image[margin : size - margin, margin : size - margin] = OCCUPIED
+    left = margin + wall + hall + wall  # the wings start right of the hall
+    right, top, count = size - margin - wall, margin + wall, 1
+    image[top : size - margin - wall, margin + wall : margin + wall + hall] = FREE  # the hall
+    rooms[top : size - margin - wall, margin + wall : margin + wall + hall] = count
+    while True:
+        corridor, depth = rng.uniform(1.8, 2.6), (rng.uniform(4.0, 7.0), rng.uniform(4.0, 7.0))
+        height = px(depth[0]) + px(corridor) + px(depth[1]) + 2 * wall
+        if top + height > size - margin - wall:
+            break
+        first = count + 1
+        count, row = _wing(image, rooms, rng, px, top, left, right, corridor, depth, count)
+        image[row[0] : row[1], left - wall : left] = FREE  # the wing's corridor opens onto the hall
+        rooms[row[0] : row[1], left - wall : left] = first
+        top += height + wall
+    _scan_noise(image, rng)
+    rooms[image != FREE] = 0
+    return Floor(image=image, rooms=rooms, resolution=resolution)
+
+
+def _wing(
+    image: np.ndarray,
+    rooms: np.ndarray,
+    rng: np.random.Generator,
+    px,
+    top: int,
+    left: int,
+    right: int,
+    corridor: float,
+    depth: tuple[float, float],
+    count: int,
+) -> tuple[int, tuple[int, int]]:
+    """Cut a corridor between two rows of rooms into the walls of ``image`` from row ``top`` and
+    columns ``left``..``right``, numbering the spaces from ``count`` + 1 in ``rooms``. Returns the
+    last number given and the corridor's rows."""
+    wall = px(WALL_M)
     bands = [  # (first row, last row + 1) of the upper rooms, the corridor, the lower rooms
         (top, top + px(depth[0])),
         (top + px(depth[0]) + wall, top + px(depth[0]) + wall + px(corridor)),
         (top + px(depth[0]) + 2 * wall + px(corridor), top + px(depth[0]) + 2 * wall + px(corridor) + px(depth[1])),
     ]
-    image[margin : H - margin, margin : W - margin] = OCCUPIED  # the walls, then the spaces cut out
-    count = 1
+    count += 1
     image[bands[1][0] : bands[1][1], left:right] = FREE
     rooms[bands[1][0] : bands[1][1], left:right] = count  # the corridor
     for side, (r0, r1) in ((0, bands[0]), (2, bands[2])):
@@ -87,9 +138,7 @@ def office_floor(seed: int, resolution: float = 0.05) -> Floor:
                 rooms[e0 : e0 + door, c0 - wall : c0] = count
             _furnish(image, rng, (r0, r1, c0, c1), (door_row, d0, door), px)
             previous, c0 = count, c1 + wall
-    _scan_noise(image, rng)
-    rooms[image != FREE] = 0
-    return Floor(image=image, rooms=rooms, resolution=resolution)
+    return count, bands[1]
 
 
 def _furnish(image: np.ndarray, rng: np.random.Generator, box: tuple[int, int, int, int], door, px) -> None:

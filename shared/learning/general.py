@@ -124,14 +124,22 @@ class GraphTeam:
             setattr(self, name, getattr(self, name).to(self.device))
         return self
 
-    def features(self, pos: torch.Tensor, belief: torch.Tensor, role: torch.Tensor | None = None) -> torch.Tensor:
-        """pos (S, k), belief (S, k, n) -> (S, k, d, F); robot slot j has role ``role[j]`` (default: i)."""
+    def features(
+        self,
+        pos: torch.Tensor,
+        belief: torch.Tensor,
+        role: torch.Tensor | None = None,
+        team: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """pos (S, k), belief (S, k, n) -> (S, k, d, F); robot slot j has role ``role[j]`` (or
+        ``role[s, j]``; default: i / (N - 1)) in a team of ``team[s]`` (default: N)."""
         S, k = pos.shape
         role = (self.role if role is None else role).expand(S, k)
-        p, b, r = pos.cpu().numpy(), belief.detach().cpu().numpy(), role.cpu().numpy()
+        size = torch.full((S, 1), self.N) if team is None else team.reshape(S, 1)
+        p, b, r, t = pos.cpu().numpy(), belief.detach().cpu().numpy(), role.cpu().numpy(), size.cpu().numpy()
         rows = max(1, FEATURE_CHUNK // (k * self.graph.nbr.shape[1] * self.n))
         out = [
-            move_features(self.graph, self.dist, p[a : a + rows], b[a : a + rows], r[a : a + rows], np.full(1, self.N))
+            move_features(self.graph, self.dist, p[a : a + rows], b[a : a + rows], r[a : a + rows], t[a : a + rows])
             for a in range(0, S, rows)
         ]
         if not out:  # no states (the cross-entropy term found no shared ones)
@@ -164,7 +172,9 @@ class GraphTeam:
 
 class GeneralSearcher:
     """`general`: every robot flies the general policy on its own belief (Eq. 1 with ``model``, as
-    `greedy` does), sampling its move (or the most likely with ``greedy_actions``)."""
+    `greedy` does), sampling its move (or the most likely with ``greedy_actions``). Robots left
+    after others are withdrawn keep the same network as a team of the robots left (robot i's role
+    its rank among them), as robot agents do."""
 
     name = "general"
 
@@ -189,10 +199,19 @@ class GeneralSearcher:
     def act(self, obs: Obs) -> torch.Tensor:
         lik = self.beliefs.belief.likelihood(obs.pos, obs.z, obs.ready)
         b, _pred = self.beliefs.update(lik, obs.new)  # (B, N, n)
-        logits = self.team.logits(obs.pos, b)
+        act = obs.pos.clone()  # finished episodes (frozen) need no decision
+        live = obs.alive.nonzero().squeeze(1)
+        if live.numel() == 0:
+            return act
+        pos, active = obs.pos[live], obs.active[live]
+        left = active.sum(1)  # the robots not withdrawn
+        role = (active.cumsum(1) - 1).float() / (left - 1).clamp_min(1).unsqueeze(1)  # each one's rank among them
+        logits = self.team._full(pos, self.team.net(self.team.features(pos, b[live], role, left.clamp_min(1))))
         if self.greedy_actions:
-            return logits.argmax(-1)
-        return sample(torch.softmax(logits, dim=-1), self.gen)
+            act[live] = logits.argmax(-1)
+        else:
+            act[live] = sample(torch.softmax(logits, dim=-1), self.gen)
+        return act
 
 
 @dataclass

@@ -28,9 +28,10 @@ def large_graph_warning(n: int) -> str | None:
     if n <= LARGE_GRAPH_NODES:
         return None
     return (
-        f"warning: {n} nodes. A policy's weights and the engine's arrays grow with the square of the nodes, and "
-        f"above about {LARGE_GRAPH_NODES} training (mures train, the server's retraining) takes hours and tens of GB "
-        "on a small machine (docs/your-building.md); a larger `mures map import --max-region-m` gives fewer, "
+        f"warning: {n} nodes. A per-map team's weights grow with the square of the nodes, and above about "
+        f"{LARGE_GRAPH_NODES} training one (mures train from scratch) takes hours and tens of GB on a small machine "
+        "(docs/your-building.md); the general policy flies the building untrained (--searcher general, a server's "
+        "default first version; docs/general-policy.md), or a larger `mures map import --max-region-m` gives fewer, "
         "larger nodes"
     )
 
