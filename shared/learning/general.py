@@ -146,7 +146,7 @@ class GraphTeam:
             return torch.zeros(0, k, self.graph.nbr.shape[1], len(FEATURES), device=self.device)
         return torch.from_numpy(np.concatenate(out)).to(self.device)
 
-    def _full(self, pos: torch.Tensor, slot_scores: torch.Tensor) -> torch.Tensor:
+    def scatter_logits(self, pos: torch.Tensor, slot_scores: torch.Tensor) -> torch.Tensor:
         """Slot scores (..., d) at nodes pos (...) -> logits over the n nodes, NEG_INF outside N[p]."""
         s = slot_scores.masked_fill(~self.valid[pos], NEG_INF)
         out = torch.full((*pos.shape, self.n), NEG_INF, dtype=s.dtype, device=s.device)
@@ -154,11 +154,11 @@ class GraphTeam:
 
     def logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         """Each robot's policy on its own state: pos (S, N), belief (S, N, n) -> (S, N, n)."""
-        return self._full(pos, self.net(self.features(pos, belief)))
+        return self.scatter_logits(pos, self.net(self.features(pos, belief)))
 
     def logits_for(self, nets: torch.Tensor, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         """Robot slot k flies with role ``nets[k]``: pos (B, k), belief (B, k, n) -> (B, k, n)."""
-        return self._full(pos, self.net(self.features(pos, belief, self.role[nets])))
+        return self.scatter_logits(pos, self.net(self.features(pos, belief, self.role[nets])))
 
     @torch.no_grad()
     def cross_probs(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
@@ -167,7 +167,7 @@ class GraphTeam:
         feats = self.features(pos, belief).unsqueeze(2).repeat(1, 1, N, 1, 1)  # (K, N_i, N_j, d, F)
         feats[..., FEATURES.index("role")] = self.role.view(1, 1, N, 1).to(feats)
         pos_ij = pos.unsqueeze(2).expand(K, N, N)
-        return torch.softmax(self._full(pos_ij, self.net(feats)), dim=-1)
+        return torch.softmax(self.scatter_logits(pos_ij, self.net(feats)), dim=-1)
 
 
 class GeneralSearcher:
@@ -206,7 +206,7 @@ class GeneralSearcher:
         pos, active = obs.pos[live], obs.active[live]
         left = active.sum(1)  # the robots not withdrawn
         role = (active.cumsum(1) - 1).float() / (left - 1).clamp_min(1).unsqueeze(1)  # each one's rank among them
-        logits = self.team._full(pos, self.team.net(self.team.features(pos, b[live], role, left.clamp_min(1))))
+        logits = self.team.scatter_logits(pos, self.team.net(self.team.features(pos, b[live], role, left.clamp_min(1))))
         if self.greedy_actions:
             act[live] = logits.argmax(-1)
         else:

@@ -80,7 +80,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             args.retrain_every,
             retrain,
             Path(args.workdir) if args.workdir else None,
-            quiet=args.json,
+            quiet=False,  # progress on stderr, also beside --json's object on stdout
             serve=args.serve,
             retrains=args.retrains,
             server=args.server,
@@ -319,7 +319,7 @@ def add_fleet_commands(sub: Any) -> None:
     p.add_argument("--zenoh-connect", metavar="ENDPOINT", help="with --server: the fleet's Zenoh router")
     p.add_argument("--token-file", metavar="FILE", help="with --server: the operator token")
     p.add_argument("--agent-token-file", metavar="FILE", help="with --server: the agent token (default --token-file)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--json", action="store_true", help="print one JSON object (progress still goes to stderr)")
     add_continuous_args(p, CONTINUOUS_ABOUT, noise=True)
     p.set_defaults(func=cmd_fleet_sim)
 
