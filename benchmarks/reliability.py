@@ -77,6 +77,7 @@ class ServerProc:
     def start(self, fsize: int | None = None, timeout: float = 90) -> None:
         cmd = [sys.executable, "-m", "training_server", "--env", "office", "--data-dir", str(self.data)]
         cmd += ["--http", f"127.0.0.1:{self.http}", "--zenoh-listen", self.endpoint, "--robots", "3", *self.extra]
+        cmd += ["--init-policy", "untrained"]  # a per-map team's runs: the faults, not the policy, are measured
         if self.database_url:
             cmd += ["--database-url", self.database_url]
 

@@ -181,7 +181,7 @@ def test_a_server_without_init_policy_flies_the_general_policy_and_fine_tunes_it
     meta = json.loads((v1 / "policy.json").read_text())
     assert meta["architecture"] == "general" and meta["robots"] == 3
     ev = [sys.executable, "-m", "shared.tools.cli", "evaluate", "--env", "museum", "--robots", "3"]
-    r = subprocess.run([*ev, "--searcher", f"policy:{v1}", "--episodes", "1000", "--seed", "5", "--json"],
+    r = subprocess.run([*ev, "--searcher", f"policy:{v1}", "--episodes", "500", "--seed", "5", "--json"],
                        capture_output=True, text=True, timeout=300)  # fmt: skip
     assert r.returncode == 0, r.stderr
     batched = json.loads(r.stdout)

@@ -16,9 +16,9 @@ every robot's observations with the true model, flies ``imitation_episodes`` epi
 building and the network is fitted to its moves by cross-entropy (each robot's features on the
 collective belief, with its role). Then CE-PG: each update draws one building and team size from
 the pool, flies a batch of episodes with the network's stochastic policy, each robot on its own
-belief, and takes one Adam step. The target is the uniform walk and the robots' beliefs use it (the model a
-fleet flies before EM has learned one is its own business: the network reads the belief, whatever
-model made it). The skip connection starts at "move toward the most likely node" (weight
+belief, and takes one Adam step. The target is the uniform walk and the robots' beliefs use it; a
+fleet's robots later keep theirs with the model EM learned, and the network reads whatever belief
+it is given. The skip connection starts at "move toward the most likely node" (weight
 ``-SKIP_INIT`` on ``mode_distance_change``), so the first rollouts end; RL changes it from there.
 
 Checkpoints (``checkpoint.pt`` in the output directory, every ``checkpoint_every`` seconds; removed
