@@ -708,7 +708,7 @@ class _TrainingRun:
             algorithm=meta.get("algorithm", "cepg"),
             team_searcher=team_searcher,
             teams=version.teams,
-            switch_to=None if version.general else switch_to,  # the general network flies every team size
+            switch_to=switch_to,
             robots=version.robots,
         )
 

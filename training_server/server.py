@@ -518,22 +518,22 @@ class Server:
         staging = self.data_dir / "staging" / "initial"
         if init_policy in (None, "general"):
             from shared.core.models import uniform_walk
-            from shared.core.snapshot_format import load_general, shipped_general_path
-            from shared.learning.team_snapshot import general_snapshot
+            from shared.core.snapshot_format import load_general, shipped_general_path, write_snapshot
+            from shared.learning.team_snapshot import provenance
 
             general = load_general(shipped_general_path())
-            snap = general_snapshot(general, self.graph, robots, uniform_walk(self.graph), sensor)
-            save_snapshot(
+            write_snapshot(  # its weights as they are: nothing of the map (distances, masks) is built here
                 staging,
-                snap.policy,
                 self.graph,
-                snap.model,
+                general.weights,
+                uniform_walk(self.graph),
                 sensor,
                 "cepg",
                 [1.0] * robots,
                 {"episodes": 0, "seed": seed, "belief": "uniform walk", "map": self.graph.name, "general": True},
                 {"episodes": 0, "note": "the general policy, not trained on this map",
-                 "general_training": general.meta.get("training", {}).get("command")},
+                 "general_training": general.meta.get("training", {}).get("command"), "trained_with": provenance()},
+                robots=robots,
             )  # fmt: skip
             note = "the general policy"
         elif init_policy != "untrained":

@@ -252,6 +252,7 @@ class _Building:
 
     graph: Graph
     robots: int
+    target: TargetModel  # the uniform walk: the simulated target's and the robots' beliefs' model
     sim: SearchSim
     belief: BatchedBelief
     team: GraphTeam
@@ -273,7 +274,8 @@ def training_pool(cfg: GeneralConfig, net: GeneralNet) -> list[_Building]:
             graph, target, sensor, robots, batch, seed=cfg.seed * 7_919 + k, auto_reset=False,
             check_actions=False, details=False,
         )  # fmt: skip
-        pool.append(_Building(graph, robots, sim, BatchedBelief(graph, target, sensor), GraphTeam(net, graph, robots)))
+        belief = BatchedBelief(graph, target, sensor)
+        pool.append(_Building(graph, robots, target, sim, belief, GraphTeam(net, graph, robots)))
     return pool
 
 
@@ -284,8 +286,7 @@ def imitation_data(b: _Building, episodes: int, seed: int) -> tuple[torch.Tensor
     each robot's features on that belief with its role, and the slot of N[p] FHPE-SA chose for it.
     Returns features (M, d, F), target slots (M,) and valid slots (M, d) over the M robot-decisions
     of ``episodes`` episodes."""
-    graph, sensor = b.graph, b.sim.sensor
-    target = uniform_walk(graph)
+    graph, sensor, target = b.graph, b.sim.sensor, b.target
     planner = FhpeSAPlanner(graph, target, sensor)
     sim = SearchSim(graph, target, sensor, b.robots, episodes, seed=seed, auto_reset=False, details=False)
     tracker = BeliefTracker(BatchedBelief(graph, target, sensor, dtype=torch.float64))

@@ -41,10 +41,9 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         raise CliError("--server needs --zenoh-connect ENDPOINT and --token-file FILE (the operator token)")
     # every K missions: the server's floor of missions before a run (50) lowered to the K flown since the last
     retrain: dict[str, Any] = {"episodes": args.retrain_episodes, "min_missions": max(1, args.retrain_every)}
-    named = args.init_policy in (None, "general", "untrained")  # the server's own first versions
-    server_extra = [] if args.init_policy is None else ["--init-policy", args.init_policy]
-    if not named:
-        server_extra = ["--init-policy", str(Path(args.init_policy).resolve())]
+    named = args.init_policy in (None, "general", "untrained")  # the server's own first versions, else a snapshot
+    init = args.init_policy if named else str(Path(args.init_policy).resolve())
+    server_extra = [] if init is None else ["--init-policy", init]
     if args.map_image:  # the server checks it against the graph, in one line, before the fleet starts
         if not args.graph:
             raise CliError("fleet-sim: --map-image goes with --graph (a graph made by `mures map import`)")
