@@ -47,7 +47,9 @@ from shared.learning.policy import TeamPolicy, sample
 class Rollout:
     """Every decision of B complete episodes, flattened over (episode, t): S decisions in all.
 
-    pos (S, N), belief (S, N, n), action (S, N), t (S,), episode (S,) index into the B episodes,
+    pos (S, N), belief (S, N, n), action (S, N) the slot each robot chose in its policy's action space
+    of A slots (``slot_logits``: the node itself for a per-map team, A = n; a slot of N[p] for the
+    general policy, A = max |N[p]|), t (S,), episode (S,) index into the B episodes,
     ret (S,) the team's return from t on, or (S, N) one per robot; length (B,) decisions per episode (T_i of Eq. 12);
     capture_time (B,), censored (B,). With travel times t counts ticks and a row is a tick at which
     some robot of the episode stands on a node: ``decided`` (S, N) marks the robots that decide
@@ -101,12 +103,12 @@ def rollout(
             break
         dec = idx if obs.ready is None else idx[obs.ready[idx].any(1)]  # those where some robot decides now
         pos_a, bel_a = obs.pos[dec], b[dec]
-        probs = torch.softmax(policy.logits(pos_a, bel_a), dim=-1)
-        act = sample(probs, gen)
-        for k, v in (("pos", pos_a), ("belief", bel_a), ("action", act), ("t", obs.t[dec]), ("episode", dec)):
+        slot = sample(torch.softmax(policy.slot_logits(pos_a, bel_a), dim=-1), gen)
+        for k, v in (("pos", pos_a), ("belief", bel_a), ("action", slot), ("t", obs.t[dec]), ("episode", dec)):
             logs[k].append(v)
         if obs.ready is not None:
             logs["decided"].append(obs.ready[dec])
+        act = policy.slot_nodes(pos_a, slot)  # (B', N) node rows
         obs, res = sim.step(obs.pos.index_put((dec,), act))  # the others stand still or travel on
         censored = censored | res.censored
         read = None if obs.ready is None else obs.ready[idx]
@@ -142,7 +144,7 @@ def policy_gradient_term(log_pi: torch.Tensor, ro: Rollout, adv: torch.Tensor) -
     """J(pi_i)'s surrogate per robot, (N,): sum over an episode's steps of log pi_i(a_t | s_t) times
     the advantage, averaged over the B episodes; its gradient is Eq. 11 (REINFORCE with a baseline).
 
-    log_pi (S, N, n): each robot's own network on its own states, with gradient."""
+    log_pi (S, N, A): each robot's own network on its own states, with gradient."""
     B = ro.length.shape[0]
     logp_a = log_pi.gather(2, ro.action.unsqueeze(2)).squeeze(2)  # (S, N): log pi_i(a_t | s_t)
     if ro.decided is not None:  # travel times: only the decisions robots made on a node
@@ -197,8 +199,8 @@ def cross_entropy_term(
         keep = pairs.any(2).any(1).nonzero().squeeze(1)
         sub, pos, bel, pairs = sub[keep], pos[keep], bel[keep], pairs[keep]
     own_s = log_pi[sub]
-    pi_j = policy.cross_probs(pos, bel)  # (K, N_i, N_j, n): network j on robot i's states
-    mask = policy.mask[pos]  # (K, N, n): a in N[p]
+    pi_j = policy.cross_probs(pos, bel)  # (K, N_i, N_j, A): network j on robot i's states
+    mask = policy.slot_allowed(pos)  # (K, N, A): a in N[p]
     uniform = mask / mask.sum(-1, keepdim=True)
     smooth = torch.where(mask, (1 - eps) * own_s.exp() + eps * uniform, 1.0)  # pi~_i; 1 outside N[p]: log 0
     h = -(pi_j * torch.log(smooth).unsqueeze(2)).sum(-1)  # (K, N_i, N_j): H(pi_j, pi~_i) at each state
@@ -229,7 +231,7 @@ def cepg_loss(
     -t_cap), H in nats averaged over each episode's own steps (module docstring, "Units").
     beta (N,) holds beta_i.
     """
-    log_pi = torch.log_softmax(policy.logits(ro.pos, ro.belief), dim=-1)  # (S, N, n), with gradient
+    log_pi = torch.log_softmax(policy.slot_logits(ro.pos, ro.belief), dim=-1)  # (S, N, A), with gradient
     pg = policy_gradient_term(log_pi, ro, advantages(ro, j_unit))  # J, Eq. 11
     ce = cross_entropy_term(policy, ro, log_pi, eps, ce_fraction, gen, ce_states, same_tol)  # H, Eq. 12
     objective = beta * pg + (1 - beta) * ce  # Eq. 9 per robot

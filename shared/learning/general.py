@@ -3,11 +3,12 @@ it as a batched searcher (docs/general-policy.md).
 
 One network for every building and team size. ``GraphTeam`` binds it to one graph and team size N
 with the interface the CE-PG rollout and loss expect of a team (shared/learning/cepg.py: ``N``,
-``mask``, ``logits``, ``cross_probs``), so the update is Eq. 9-13 as written there: robot i's
-policy is the network with role i, pi_j(. | s^i) in the cross-entropy term is the network with
-role j on robot i's state (a constant for robot i's gradient, Eq. 10), and J's units are divided
-by the building's own scale (``j_unit``: the running mean capture time of that building and team),
-so that buildings of 30 and of 300 rooms weigh alike in one update.
+``slot_logits``, ``slot_allowed``, ``slot_nodes``, ``cross_probs``), so the update is Eq. 9-13 as
+written there, over the slots of N[p] rather than the n nodes: robot i's policy is the network
+with role i, pi_j(. | s^i) in the cross-entropy term is the network with role j on robot i's state
+(a constant for robot i's gradient, Eq. 10), and J's units are divided by the building's own scale
+(``j_unit``: the running mean capture time of that building and team), so that buildings of 30 and
+of 300 rooms weigh alike in one update.
 
 Recipe (``GeneralConfig``): a pool of generated office floors (``office_graph``, sizes log-uniform
 in [min_nodes, max_nodes], N in [1, max_robots]; the paper's maps are never in it). First an
@@ -103,10 +104,7 @@ class GraphTeam:
         self.nbr = torch.as_tensor(graph.nbr, device=self.device)  # (n, d)
         self.valid = torch.arange(graph.nbr.shape[1], device=self.device) < torch.as_tensor(
             graph.deg_closed, device=self.device
-        ).unsqueeze(1)  # (n, d)
-        mask = torch.zeros(graph.n, graph.n, dtype=torch.bool, device=self.device)
-        mask[torch.arange(graph.n).unsqueeze(1).expand_as(self.nbr), self.nbr] = True
-        self.mask = mask  # (n, n): a in N[p]
+        ).unsqueeze(1)  # (n, d): slot k of N[p] holds a move (padding repeats p)
         self.role = torch.as_tensor(roles(n_robots))  # (N,)
 
     @property
@@ -120,7 +118,7 @@ class GraphTeam:
         """The network on ``device`` (its features are computed in numpy and moved there)."""
         self.device = torch.device(device)
         self.net.to(self.device)
-        for name in ("nbr", "valid", "mask", "role"):
+        for name in ("nbr", "valid", "role"):
             setattr(self, name, getattr(self, name).to(self.device))
         return self
 
@@ -152,8 +150,23 @@ class GraphTeam:
         out = torch.full((*pos.shape, self.n), NEG_INF, dtype=s.dtype, device=s.device)
         return out.scatter_reduce(-1, self.nbr[pos], s, reduce="amax")  # padded slots repeat p: keep the largest
 
+    def slot_logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """Each robot's policy on its own state, over the slots of N[p] (the CE-PG rollout's and loss's
+        action space, shared/learning/cepg.py): pos (S, N), belief (S, N, n) -> (S, N, d), NEG_INF
+        on padding. O(d) a decision where node logits are O(n): what keeps a fine-tune's memory
+        linear in n."""
+        return self.net(self.features(pos, belief)).masked_fill(~self.valid[pos], NEG_INF)
+
+    def slot_allowed(self, pos: torch.Tensor) -> torch.Tensor:
+        """pos (...) -> (..., d) bool: the slots of N[p] that hold a move."""
+        return self.valid[pos]
+
+    def slot_nodes(self, pos: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
+        """The node rows of the slots chosen at ``pos``: (...), (...) -> (...)."""
+        return self.nbr[pos].gather(-1, slot.unsqueeze(-1)).squeeze(-1)
+
     def logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
-        """Each robot's policy on its own state: pos (S, N), belief (S, N, n) -> (S, N, n)."""
+        """Each robot's policy on its own state over the n nodes: pos (S, N), belief (S, N, n) -> (S, N, n)."""
         return self.scatter_logits(pos, self.net(self.features(pos, belief)))
 
     def logits_for(self, nets: torch.Tensor, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
@@ -162,12 +175,12 @@ class GraphTeam:
 
     @torch.no_grad()
     def cross_probs(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
-        """pi_j(. | s^i) for every pair: (K, N) , (K, N, n) -> (K, N_i, N_j, n)."""
+        """pi_j(. | s^i) for every pair, over the slots of N[p_i]: (K, N) , (K, N, n) -> (K, N_i, N_j, d)."""
         K, N = pos.shape
         feats = self.features(pos, belief).unsqueeze(2).repeat(1, 1, N, 1, 1)  # (K, N_i, N_j, d, F)
         feats[..., FEATURES.index("role")] = self.role.view(1, 1, N, 1).to(feats)
         pos_ij = pos.unsqueeze(2).expand(K, N, N)
-        return torch.softmax(self.scatter_logits(pos_ij, self.net(feats)), dim=-1)
+        return torch.softmax(self.net(feats).masked_fill(~self.valid[pos_ij], NEG_INF), dim=-1)
 
 
 class GeneralSearcher:

@@ -89,6 +89,20 @@ class TeamPolicy(nn.Module):
             out[a : a + chunk] = torch.softmax(self.cross_logits(pos[a : a + chunk], belief[a : a + chunk]), dim=-1)
         return out
 
+    # The action space of the CE-PG rollout and loss (shared/learning/cepg.py): slots of a row of
+    # scores. A per-map team scores every node, so its slots are the n nodes themselves.
+    def slot_logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """``logits``: (S, N) , (S, N, n) -> (S, N, n)."""
+        return self.logits(pos, belief)
+
+    def slot_allowed(self, pos: torch.Tensor) -> torch.Tensor:
+        """The slots robot on ``pos`` (...) may take: (..., n) bool, a in N[p]."""
+        return self.mask[pos]
+
+    def slot_nodes(self, pos: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
+        """The node rows of the slots chosen at ``pos``: the slots themselves."""
+        return slot
+
     def log_probs(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         """log pi_i(. | s^i): (B, N, n), -inf-like outside N[p]."""
         return torch.log_softmax(self.logits(pos, belief), dim=-1)
