@@ -110,6 +110,27 @@ def test_records_bound_integers_quote_little_and_store_only_the_contract(grid_da
     assert canonical_record(parse_record(padded, g), g) == good
 
 
+def test_em_on_gamma_hats_support_alone_gives_the_dense_estimate(grid_data):
+    """The sparse E-step (Gamma_hat on its n + 2m entries, one (n, k_t) block per step: what maps
+    above 512 nodes use) against the dense one on the same missions, with and without a prior and
+    with worker processes: the same passes, log-likelihoods and estimate up to rounding."""
+    g, _truth, recs = grid_data
+    data = collect_missions(enumerate(recs), g)
+    for kw in ({}, {"pseudo_count": 1.0, "b0_pseudo_count": 1.0, "workers": 2}):
+        dense, sparse = em(g, data, sparse=False, **kw), em(g, data, sparse=True, **kw)
+        assert sparse.iterations == dense.iterations and sparse.converged
+        assert np.allclose(sparse.log_likelihood, dense.log_likelihood, rtol=1e-10)
+        assert np.abs(sparse.model.dense() - dense.model.dense()).max() < 1e-8
+        assert np.abs(sparse.model.b0 - dense.model.b0).max() < 1e-8
+        assert np.allclose(sparse.model.dense().sum(1), 1.0)
+    subset = data.subset(np.array([3, 0, 7]))  # packed missions keep their own steps
+    assert np.array_equal(subset.mission(1), data.mission(3)) and list(subset.length) == [
+        data.length[0],
+        data.length[3],
+        data.length[7],
+    ]
+
+
 def test_packed_forward_backward_matches_a_plain_one_mission_at_a_time():
     """The EM's forward-backward (missions sorted by length, step t on the missions still
     running) against the textbook recursion run on each mission alone, lengths 1 to T."""
@@ -126,7 +147,8 @@ def test_packed_forward_backward_matches_a_plain_one_mission_at_a_time():
     length = np.array([1, 7, 3, 7, 2, 5, 4, 6, 3])
     lik = rng.random((M, T, n)) * (rng.random((M, T, n)) < 0.8)
     lik[np.arange(T)[None, :] >= length[:, None]] = 1.0
-    fb = _ForwardBackward(MissionData(lik=lik, length=length, used_records=M))
+    packed = np.concatenate([lik[m, : length[m]] for m in range(M)])  # MissionData holds the steps taken
+    fb = _ForwardBackward(MissionData(lik=packed, length=length, used_records=M))
     alpha, beta, c, xi = fb(torch.as_tensor(G), torch.as_tensor(b0))
     order = np.argsort(-length, kind="stable")
     ll, counts = 0.0, np.zeros((n, n))
@@ -220,7 +242,7 @@ def test_em_says_which_worker_ended_and_leaves_none_behind(grid_data, monkeypatc
     g, _truth, recs = grid_data
     data = collect_missions(enumerate(recs), g)
 
-    def dies(conn, data, missions, inherited):  # serves one pass, then its process ends
+    def dies(conn, data, missions, support, inherited):  # serves one pass, then its process ends
         conn.recv()
         os._exit(3)
 

@@ -9,6 +9,10 @@ missions at once (tensors (T, M, n), the M missions sorted by length so that ste
 those still running only), expected transition counts,
 transitions restricted to the closed neighbourhoods (the support of the initial guess, which
 Baum-Welch never leaves), rows stochastic, iterated until the log-likelihood stops improving.
+Above ``SPARSE_FROM_NODES`` nodes Gamma_hat is kept on its n + 2m entries and each step works on
+the missions still running alone (``_SparseForwardBackward``): O(n + m) a mission-step and memory
+that grows with the steps the missions took, where the dense pass is O(n^2) and (T, M, n). The
+missions' likelihoods are stored packed the same way (``MissionData``).
 
 ``eq8``: the paper's one-round least-squares estimate (Eq. 8) from collective beliefs filtered
 with Gamma_hat_0 = I, projected onto the closed-neighbourhood support and made row-stochastic;
@@ -36,12 +40,15 @@ import torch
 from shared.core.graph import Graph
 from shared.core.models import TargetModel, from_matrix, uniform_walk
 from shared.core.records import Episode, RecordError, emission_likelihoods, parse_record, spread
+from shared.engine.batched_belief import SPARSE_FROM_NODES
 
 
 @dataclass
 class MissionData:
-    """Emission likelihoods of M missions: lik (M, T, n) with 1 where a mission has ended;
-    length (M,) number of steps (t = 0..length-1) per mission."""
+    """Emission likelihoods of M missions, packed: lik (sum of lengths, n), mission m's steps
+    t = 0..length[m]-1 in rows start[m] + t (``mission``); length (M,) steps per mission. Packed,
+    not padded to the longest mission, so that memory grows with the steps the missions took
+    (one mission that ran to the step limit of 3 n does not make every mission that long)."""
 
     lik: np.ndarray
     length: np.ndarray
@@ -50,12 +57,27 @@ class MissionData:
     impossible: list[str] = field(default_factory=list)  # missions set aside: no target path explains them
     records: np.ndarray | None = None  # (M,) records per mission
 
+    def __post_init__(self) -> None:
+        self.length = np.asarray(self.length, dtype=np.int64)
+        self.start = np.concatenate([[0], np.cumsum(self.length)[:-1]]).astype(np.int64)  # (M,)
+        if self.lik.shape[0] != int(self.length.sum()):
+            raise ValueError(f"lik has {self.lik.shape[0]} rows for missions of {int(self.length.sum())} steps")
+
+    def mission(self, m: int) -> np.ndarray:
+        """Mission m's likelihoods: (length[m], n), a view."""
+        return self.lik[self.start[m] : self.start[m] + self.length[m]]
+
+    def step(self, t: int, missions: np.ndarray) -> np.ndarray:
+        """Step t of the missions ``missions`` (indices, each at least t + 1 steps long): (k, n)."""
+        return self.lik[self.start[missions] + t]
+
     def subset(self, missions: np.ndarray) -> MissionData:
         """The missions ``missions`` (indices) alone."""
         idx = np.sort(np.asarray(missions))
         records = None if self.records is None else self.records[idx]
         used = int(records.sum()) if records is not None else self.used_records
-        return MissionData(lik=self.lik[idx], length=self.length[idx], used_records=used, records=records)
+        lik = np.concatenate([self.mission(m) for m in idx]) if len(idx) else self.lik[:0]
+        return MissionData(lik=lik, length=self.length[idx], used_records=used, records=records)
 
 
 def collect_missions(
@@ -94,7 +116,6 @@ def collect_missions(
             skipped["duplicate"] += 1
             continue
         robots[ep.robot_id] = ep
-    M = len(missions)
     n = graph.n
 
     def at(ep: Episode) -> np.ndarray:
@@ -104,9 +125,10 @@ def collect_missions(
         assert ep.times is not None
         return np.floor(ep.times / tick_s + 1e-9).astype(np.int64)
 
-    T = max((int(at(ep)[-1]) + 1 for robots in missions.values() for ep in robots.values()), default=1)
-    lik = np.ones((M, T, n), dtype=np.float64)
-    length = np.zeros(M, dtype=np.int64)
+    length = np.array(
+        [max(int(at(ep)[-1]) + 1 for ep in robots.values()) for robots in missions.values()], dtype=np.int64
+    )
+    data = MissionData(lik=np.ones((int(length.sum()), n), dtype=np.float64), length=length, used_records=0)
     detect_cache: dict[str, np.ndarray] = {}
     used = 0
     for m, robots in enumerate(missions.values()):
@@ -114,35 +136,31 @@ def collect_missions(
             det = detect_cache.get(ep.sensor.detection)
             if det is None:
                 det = detect_cache[ep.sensor.detection] = graph.detection_matrix(ep.sensor.detection)
-            k = at(ep)
             l_in, l_out = emission_likelihoods(ep, capture_aware)
-            np.multiply.at(lik[m], k, np.where(det[ep.nodes], l_in[:, None], l_out[:, None]))
-            length[m] = max(length[m], int(k[-1]) + 1)
+            np.multiply.at(data.mission(m), at(ep), np.where(det[ep.nodes], l_in[:, None], l_out[:, None]))
             used += 1
     per_mission = np.array([len(robots) for robots in missions.values()], dtype=np.int64)
-    keep = explained(graph, lik, length)
+    keep = explained(graph, data)
     impossible = [mid for (_fleet, mid), ok in zip(missions, keep, strict=True) if not ok]
     if impossible:  # probability zero under every model: EM's posterior would be 0/0
         skipped["impossible"] += sum(len(missions[k]) for k, ok in zip(missions, keep, strict=True) if not ok)
         used -= skipped["impossible"]
-        lik, length, per_mission = lik[keep], length[keep], per_mission[keep]
-    return MissionData(
-        lik=lik, length=length, used_records=used, skipped=skipped, impossible=impossible, records=per_mission
-    )
+        data = data.subset(np.flatnonzero(keep))
+        per_mission = per_mission[keep]
+    data.used_records, data.skipped, data.impossible, data.records = used, skipped, impossible, per_mission
+    return data
 
 
-def explained(graph: Graph, lik: np.ndarray, length: np.ndarray) -> np.ndarray:
+def explained(graph: Graph, data: MissionData) -> np.ndarray:
     """(M,) bool: whether some path of the target (any start, steps within closed neighbourhoods)
-    has non-zero likelihood for each mission's joint observations lik (M, T, n): the support of
-    the forward filter (Eq. 6) under any model with full support on the map, which is where EM
-    starts (the uniform walk). O(M T (n + m))."""
-    T = lik.shape[1]
-    possible = lik[:, 0] > 0
-    for t in range(1, T):
-        running = length > t
-        if not running.any():
-            break
-        possible = np.where(running[:, None], spread(graph, possible) & (lik[:, t] > 0), possible)
+    has non-zero likelihood for each mission's joint observations: the support of the forward
+    filter (Eq. 6) under any model with full support on the map, which is where EM starts (the
+    uniform walk). O(sum of lengths (n + m))."""
+    M = len(data.length)
+    possible = data.step(0, np.arange(M)) > 0 if M else np.zeros((0, data.lik.shape[1]), dtype=bool)
+    for t in range(1, int(data.length.max(initial=0))):
+        running = np.flatnonzero(data.length > t)
+        possible[running] = spread(graph, possible[running]) & (data.step(t, running) > 0)
     return np.asarray(possible.any(1), dtype=bool)
 
 
@@ -190,7 +208,10 @@ class _ForwardBackward:
         order = np.argsort(-data.length, kind="stable") if missions is None else np.asarray(missions)
         length = data.length[order]
         T = int(length.max(initial=1))
-        self.L = torch.as_tensor(data.lik[order, :T]).transpose(0, 1).contiguous()  # (T, M, n)
+        padded = np.ones((T, len(order), data.lik.shape[1]), dtype=np.float64)  # 1 after a mission's end
+        for j, m in enumerate(order):
+            padded[: length[j], j] = data.mission(m)
+        self.L = torch.from_numpy(padded)  # (T, M, n)
         _T, M, n = self.L.shape
         self.active = (length[None, :] > np.arange(T)[:, None]).sum(1)  # (T,) non-increasing
         self.alpha = torch.zeros_like(self.L)
@@ -239,15 +260,79 @@ class _ForwardBackward:
         a.div_(s.unsqueeze(1))
 
 
-def _posterior(fb: _ForwardBackward, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
-    """One forward-backward pass of a group of missions: its log-likelihood, xi (n, n) and the
-    posterior of e_0 per mission (M, n)."""
+class _SparseForwardBackward:
+    """``_ForwardBackward`` on Gamma_hat's support alone, for maps above ``SPARSE_FROM_NODES``
+    nodes: G is the (E,) vector of Gamma_hat on the E = n + 2m entries (src, dst) of the closed
+    neighbourhoods, each step's propagation a sparse product (O(k (n + m)) for the k missions
+    running, not O(k n^2)), xi the (E,) vector of expected transition counts' factors, and the
+    buffers one (n, k_t) block per step t for the k_t missions running (memory grows with the
+    steps the missions took, not with M times the longest). The same recursion and numbers up to
+    rounding (tests/test_estimate.py)."""
+
+    def __init__(self, data: MissionData, missions: np.ndarray | None, src: np.ndarray, dst: np.ndarray) -> None:
+        order = np.argsort(-data.length, kind="stable") if missions is None else np.asarray(missions)
+        length = data.length[order]
+        self.n = data.lik.shape[1]
+        self.active = [int(k) for k in (length[None, :] > np.arange(int(length.max(initial=1)))[:, None]).sum(1)]
+        # step t's likelihoods, (n, k_t): the missions running at t are the first k_t (longest first)
+        self.L = [torch.from_numpy(np.ascontiguousarray(data.step(t, order[:k]).T)) for t, k in enumerate(self.active)]
+        self.src, self.dst = torch.as_tensor(src), torch.as_tensor(dst)
+
+    def __call__(self, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+        """G (E,), b0 (n,) -> the log-likelihood, xi (E,) and the posterior of e_0 per mission (M, n)."""
+        src, dst, g = self.src, self.dst, G.unsqueeze(1)
+        alpha: list[torch.Tensor] = []  # (n, k_t) per step: filtered, normalised
+        scale: list[torch.Tensor] = []  # (k_t,) per step: c_t
+        for t, Lt in enumerate(self.L):
+            # Eq. 6: (Gamma^T alpha_{t-1})(v) = sum over the entries (u, v) of Gamma(u, v) alpha_{t-1}(u)
+            prior = (
+                b0.unsqueeze(1)
+                if t == 0
+                else torch.zeros_like(Lt).index_add_(0, dst, alpha[-1][src, : Lt.shape[1]] * g)
+            )
+            a = prior * Lt
+            c = a.sum(0).clamp_min(1e-300)
+            alpha.append(a / c)
+            scale.append(c)
+        xi = torch.zeros_like(G)
+        beta = torch.ones_like(alpha[-1])
+        for t in range(len(self.L) - 2, -1, -1):
+            k = self.L[t + 1].shape[1]
+            w_dst = (self.L[t + 1] * beta / scale[t + 1])[dst]  # (E, k): w_{t+1}(v), w = L_{t+1} beta_{t+1} / c_{t+1}
+            xi += (alpha[t][src, :k] * w_dst).sum(1)  # alpha_t(u) w_{t+1}(v) on the support
+            beta = torch.ones_like(alpha[t])  # the missions that end at t keep beta_t = 1
+            beta[:, :k] = torch.zeros_like(self.L[t + 1]).index_add_(0, src, w_dst * g)  # (Gamma w)(u)
+        post0 = alpha[0] * beta
+        ll = float(sum(c.log().sum() for c in scale))
+        return ll, xi, (post0 / post0.sum(0, keepdim=True)).T
+
+
+def _posterior(
+    fb: _ForwardBackward | _SparseForwardBackward, G: torch.Tensor, b0: torch.Tensor
+) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """One forward-backward pass of a group of missions: its log-likelihood, xi (n, n) (or (E,) on
+    the support) and the posterior of e_0 per mission (M, n)."""
+    if isinstance(fb, _SparseForwardBackward):
+        return fb(G, b0)
     alpha, beta, c, xi = fb(G, b0)
     post0 = alpha[0] * beta[0]
     return float(c.log().sum()), xi, post0 / post0.sum(1, keepdim=True)
 
 
-def _serve(conn: Connection, data: MissionData, missions: np.ndarray, inherited: list[Connection]) -> None:
+def _forward_backward(
+    data: MissionData, missions: np.ndarray | None, support: tuple[np.ndarray, np.ndarray] | None
+) -> _ForwardBackward | _SparseForwardBackward:
+    """The dense forward-backward, or the sparse one on ``support`` (src, dst) where one is given."""
+    return _ForwardBackward(data, missions) if support is None else _SparseForwardBackward(data, missions, *support)
+
+
+def _serve(
+    conn: Connection,
+    data: MissionData,
+    missions: np.ndarray,
+    support: tuple[np.ndarray, np.ndarray] | None,
+    inherited: list[Connection],
+) -> None:
     """A worker process of ``_EStep``: the forward-backward of its group of missions, one pass per
     (G, b0) received, until None or until the caller's end is closed (its process ended: a kill -9
     included). ``inherited``: the caller's ends of the pipes, which the fork copied here and which
@@ -255,7 +340,7 @@ def _serve(conn: Connection, data: MissionData, missions: np.ndarray, inherited:
     for other in inherited:
         other.close()
     torch.set_num_threads(1)
-    fb = _ForwardBackward(data, missions)
+    fb = _forward_backward(data, missions, support)
     try:
         while (msg := conn.recv()) is not None:
             ll, xi, post0 = _posterior(fb, torch.from_numpy(msg[0]), torch.from_numpy(msg[1]))
@@ -290,24 +375,24 @@ class _EStep:
     missions (n,): the M-step's b0.
     """
 
-    def __init__(self, data: MissionData, parts: int) -> None:
+    def __init__(self, data: MissionData, parts: int, support: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         order = np.argsort(-data.length, kind="stable")
         parts = max(1, min(parts, len(order)))
         groups = [order[i::parts] for i in range(parts)]
-        self.local = _ForwardBackward(data, groups[0])
-        self.here: list[_ForwardBackward] = []  # groups run in this process after the first
+        self.local = _forward_backward(data, groups[0], support)
+        self.here: list[_ForwardBackward | _SparseForwardBackward] = []  # groups run here after the first
         self.workers: list[tuple[Any, Connection]] = []  # (process, its end of the pipe)
         if parts > 1 and _can_fork():
             ctx = multiprocessing.get_context("fork")  # the data and the code are inherited, not sent
             for grp in groups[1:]:
                 mine, theirs = ctx.Pipe()
                 ours = [mine, *(c for _p, c in self.workers)]
-                proc = ctx.Process(target=_serve, args=(theirs, data, grp, ours), daemon=True, name="mures-em")
+                proc = ctx.Process(target=_serve, args=(theirs, data, grp, support, ours), daemon=True, name="mures-em")
                 proc.start()
                 theirs.close()
                 self.workers.append((proc, mine))
         else:
-            self.here = [_ForwardBackward(data, grp) for grp in groups[1:]]
+            self.here = [_forward_backward(data, grp, support) for grp in groups[1:]]
 
     def __call__(self, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
         if not self.workers and not self.here:
@@ -362,6 +447,7 @@ def em(
     progress: Callable[[int, float], None] | None = None,
     workers: int = 1,
     b0_pseudo_count: float = 0.0,
+    sparse: bool | None = None,
 ) -> Estimate:
     """Baum-Welch for Gamma_hat and b0 with the sensor known (module docstring).
 
@@ -378,6 +464,8 @@ def em(
     forward-backward (``_EStep``; 1: this process alone, with torch's threads as they are; more:
     each on one torch thread, this one's restored at the end). The estimate depends on it only by
     rounding: in the order of the expected counts' sums (1000 WARD missions: 2e-9 in an entry).
+    ``sparse`` keeps Gamma_hat on its support's entries (``_SparseForwardBackward``; default: above
+    ``SPARSE_FROM_NODES`` nodes), the same estimate up to rounding at O(n + m) a step.
     """
     t0 = time.perf_counter()
     init = init or uniform_walk(graph)
@@ -389,10 +477,13 @@ def em(
     if workers > 1:
         torch.set_num_threads(1)  # before forking: the workers take the other cores
     e_step = None
+    if sparse is None:
+        sparse = graph.n > SPARSE_FROM_NODES
+    support = (init.src, init.dst) if sparse else None  # Gamma_hat kept on its entries
     try:
-        e_step = _EStep(data, workers)
+        e_step = _EStep(data, workers, support)
         prior = (pseudo_count, b0_pseudo_count)
-        return _em(graph, data, init, e_step, max_iter, tol, prior, accelerate, progress, t0)
+        return _em(graph, data, init, e_step, max_iter, tol, prior, accelerate, progress, t0, sparse=sparse)
     finally:
         if e_step is not None:
             e_step.close()
@@ -410,9 +501,22 @@ def _em(
     accelerate: bool,
     progress: Callable[[int, float], None] | None,
     t0: float,
+    sparse: bool = False,
 ) -> Estimate:
-    """``em``'s iterations, with its E-step made."""
-    G = torch.as_tensor(init.dense())
+    """``em``'s iterations, with its E-step made. G is Gamma_hat as an (n, n) matrix, or with
+    ``sparse`` the (E,) vector of its entries on init's support (``_SparseForwardBackward``)."""
+    if sparse:
+        G = torch.as_tensor(init.prob, dtype=torch.float64).clone()
+        src = torch.as_tensor(init.src)
+
+        def row_sums(x: torch.Tensor) -> torch.Tensor:  # each entry's row total, (E,)
+            return torch.zeros(graph.n, dtype=x.dtype).index_add_(0, src, x)[src]
+    else:
+        G = torch.as_tensor(init.dense())
+
+        def row_sums(x: torch.Tensor) -> torch.Tensor:  # (n, 1)
+            return x.sum(1, keepdim=True)
+
     support = G > 0
     b0 = torch.as_tensor(init.b0)
     passes = 0
@@ -426,7 +530,7 @@ def _em(
         ll, xi, b0_new = e_step(G, b0)
         # E-step: xi_t(u, v) = alpha_t(u) G(u, v) L_{t+1}(v) beta_{t+1}(v) / c_{t+1}, summed over t, missions
         counts = G * xi + pseudo_count * support
-        rows = counts.sum(1, keepdim=True)
+        rows = row_sums(counts)
         # M-step: rows stochastic on the support; a row with no expected transition keeps its value
         # (also one whose expected count is so small that dividing by it would not give a sum of 1:
         # seen with one short mission, where a start node's count came out near 1e-306)
@@ -439,7 +543,7 @@ def _em(
     def project(G: torch.Tensor, b0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         G = torch.where(support, G.clamp_min(1e-10), torch.zeros_like(G))
         b0 = b0.clamp_min(1e-12)
-        return G / G.sum(1, keepdim=True), b0 / b0.sum()
+        return G / row_sums(G), b0 / b0.sum()
 
     history: list[float] = []
     converged = False
@@ -465,7 +569,11 @@ def _em(
         Gx, bx = project(G - 2 * a * rG + a * a * vG, b0 - 2 * a * rb + a * a * vb)
         G3, b3, llx = step(Gx, bx)
         G, b0 = (G3, b3) if llx >= ll1 else (G2, b2)
-    model = from_matrix(graph, G.numpy(), b0.numpy() / b0.sum().item(), kind="em")
+    b0_out = b0.numpy() / b0.sum().item()
+    if sparse:
+        model = TargetModel(n=graph.n, src=init.src, dst=init.dst, prob=G.numpy(), b0=b0_out, kind="em")
+    else:
+        model = from_matrix(graph, G.numpy(), b0_out, kind="em")
     return Estimate(model, "em", passes, history, converged, time.perf_counter() - t0)
 
 
