@@ -2,12 +2,16 @@
 of results/fig7 (trained from scratch, 4x10^5 episodes) on the same protocol (1500 episodes, seed 1).
 
     python benchmarks/general_finetune.py [--maps office,museum] [--robots 4] [--minutes 10]
-                                          [--json results/general_policy/finetune.json]
+                                          [--beliefs em,true] [--json results/general_policy/finetune.json]
 
-For each map and N: `mures train --env MAP --robots N --init general --episodes E --seed 0` (CE-PG
-with EM in the loop, the trainer's defaults, as the fig7 teams; E is what ``--minutes`` buys at the
-rate a short probe run measures on this machine), then `mures evaluate --searcher policy:DIR` and
-`--searcher general` on the same episodes. Prints the capture times and the fine-tune's wall time.
+For each map, N and belief: `mures train --env MAP --robots N --init general --episodes E --seed 0
+[--belief true]` with a fine-tune's defaults (shared/learning/config.py ``fine_tune_defaults``; E is
+what ``--minutes`` buys at the rate a short probe run measures on this machine). ``em``: EM in the
+loop, the robots' beliefs starting on the uniform walk, as the fig7 teams learned theirs (from I);
+``true``: the target's model known, which is what a training server's retraining does once its EM
+has fitted the fleet's records. Then `mures evaluate --searcher policy:DIR` (the snapshot's own
+model) and `--searcher general` (the true model) on the same episodes. Prints the capture times
+and the fine-tune's wall time.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from itertools import product
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -42,6 +47,7 @@ def main() -> None:
     ap.add_argument("--maps", default="office,museum")
     ap.add_argument("--robots", default="4")
     ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--beliefs", default="em,true")
     ap.add_argument("--json", default=str(ROOT / "results" / "general_policy" / "finetune.json"))
     args = ap.parse_args()
     fig7 = {}
@@ -53,38 +59,39 @@ def main() -> None:
             )
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for env in args.maps.split(","):
-            for N in (int(x) for x in args.robots.split(",")):
-                probe = Path(tmp) / f"probe-{env}-{N}"
-                t0 = time.perf_counter()
-                mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", "2048",
-                      "--seed", "0", "--quiet", "--out", str(probe))  # fmt: skip
-                rate = 2048 / (time.perf_counter() - t0)
-                episodes = int(rate * args.minutes * 60 * 0.9) // 256 * 256  # 10 % left for EM and start-up
-                out = Path(tmp) / f"{env}-{N}"
-                t0 = time.perf_counter()
-                mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", str(episodes),
-                      "--seed", "0", "--quiet", "--out", str(out))  # fmt: skip
-                wall = time.perf_counter() - t0
-                tuned = evaluate(env, N, f"policy:{out}")
-                zero = evaluate(env, N, "general")
-                cepg, cepg_h = fig7[(env, N, "cepg")]
-                row = {
-                    "map": env,
-                    "robots": N,
-                    "finetune_episodes": episodes,
-                    "finetune_wall_s": round(wall, 1),
-                    "finetuned": round(tuned["mean_capture_time"], 3),
-                    "finetuned_ci95": round(tuned["ci95_halfwidth"], 3),
-                    "zero_shot": round(zero["mean_capture_time"], 3),
-                    "zero_shot_ci95": round(zero["ci95_halfwidth"], 3),
-                    "cepg_fig7": cepg,
-                    "cepg_fig7_ci95": cepg_h,
-                }
-                print(f"{env} N={N}: fine-tuned {row['finetuned']:.2f} ± {row['finetuned_ci95']:.2f} "
-                      f"({episodes:,} episodes, {wall:.0f} s), zero-shot {row['zero_shot']:.2f}, "
-                      f"fig7 CE-PG {cepg:.2f} ± {cepg_h:.2f}", flush=True)  # fmt: skip
-                rows.append(row)
+        settings = product(args.maps.split(","), [int(x) for x in args.robots.split(",")], args.beliefs.split(","))
+        for env, N, belief in settings:  # one fine-tune per map, team size and belief
+            probe = Path(tmp) / f"probe-{env}-{N}-{belief}"
+            t0 = time.perf_counter()
+            mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", "2048",
+                  "--belief", belief, "--seed", "0", "--quiet", "--out", str(probe))  # fmt: skip
+            rate = 2048 / (time.perf_counter() - t0)
+            episodes = int(rate * args.minutes * 60 * 0.9) // 256 * 256  # 10 % left for EM and start-up
+            out = Path(tmp) / f"{env}-{N}-{belief}"
+            t0 = time.perf_counter()
+            mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", str(episodes),
+                  "--belief", belief, "--seed", "0", "--quiet", "--out", str(out))  # fmt: skip
+            wall = time.perf_counter() - t0
+            tuned = evaluate(env, N, f"policy:{out}")
+            zero = evaluate(env, N, "general")
+            cepg, cepg_h = fig7[(env, N, "cepg")]
+            row = {
+                "map": env,
+                "robots": N,
+                "belief": belief,
+                "finetune_episodes": episodes,
+                "finetune_wall_s": round(wall, 1),
+                "finetuned": round(tuned["mean_capture_time"], 3),
+                "finetuned_ci95": round(tuned["ci95_halfwidth"], 3),
+                "zero_shot": round(zero["mean_capture_time"], 3),
+                "zero_shot_ci95": round(zero["ci95_halfwidth"], 3),
+                "cepg_fig7": cepg,
+                "cepg_fig7_ci95": cepg_h,
+            }
+            print(f"{env} N={N} ({belief} beliefs): fine-tuned {row['finetuned']:.2f} ± {row['finetuned_ci95']:.2f} "
+                  f"({episodes:,} episodes, {wall:.0f} s), zero-shot {row['zero_shot']:.2f}, "
+                  f"fig7 CE-PG {cepg:.2f} ± {cepg_h:.2f}", flush=True)  # fmt: skip
+            rows.append(row)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"minutes": args.minutes, "rows": rows}, indent=1) + "\n", encoding="utf-8")
 

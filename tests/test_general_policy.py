@@ -19,6 +19,7 @@ from shared.core.snapshot_format import GENERAL_META as META
 from shared.core.snapshot_format import GENERAL_WEIGHTS as WEIGHTS
 from shared.core.snapshot_format import SnapshotError, load_general, save_general, shipped_general_path
 from shared.engine.evaluate import evaluate, means_differ
+from shared.learning.config import FINE_TUNE, fine_tune_defaults
 from shared.learning.general import CHECKPOINT, GeneralConfig, GeneralNet, GraphTeam, train_general
 from shared.registry import searcher_factory
 
@@ -156,6 +157,32 @@ def test_train_general_and_evaluate_general_from_the_command_line(tmp_path):
     bad = [sys.executable, "-m", "shared.tools.cli", "train-general", "--out", str(tmp_path / "x")]
     r = subprocess.run([*bad, "--min-nodes", "50", "--max-nodes", "10"], capture_output=True, text=True)
     assert r.returncode == 2 and "min_nodes <= max_nodes" in r.stderr and not (tmp_path / "x").exists()
+
+
+def test_a_fine_tune_of_the_general_policy_takes_its_own_defaults_unless_told(tmp_path):
+    """`mures train --init general` fine-tunes with FINE_TUNE (J in units of the run's capture time,
+    beta 0.9, lr 0.001, EM's prior, a batch of 24,000 / n episodes) and beliefs that start on the
+    uniform walk; a flag given wins."""
+    cmd = [sys.executable, "-m", "shared.tools.cli", "train", "--env", "office", "--robots", "2", "--init", "general"]
+    cmd += ["--episodes", "64", "--em-first", "32", "--em-missions", "16", "--quiet"]
+    r = subprocess.run([*cmd, "--out", str(tmp_path / "a")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    cfg = json.loads((tmp_path / "a" / "policy.json").read_text())["training"]
+    got = {k: cfg[k] for k in ("lr", "beta", "j_unit", "em_pseudo_count", "em_b0_pseudo_count", "batch")}
+    assert got == {**FINE_TUNE, "batch": 256}  # OFFICE: 24,000 / 60 episodes, at most 256
+    assert "warning" not in r.stderr  # the per-map team's large-graph warning is not about this
+    given = ["--lr", "0.005", "--beta", "0.5", "--j-unit", "1", "--batch", "32", "--em-pseudo-count", "0"]
+    r = subprocess.run([*cmd, *given, "--out", str(tmp_path / "b")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    cfg = json.loads((tmp_path / "b" / "policy.json").read_text())["training"]
+    assert (cfg["lr"], cfg["beta"], cfg["j_unit"], cfg["batch"], cfg["em_pseudo_count"]) == (
+        [0.005],
+        [0.5],
+        1.0,
+        32,
+        0.0,
+    )
+    assert fine_tune_defaults(1_000)["batch"] == 24 and fine_tune_defaults(20)["batch"] == 256
 
 
 def test_the_shipped_policy_is_there():

@@ -109,15 +109,22 @@ class TrainingParams(BaseModel):
         description='a MARL baseline\'s hyperparameters by method, e.g. {"masac": {"lr": 0.0001}}, used when the run '
         "trains that method (checked when the run starts: an unknown name fails it at once, naming it)",
     )
-    beta: float = Field(
-        train_config.default("beta")[0],
+    beta: float | None = Field(
+        None,
         ge=0.0,
         le=1.0,
         allow_inf_nan=False,
-        description="Eq. 9's beta for cepg (pg is CE-PG with beta = 1, whatever this says)",
+        description=f"Eq. 9's beta for cepg (default {train_config.default('beta')[0]:g}; "
+        f"{train_config.FINE_TUNE['beta'][0]:g} for a fine-tune of the general policy; pg is CE-PG with beta = 1, "
+        "whatever this says)",
     )
-    lr: float = Field(
-        train_config.default("lr")[0], gt=0.0, lt=1.0, allow_inf_nan=False, description="CE-PG's Adam learning rate"
+    lr: float | None = Field(
+        None,
+        gt=0.0,
+        lt=1.0,
+        allow_inf_nan=False,
+        description=f"CE-PG's Adam learning rate (default {train_config.default('lr')[0]:g}; "
+        f"{train_config.FINE_TUNE['lr'][0]:g} for a fine-tune of the general policy)",
     )
     seed: Annotated[int, Field(ge=0, le=2**53 - 1), INTEGRAL] = Field(
         train_config.default("seed"), description="training and gate seed"

@@ -30,7 +30,7 @@ from __future__ import annotations
 import json
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal, get_args
 
@@ -160,7 +160,7 @@ def train_team(
     the run's EM model, sensor), save it in ``folder`` and return it; None when stopped first
     (a MARL team's checkpoint then holds where it was). ``speed``: CE-PG on the map's travel times,
     the EM model being per tick."""
-    from shared.learning.config import TrainConfig
+    from shared.learning.config import TrainConfig, fine_tune_defaults
     from shared.learning.team_snapshot import save_snapshot
 
     graph, model, sensor = world
@@ -168,15 +168,22 @@ def train_team(
         from shared.learning.train import train
 
         variant = params.variant or (current.variant if current.meta.get("algorithm", "cepg") == "cepg" else "cepg")
-        beta = 1.0 if method == "pg" else params.beta
         warm = (
             current.robots == robots and current.meta.get("algorithm", "cepg") == "cepg" and current.variant == variant
         )
+        # a fine-tune of the general policy takes its own defaults (shared/learning/config.py fine_tune_defaults)
+        defaults = {
+            **asdict(TrainConfig(robots=robots)),
+            **(fine_tune_defaults(graph.n) if warm and current.general else {}),
+        }
+        beta = 1.0 if method == "pg" else (defaults["beta"][0] if params.beta is None else params.beta)
         cfg = TrainConfig(
             robots=robots,
             episodes=episodes,
             beta=[beta],
-            lr=[params.lr],
+            lr=defaults["lr"] if params.lr is None else [params.lr],
+            j_unit=defaults["j_unit"],
+            batch=defaults["batch"],
             variant=variant,
             belief="true",
             seed=params.seed,

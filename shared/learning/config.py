@@ -126,7 +126,14 @@ class TrainConfig:
     )
     eps: float = field(default=0.1, metadata=_opt("smoothing of the cross entropy, pi~ = (1-eps) pi + eps U"))
     ce_fraction: float = field(default=0.25, metadata=_opt("share of decisions the cross entropy is estimated on"))
-    j_unit: float = field(default=1.0, metadata=_opt("J's unit in steps (1: Eq. 9's natural units)"))
+    j_unit: float = field(
+        default=1.0,
+        metadata=_opt(
+            "J's unit in steps (1: Eq. 9's natural units; 0: the run's running mean capture time, the general "
+            "policy's own scale)",
+            parse=non_negative,
+        ),
+    )
     ce_states: str = field(
         default="shared",
         metadata=_opt(
@@ -205,6 +212,8 @@ class TrainConfig:
             raise ValueError(f"ce_fraction must be in (0, 1], got {self.ce_fraction}")
         if not 0.0 < self.lr_final <= 1.0:
             raise ValueError(f"lr_final must be in (0, 1], got {self.lr_final}")
+        if not (self.j_unit >= 0 and math.isfinite(self.j_unit)):
+            raise ValueError(f"j_unit must be a number >= 0 (0: the running mean capture time), got {self.j_unit}")
         if not 0.0 < self.eps <= 1.0:
             raise ValueError(f"eps must be in (0, 1], got {self.eps}")
         if self.batch < 1 or self.episodes < 1:
@@ -231,14 +240,44 @@ def default(name: str) -> Any:
     return factory()
 
 
-# Flags whose value a MARL baseline takes from its own defaults when they are not given.
-METHOD_DEFAULTS = ("episodes", "batch", "lr")
+# A fine-tune of the general policy on one map (`mures train --init general`, a training server's
+# retraining of a general version) takes these where it is not told otherwise: J in the general
+# training's own unit (j_unit 0: the running mean capture time), its beta, a tenth of the trainer's
+# learning rate, and EM with the server's Dirichlet prior; its beliefs start on the uniform walk it
+# was trained with (docs/general-policy.md, measured by benchmarks/general_finetune.py).
+FINE_TUNE: dict[str, Any] = {
+    "lr": [1e-3],
+    "beta": [0.9],
+    "j_unit": 0.0,
+    "em_pseudo_count": 1.0,
+    "em_b0_pseudo_count": 1.0,
+}
+FINE_TUNE_BATCH_ELEMENTS = 24_000  # a fine-tune's batch: this over n episodes, within [16, 256], as in its training
+
+
+def fine_tune_defaults(n: int) -> dict[str, Any]:
+    """FINE_TUNE for a map of n nodes, with its batch: episodes a batch scale as 1 / n, so that a
+    1,000-node fine-tune keeps what a rollout holds (every state's belief, n floats) near a 100-node one's."""
+    return {**FINE_TUNE, "batch": int(min(max(FINE_TUNE_BATCH_ELEMENTS // n, 16), 256))}
+
+
+# Flags whose value a MARL baseline or a fine-tune of the general policy (FINE_TUNE) takes from its
+# own defaults when they are not given: whose defaults they are.
+METHOD_DEFAULTS = {
+    "episodes": "a MARL baseline's",
+    "batch": "a MARL baseline's or a general policy fine-tune's",
+    "lr": "a MARL baseline's or a general policy fine-tune's",
+    "beta": "a general policy fine-tune's",
+    "j_unit": "a general policy fine-tune's",
+    "em_pseudo_count": "a general policy fine-tune's",
+    "em_b0_pseudo_count": "a general policy fine-tune's",
+}
 
 
 def add_flags(parser: argparse.ArgumentParser) -> None:
     """One flag per TrainConfig field (``--em-first`` for ``em_first``), defaults from the fields.
     The flags of METHOD_DEFAULTS default to None (``from_flags`` fills in CE-PG's default), so
-    that a MARL baseline can tell an unset flag from a given one."""
+    that a MARL baseline or a general policy's fine-tune can tell an unset flag from a given one."""
     for f in fields(TrainConfig):
         meta = f.metadata
         if not meta.get("flag", True):
@@ -248,7 +287,7 @@ def add_flags(parser: argparse.ArgumentParser) -> None:
         shown = ",".join(f"{x:g}" for x in dflt) if isinstance(dflt, list) else dflt
         kw: dict[str, Any] = {"default": dflt, "help": f"{meta['help']} (default {shown})", "dest": f.name}
         if f.name in METHOD_DEFAULTS:
-            kw.update(default=None, help=f"{meta['help']} (default {shown}; a MARL baseline's own otherwise)")
+            kw.update(default=None, help=f"{meta['help']} (default {shown}; {METHOD_DEFAULTS[f.name]} own otherwise)")
         if "choices" in meta:
             kw["choices"] = meta["choices"]
         else:

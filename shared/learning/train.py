@@ -150,8 +150,13 @@ def train(
     next_em = cfg.em_first if cfg.belief == "em" else math.inf
     t0 = time.perf_counter()
     interrupted = False
+    scale: float | None = None  # j_unit 0: the running mean capture time
     while episodes < cfg.episodes:
         ro = rollout(sim, policy, belief, collective, gen)  # B episodes with the current policies
+        if cfg.j_unit == 0:  # J in units of the run's own capture time (the general policy's training scale)
+            mean_ct = float(ro.capture_time.float().mean())
+            scale = mean_ct if scale is None else 0.9 * scale + 0.1 * mean_ct
+            j_unit = max(scale, 1.0)
         terms = cepg_loss(policy, ro, beta, cfg.eps, cfg.ce_fraction, gen, j_unit, cfg.ce_states)  # Eq. 9-13
         # linear decay of the learning rate over the run: a steadier final policy
         lr = float(lrs.max()) * (1.0 - (1.0 - cfg.lr_final) * min(1.0, episodes / cfg.episodes))

@@ -7,6 +7,7 @@ import argparse
 import os
 import signal
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +73,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.variant == "cepg+" and args.detection == "node":
         raise CliError("cepg+ trains with a sensing range: use --detection neighbourhood or custom, or leave it out")
     graph, target, sensor = world_of(args, detection)
-    warning = large_graph_warning(graph.n)
+    warning = None if _general_init(args) else large_graph_warning(graph.n)  # it is about per-map teams
     if warning:
         print(f"mures train: {graph.name}: {warning}", file=sys.stderr, flush=True)
     device = device_of(args.device)
@@ -84,8 +85,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         from shared.core.models import load_model_file
 
         init_model = load_model_file(graph, args.model)
+    elif _general_init(args):  # its beliefs start on the model it was trained with, not Gamma_hat_0 = I
+        from shared.core.models import uniform_walk
+
+        init_model = uniform_walk(graph)
     init_policy = _init_policy(args, graph, target, sensor) if args.init else None
-    cfg, hyper = _checked_config(args, device)
+    cfg, hyper = _checked_config(args, device, graph.n)
     clock_text = _clock_text(graph, cfg)
     torch.set_num_threads(args.threads)
     if hyper is not None and int(os.environ.get("WORLD_SIZE", "1")) > 1:
@@ -97,7 +102,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"{cfg.algorithm} on {graph.name} (n={graph.n}), N={args.robots}, {hyper.episodes:,} episodes, "
             f"{model_text}; hyperparameters {hyper.to_dict()}"
             if hyper is not None
-            else f"{args.variant} on {graph.name} (n={graph.n}), N={args.robots}, beta={args.beta}, "
+            else f"{args.variant} on {graph.name} (n={graph.n}), N={args.robots}, beta={cfg.beta}, lr={cfg.lr}, "
             f"{cfg.episodes:,} episodes, {model_text}{clock_text}"
         )
         print(f"training {what}", file=sys.stderr)
@@ -109,10 +114,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     return code
 
 
+def _general_init(args: argparse.Namespace) -> bool:
+    """--init names the general policy (``general`` or ``general:DIR``)."""
+    return bool(args.init) and (args.init == "general" or args.init.startswith("general:"))
+
+
 def _init_policy(args: argparse.Namespace, graph: Any, target: Any, sensor: Any) -> Any:
     """--init's snapshot, or the general policy (``general``: the shipped one, ``general:DIR``)
     bound to this map and --robots, to fine-tune."""
-    if args.init == "general" or args.init.startswith("general:"):
+    if _general_init(args):
         from shared.core.snapshot_format import load_general, shipped_general_path
         from shared.learning.team_snapshot import general_snapshot
 
@@ -144,10 +154,13 @@ def _clock_text(graph: Any, cfg: Any) -> str:
     )
 
 
-def _checked_config(args: argparse.Namespace, device: Any) -> tuple[Any, Any]:
+def _checked_config(args: argparse.Namespace, device: Any, graph_n: int) -> tuple[Any, Any]:
     """The run's TrainConfig and, for a MARL baseline, its hyperparameters (None for CE-PG), with
     every flag checked against the algorithm before anything trains."""
     cfg = train_config.from_flags(args, robots=args.robots, seed=args.seed, device=str(device))
+    if _general_init(args):  # a fine-tune of the general policy: its own defaults for what is not given
+        tuned = train_config.fine_tune_defaults(graph_n)
+        cfg = replace(cfg, **{k: v for k, v in tuned.items() if getattr(args, k) is None})
     marl = cfg.algorithm != "cepg"
     try:
         cfg.check()
@@ -286,12 +299,17 @@ def add_train_command(sub: Any) -> None:
         help="what the snapshot's robots fly together when their links allow (default: c-cepg for a c-cepg team, "
         "else none; the training server decides for its own versions)",
     )
-    p.add_argument("--model", metavar="model.json", help="Gamma_hat_0 and b0 for the beliefs (default I, uniform)")
+    p.add_argument(
+        "--model",
+        metavar="model.json",
+        help="Gamma_hat_0 and b0 for the beliefs (default I, uniform; the uniform walk for --init general)",
+    )
     p.add_argument(
         "--init",
         metavar="DIR",
         help="start from this snapshot's weights (CE-PG); `general` fine-tunes the shipped general policy on this "
-        "map (`general:DIR` another one), its snapshot flown by any number of robots",
+        "map (`general:DIR` another one), its snapshot flown by any number of robots; the flags a fine-tune takes "
+        "its own defaults for say so (docs/general-policy.md)",
     )
     p.add_argument(
         "--hp",

@@ -75,6 +75,7 @@ def _page(template: str, title: str) -> Any:
             template,
             title,
             defaults=TrainingParams(),
+            beta_help=TrainingParams.model_fields["beta"].description,
             methods=METHODS,
             candidates=DEFAULT_CANDIDATES,
         )

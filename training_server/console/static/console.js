@@ -948,7 +948,7 @@ pages.training = async function (ctx) {
       promote: $("#run-promote").checked,
     };
     if ($("#run-episodes").value) body.episodes = Number($("#run-episodes").value);
-    if (algorithm === "cepg") body.beta = Number($("#run-beta").value);
+    if (algorithm === "cepg" && $("#run-beta").value) body.beta = Number($("#run-beta").value);
     if (algorithm === "best") body.candidates = [...document.querySelectorAll("#run-candidates input:checked")].map((x) => x.value);
     const sizes = $("#run-team-sizes").value.split(/[\s,]+/).filter(Boolean);
     if (sizes.length) body.team_sizes = sizes.map(Number);
