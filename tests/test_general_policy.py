@@ -170,6 +170,7 @@ def test_a_fine_tune_of_the_general_policy_takes_its_own_defaults_unless_told(tm
     cfg = json.loads((tmp_path / "a" / "policy.json").read_text())["training"]
     got = {k: cfg[k] for k in ("lr", "beta", "j_unit", "em_pseudo_count", "em_b0_pseudo_count", "batch")}
     assert got == {**FINE_TUNE, "batch": 256}  # OFFICE: 24,000 / 60 episodes, at most 256
+    assert cfg["em_missions"] == 16  # given
     assert "warning" not in r.stderr  # the per-map team's large-graph warning is not about this
     given = ["--lr", "0.005", "--beta", "0.5", "--j-unit", "1", "--batch", "32", "--em-pseudo-count", "0"]
     r = subprocess.run([*cmd, *given, "--out", str(tmp_path / "b")], capture_output=True, text=True, timeout=300)
@@ -183,6 +184,7 @@ def test_a_fine_tune_of_the_general_policy_takes_its_own_defaults_unless_told(tm
         0.0,
     )
     assert fine_tune_defaults(1_000)["batch"] == 24 and fine_tune_defaults(20)["batch"] == 256
+    assert fine_tune_defaults(1_000)["em_missions"] == 128 and fine_tune_defaults(60)["em_missions"] == 512
 
 
 def test_the_shipped_policy_is_there():

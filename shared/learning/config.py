@@ -253,12 +253,19 @@ FINE_TUNE: dict[str, Any] = {
     "em_b0_pseudo_count": 1.0,
 }
 FINE_TUNE_BATCH_ELEMENTS = 24_000  # a fine-tune's batch: this over n episodes, within [16, 256], as in its training
+FINE_TUNE_EM_ELEMENTS = 128_000  # its EM's missions: this over n, within [64, 512]
 
 
 def fine_tune_defaults(n: int) -> dict[str, Any]:
-    """FINE_TUNE for a map of n nodes, with its batch: episodes a batch scale as 1 / n, so that a
-    1,000-node fine-tune keeps what a rollout holds (every state's belief, n floats) near a 100-node one's."""
-    return {**FINE_TUNE, "batch": int(min(max(FINE_TUNE_BATCH_ELEMENTS // n, 16), 256))}
+    """FINE_TUNE for a map of n nodes, with its batch and EM's missions: both scale as 1 / n, so
+    that what a rollout holds (every state's belief, n floats) and what EM holds (every mission-step's
+    likelihood, filter and smoother, n floats each) stay near a 100-node map's (a 1,000-node
+    fine-tune peaked at 1.4 GB, docs/general-policy.md). The paper's maps keep 256 and 512."""
+    return {
+        **FINE_TUNE,
+        "batch": int(min(max(FINE_TUNE_BATCH_ELEMENTS // n, 16), 256)),
+        "em_missions": int(min(max(FINE_TUNE_EM_ELEMENTS // n, 64), 512)),
+    }
 
 
 # Flags whose value a MARL baseline or a fine-tune of the general policy (FINE_TUNE) takes from its
@@ -269,6 +276,7 @@ METHOD_DEFAULTS = {
     "lr": "a MARL baseline's or a general policy fine-tune's",
     "beta": "a general policy fine-tune's",
     "j_unit": "a general policy fine-tune's",
+    "em_missions": "a general policy fine-tune's",
     "em_pseudo_count": "a general policy fine-tune's",
     "em_b0_pseudo_count": "a general policy fine-tune's",
 }
