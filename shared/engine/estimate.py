@@ -266,24 +266,30 @@ class _SparseForwardBackward:
     neighbourhoods, each step's propagation a sparse product (O(k (n + m)) for the k missions
     running, not O(k n^2)), xi the (E,) vector of expected transition counts' factors, and the
     buffers one (n, k_t) block per step t for the k_t missions running (memory grows with the
-    steps the missions took, not with M times the longest). The same recursion and numbers up to
-    rounding (tests/test_estimate.py)."""
+    steps the missions took, not with M times the longest; the likelihoods are read from the packed
+    ``MissionData`` step by step, not copied). The same recursion and numbers up to rounding
+    (tests/test_estimate.py)."""
 
     def __init__(self, data: MissionData, missions: np.ndarray | None, src: np.ndarray, dst: np.ndarray) -> None:
         order = np.argsort(-data.length, kind="stable") if missions is None else np.asarray(missions)
         length = data.length[order]
-        self.n = data.lik.shape[1]
-        self.active = [int(k) for k in (length[None, :] > np.arange(int(length.max(initial=1)))[:, None]).sum(1)]
-        # step t's likelihoods, (n, k_t): the missions running at t are the first k_t (longest first)
-        self.L = [torch.from_numpy(np.ascontiguousarray(data.step(t, order[:k]).T)) for t, k in enumerate(self.active)]
+        self.n, self.lik = data.lik.shape[1], data.lik  # read step by step, not copied
+        active = (length[None, :] > np.arange(int(length.max(initial=1)))[:, None]).sum(1)
+        # the rows of step t in the packed likelihoods: the missions running at t are the first k_t
+        self.rows = [data.start[order[:k]] + t for t, k in enumerate(active)]
         self.src, self.dst = torch.as_tensor(src), torch.as_tensor(dst)
+
+    def L(self, t: int) -> torch.Tensor:
+        """Step t's likelihoods, (n, k_t), gathered from the packed ones."""
+        return torch.from_numpy(self.lik[self.rows[t]]).T
 
     def __call__(self, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
         """G (E,), b0 (n,) -> the log-likelihood, xi (E,) and the posterior of e_0 per mission (M, n)."""
         src, dst, g = self.src, self.dst, G.unsqueeze(1)
         alpha: list[torch.Tensor] = []  # (n, k_t) per step: filtered, normalised
         scale: list[torch.Tensor] = []  # (k_t,) per step: c_t
-        for t, Lt in enumerate(self.L):
+        for t in range(len(self.rows)):
+            Lt = self.L(t)
             # Eq. 6: (Gamma^T alpha_{t-1})(v) = sum over the entries (u, v) of Gamma(u, v) alpha_{t-1}(u)
             prior = (
                 b0.unsqueeze(1)
@@ -296,12 +302,13 @@ class _SparseForwardBackward:
             scale.append(c)
         xi = torch.zeros_like(G)
         beta = torch.ones_like(alpha[-1])
-        for t in range(len(self.L) - 2, -1, -1):
-            k = self.L[t + 1].shape[1]
-            w_dst = (self.L[t + 1] * beta / scale[t + 1])[dst]  # (E, k): w_{t+1}(v), w = L_{t+1} beta_{t+1} / c_{t+1}
+        for t in range(len(self.rows) - 2, -1, -1):
+            L1 = self.L(t + 1)
+            k = L1.shape[1]
+            w_dst = (L1 * beta / scale[t + 1])[dst]  # (E, k): w_{t+1}(v), w = L_{t+1} beta_{t+1} / c_{t+1}
             xi += (alpha[t][src, :k] * w_dst).sum(1)  # alpha_t(u) w_{t+1}(v) on the support
             beta = torch.ones_like(alpha[t])  # the missions that end at t keep beta_t = 1
-            beta[:, :k] = torch.zeros_like(self.L[t + 1]).index_add_(0, src, w_dst * g)  # (Gamma w)(u)
+            beta[:, :k] = torch.zeros(self.n, k, dtype=L1.dtype).index_add_(0, src, w_dst * g)  # (Gamma w)(u)
         post0 = alpha[0] * beta
         ll = float(sum(c.log().sum() for c in scale))
         return ll, xi, (post0 / post0.sum(0, keepdim=True)).T
@@ -434,6 +441,7 @@ class _EStep:
 
 
 ROW_MASS_MIN = 1e-200  # expected transitions out of a node below this are treated as none
+DENSE_EM_MAX_ELEMENTS = 1 << 24  # above this many entries of (T, M, n) (128 MB of float64 a buffer) EM runs sparse
 
 
 def em(
@@ -465,7 +473,8 @@ def em(
     each on one torch thread, this one's restored at the end). The estimate depends on it only by
     rounding: in the order of the expected counts' sums (1000 WARD missions: 2e-9 in an entry).
     ``sparse`` keeps Gamma_hat on its support's entries (``_SparseForwardBackward``; default: above
-    ``SPARSE_FROM_NODES`` nodes), the same estimate up to rounding at O(n + m) a step.
+    ``SPARSE_FROM_NODES`` nodes, or where the dense pass's padded buffers would pass
+    ``DENSE_EM_MAX_ELEMENTS``), the same estimate up to rounding at O(n + m) a step.
     """
     t0 = time.perf_counter()
     init = init or uniform_walk(graph)
@@ -477,8 +486,9 @@ def em(
     if workers > 1:
         torch.set_num_threads(1)  # before forking: the workers take the other cores
     e_step = None
-    if sparse is None:
-        sparse = graph.n > SPARSE_FROM_NODES
+    if sparse is None:  # the dense pass's buffers are (T, M, n), padded to the longest mission
+        padded = len(data.length) * int(data.length.max(initial=1)) * graph.n
+        sparse = graph.n > SPARSE_FROM_NODES or padded > DENSE_EM_MAX_ELEMENTS
     support = (init.src, init.dst) if sparse else None  # Gamma_hat kept on its entries
     try:
         e_step = _EStep(data, workers, support)
