@@ -63,10 +63,12 @@ def main() -> None:
         for env, N, belief in settings:  # one fine-tune per map, team size and belief
             probe = Path(tmp) / f"probe-{env}-{N}-{belief}"
             t0 = time.perf_counter()
-            mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", "2048",
+            mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", "4096",
                   "--belief", belief, "--seed", "0", "--quiet", "--out", str(probe))  # fmt: skip
-            rate = 2048 / (time.perf_counter() - t0)
-            episodes = int(rate * args.minutes * 60 * 0.9) // 256 * 256  # 10 % left for EM and start-up
+            trained = json.loads((probe / "policy.json").read_text(encoding="utf-8"))["summary"]
+            start_up = time.perf_counter() - t0 - trained["wall_seconds"]
+            rate = trained["episodes"] / trained["wall_seconds"]  # the training loop's own rate
+            episodes = int(rate * (args.minutes * 60 - start_up) * 0.9) // 256 * 256  # 10 % left for EM
             out = Path(tmp) / f"{env}-{N}-{belief}"
             t0 = time.perf_counter()
             mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", str(episodes),
