@@ -79,7 +79,6 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             args.retrain_every,
             retrain,
             Path(args.workdir) if args.workdir else None,
-            quiet=False,  # progress on stderr, also beside --json's object on stdout
             serve=args.serve,
             retrains=args.retrains,
             server=args.server,

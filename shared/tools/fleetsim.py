@@ -414,7 +414,6 @@ def run_fleet_sim(
     retrain_every: int,
     retrain_params: dict[str, Any],
     workdir: Path | None,
-    quiet: bool,
     serve: bool = False,
     retrains: int | None = None,
     kill: int = 0,
@@ -426,7 +425,10 @@ def run_fleet_sim(
     every ``retrain_every`` missions (at most ``retrains`` times), killing ``kill`` robots in each
     at steps up to ``kill_by`` (``Fleet.fly_losing``); with ``serve``, then keep the fleet up for
     the operator console until Ctrl-C (or SIGTERM)."""
-    say = (lambda *_a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
+
+    def say(text: str) -> None:  # progress on stderr, also beside --json's object on stdout
+        print(text, file=sys.stderr, flush=True)
+
     tmp = None
     if workdir is None:
         tmp = tempfile.TemporaryDirectory(prefix="mures-fleet-")
