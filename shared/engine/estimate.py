@@ -9,10 +9,11 @@ missions at once (tensors (T, M, n), the M missions sorted by length so that ste
 those still running only), expected transition counts,
 transitions restricted to the closed neighbourhoods (the support of the initial guess, which
 Baum-Welch never leaves), rows stochastic, iterated until the log-likelihood stops improving.
-Above ``SPARSE_FROM_NODES`` nodes Gamma_hat is kept on its n + 2m entries and each step works on
-the missions still running alone (``_SparseForwardBackward``): O(n + m) a mission-step and memory
-that grows with the steps the missions took, where the dense pass is O(n^2) and (T, M, n). The
-missions' likelihoods are stored packed the same way (``MissionData``).
+Above ``SPARSE_FROM_NODES`` nodes, or where the dense pass's buffers padded to the longest
+mission would pass ``DENSE_EM_MAX_ELEMENTS``, Gamma_hat is kept on its n + 2m entries and each
+step works on the missions still running alone (``_SparseForwardBackward``): O(n + m) a
+mission-step and memory that grows with the steps the missions took, where the dense pass is
+O(n^2) and (T, M, n). The missions' likelihoods are stored packed the same way (``MissionData``).
 
 ``eq8``: the paper's one-round least-squares estimate (Eq. 8) from collective beliefs filtered
 with Gamma_hat_0 = I, projected onto the closed-neighbourhood support and made row-stochastic;
@@ -189,6 +190,16 @@ class Estimate:
         return out
 
 
+def _by_length(data: MissionData, missions: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The missions a forward-backward works on, longest first (``missions``, or all of them
+    sorted), their lengths and, per step t, how many are still running (the first k_t):
+    (order (M,), length (M,), active (T,) non-increasing)."""
+    order = np.argsort(-data.length, kind="stable") if missions is None else np.asarray(missions)
+    length = data.length[order]
+    active = (length[None, :] > np.arange(int(length.max(initial=1)))[:, None]).sum(1)
+    return order, length, active
+
+
 class _ForwardBackward:
     """Scaled forward-backward over M missions at once, time-major and packed by length: the
     missions sorted longest first, so that step t works on the missions [0, active[t]) that have
@@ -205,15 +216,13 @@ class _ForwardBackward:
     """
 
     def __init__(self, data: MissionData, missions: np.ndarray | None = None) -> None:
-        order = np.argsort(-data.length, kind="stable") if missions is None else np.asarray(missions)
-        length = data.length[order]
-        T = int(length.max(initial=1))
+        order, length, self.active = _by_length(data, missions)
+        T = len(self.active)
         padded = np.ones((T, len(order), data.lik.shape[1]), dtype=np.float64)  # 1 after a mission's end
         for j, m in enumerate(order):
             padded[: length[j], j] = data.mission(m)
         self.L = torch.from_numpy(padded)  # (T, M, n)
         _T, M, n = self.L.shape
-        self.active = (length[None, :] > np.arange(T)[:, None]).sum(1)  # (T,) non-increasing
         self.alpha = torch.zeros_like(self.L)
         self.beta = torch.ones_like(self.L)
         self.c = torch.ones(T, M, dtype=self.L.dtype)
@@ -253,6 +262,12 @@ class _ForwardBackward:
             xi.addmm_(alpha0_T, w)
         return alpha, beta, c, xi
 
+    def posterior(self, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+        """One pass: the log-likelihood, xi (n, n) and the posterior of e_0 per mission (M, n)."""
+        alpha, beta, c, xi = self(G, b0)
+        post0 = alpha[0] * beta[0]
+        return float(c.log().sum()), xi, post0 / post0.sum(1, keepdim=True)
+
     @staticmethod
     def _normalise(a: torch.Tensor, s: torch.Tensor) -> None:
         torch.sum(a, 1, out=s)
@@ -262,19 +277,17 @@ class _ForwardBackward:
 
 class _SparseForwardBackward:
     """``_ForwardBackward`` on Gamma_hat's support alone, for maps above ``SPARSE_FROM_NODES``
-    nodes: G is the (E,) vector of Gamma_hat on the E = n + 2m entries (src, dst) of the closed
-    neighbourhoods, each step's propagation a sparse product (O(k (n + m)) for the k missions
-    running, not O(k n^2)), xi the (E,) vector of expected transition counts' factors, and the
-    buffers one (n, k_t) block per step t for the k_t missions running (memory grows with the
-    steps the missions took, not with M times the longest; the likelihoods are read from the packed
-    ``MissionData`` step by step, not copied). The same recursion and numbers up to rounding
-    (tests/test_estimate.py)."""
+    nodes or data sets whose padded buffers would be large (``em``'s ``sparse``): G is the (E,)
+    vector of Gamma_hat on the E = n + 2m entries (src, dst) of the closed neighbourhoods, each
+    step's propagation a sparse product (O(k (n + m)) for the k missions running, not O(k n^2)), xi
+    the (E,) vector of expected transition counts' factors, and the buffers one (n, k_t) block per
+    step t for the k_t missions running (memory grows with the steps the missions took, not with M
+    times the longest; the likelihoods are read from the packed ``MissionData`` step by step, not
+    copied). The same recursion and numbers up to rounding (tests/test_estimate.py)."""
 
     def __init__(self, data: MissionData, missions: np.ndarray | None, src: np.ndarray, dst: np.ndarray) -> None:
-        order = np.argsort(-data.length, kind="stable") if missions is None else np.asarray(missions)
-        length = data.length[order]
+        order, _length, active = _by_length(data, missions)
         self.n, self.lik = data.lik.shape[1], data.lik  # read step by step, not copied
-        active = (length[None, :] > np.arange(int(length.max(initial=1)))[:, None]).sum(1)
         # the rows of step t in the packed likelihoods: the missions running at t are the first k_t
         self.rows = [data.start[order[:k]] + t for t, k in enumerate(active)]
         self.src, self.dst = torch.as_tensor(src), torch.as_tensor(dst)
@@ -283,8 +296,9 @@ class _SparseForwardBackward:
         """Step t's likelihoods, (n, k_t), gathered from the packed ones."""
         return torch.from_numpy(self.lik[self.rows[t]]).T
 
-    def __call__(self, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
-        """G (E,), b0 (n,) -> the log-likelihood, xi (E,) and the posterior of e_0 per mission (M, n)."""
+    def posterior(self, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+        """One pass: G (E,), b0 (n,) -> the log-likelihood, xi (E,) and the posterior of e_0 per
+        mission (M, n)."""
         src, dst, g = self.src, self.dst, G.unsqueeze(1)
         alpha: list[torch.Tensor] = []  # (n, k_t) per step: filtered, normalised
         scale: list[torch.Tensor] = []  # (k_t,) per step: c_t
@@ -314,18 +328,6 @@ class _SparseForwardBackward:
         return ll, xi, (post0 / post0.sum(0, keepdim=True)).T
 
 
-def _posterior(
-    fb: _ForwardBackward | _SparseForwardBackward, G: torch.Tensor, b0: torch.Tensor
-) -> tuple[float, torch.Tensor, torch.Tensor]:
-    """One forward-backward pass of a group of missions: its log-likelihood, xi (n, n) (or (E,) on
-    the support) and the posterior of e_0 per mission (M, n)."""
-    if isinstance(fb, _SparseForwardBackward):
-        return fb(G, b0)
-    alpha, beta, c, xi = fb(G, b0)
-    post0 = alpha[0] * beta[0]
-    return float(c.log().sum()), xi, post0 / post0.sum(1, keepdim=True)
-
-
 def _forward_backward(
     data: MissionData, missions: np.ndarray | None, support: tuple[np.ndarray, np.ndarray] | None
 ) -> _ForwardBackward | _SparseForwardBackward:
@@ -350,7 +352,7 @@ def _serve(
     fb = _forward_backward(data, missions, support)
     try:
         while (msg := conn.recv()) is not None:
-            ll, xi, post0 = _posterior(fb, torch.from_numpy(msg[0]), torch.from_numpy(msg[1]))
+            ll, xi, post0 = fb.posterior(torch.from_numpy(msg[0]), torch.from_numpy(msg[1]))
             conn.send((ll, xi.numpy(), post0.numpy()))
     except (EOFError, OSError, KeyboardInterrupt):  # the caller went away or was interrupted: it says why
         pass
@@ -403,14 +405,14 @@ class _EStep:
 
     def __call__(self, G: torch.Tensor, b0: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
         if not self.workers and not self.here:
-            ll, xi, post0 = _posterior(self.local, G, b0)
+            ll, xi, post0 = self.local.posterior(G, b0)
             return ll, xi, post0.mean(0)
         for proc, conn in self.workers:
             try:
                 conn.send((G.numpy(), b0.numpy()))
             except OSError:
                 self._lost(proc)
-        parts = [_posterior(fb, G, b0) for fb in (self.local, *self.here)]  # each group its own buffers
+        parts = [fb.posterior(G, b0) for fb in (self.local, *self.here)]  # each group its own buffers
         for proc, conn in self.workers:
             try:
                 ll, xi, post0 = conn.recv()

@@ -260,7 +260,7 @@ def fine_tune_defaults(n: int) -> dict[str, Any]:
     """FINE_TUNE for a map of n nodes, with its batch and EM's missions: both scale as 1 / n, so
     that what a rollout holds (every state's belief, n floats) and what EM holds (every mission-step's
     likelihood, filter and smoother, n floats each) stay near a 100-node map's (a 1,000-node
-    fine-tune peaked at 1.4 GB, docs/general-policy.md). The paper's maps keep 256 and 512."""
+    fine-tune peaked at 2.0 GB, docs/general-policy.md). The paper's maps keep 256 and 512."""
     return {
         **FINE_TUNE,
         "batch": int(min(max(FINE_TUNE_BATCH_ELEMENTS // n, 16), 256)),
