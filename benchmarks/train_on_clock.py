@@ -2,6 +2,7 @@
 times: what training on the clock (`mures train --speed`) buys a robot's own policy.
 
     python benchmarks/train_on_clock.py [--robots 2 4] [--episodes 20000] [--eval-episodes 1000]
+                                        [--algorithm cepg|maddpg|masac|facmac|mappo]
                                         [--speed 0.5] [--offices 2] [--maps depot,bookstore,...]
                                         [--workdir DIR] [--json results/train_on_clock/train_on_clock.json]
 
@@ -9,8 +10,8 @@ Per map (imported with `mures map import`'s defaults; Nav2's and AWS's maps, gen
 floors) and team size N:
 1. `mures train --graph G --robots N --episodes E --seed 0 --out STEPS` (the paper's model: every
    move one step) and the same with `--speed S` (each move its travel time in ticks of 1 s, EM per
-   tick): CE-PG with each robot on its own belief, the model learned by EM, as the trainer does by
-   default;
+   tick): CE-PG (or ``--algorithm``'s MARL baseline) with each robot on its own belief, the model
+   learned by EM, as the trainer does by default;
 2. both teams, greedy and random evaluated on travel times (`mures evaluate --clock --speed S`'s
    engine), on the same episodes (seed 1: the simulator draws the target's path and every reading
    from its own generator, the same for every searcher while an episode runs), so the clock team's
@@ -62,6 +63,7 @@ def main() -> None:
     ap.add_argument("--robots", type=int, nargs="+", default=[2, 4])
     ap.add_argument("--episodes", type=int, default=20_000, help="training episodes of each team (default 20000)")
     ap.add_argument("--eval-episodes", type=int, default=1000, help="evaluation episodes (default 1000)")
+    ap.add_argument("--algorithm", default="cepg", help="the method both teams train with (default cepg)")
     ap.add_argument("--speed", type=float, default=0.5, help="robots' speed, m/s (default 0.5)")
     ap.add_argument("--offices", type=int, default=2, help="generated office floors, seeds 1..K (default 2)")
     ap.add_argument("--maps", type=lambda s: s.split(","), default=None, help="only these (default: all here)")
@@ -81,10 +83,12 @@ def main() -> None:
         clock = TravelTimes.of(graph, args.speed)
         target = clock.model(uniform_walk(graph))
         for robots in args.robots:
-            steps_team, clock_team = work / f"steps-{name}-N{robots}", work / f"clock-{name}-N{robots}"
+            tag = "" if args.algorithm == "cepg" else f"{args.algorithm}-"
+            steps_team, clock_team = work / f"steps-{tag}{name}-N{robots}", work / f"clock-{tag}{name}-N{robots}"
+            method = ("--algorithm", args.algorithm)
             wall = {
-                "steps": train(graph_file, robots, args.episodes, steps_team),
-                "clock": train(graph_file, robots, args.episodes, clock_team, "--speed", str(args.speed)),
+                "steps": train(graph_file, robots, args.episodes, steps_team, *method),
+                "clock": train(graph_file, robots, args.episodes, clock_team, *method, "--speed", str(args.speed)),
             }
             times = {}
             for key, searcher in (("steps", f"policy:{steps_team}"), ("clock", f"policy:{clock_team}"),
@@ -93,7 +97,8 @@ def main() -> None:
                 res = evaluate(graph, target, sensor, robots, factory, episodes=args.eval_episodes, seed=1, clock=clock)
                 times[key] = res.capture_time.astype(np.float64) * clock.tick_s
             diff = times["clock"] - times["steps"]
-            row = {"map": name, "nodes": graph.n, "robots": robots, "episodes": args.eval_episodes}
+            row = {"map": name, "nodes": graph.n, "robots": robots, "algorithm": args.algorithm,
+                   "episodes": args.eval_episodes}  # fmt: skip
             for key, ct in times.items():
                 mean, half = mean_ci95(ct)
                 row[key] = {"mean_capture_time_s": mean, "ci95_halfwidth_s": half}

@@ -4,6 +4,8 @@ random`'s capture times), determinism for a seed, and clear errors."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -185,3 +187,74 @@ def test_keep_freed_memory_sets_glibcs_malloc_and_refuses_bad_thresholds():
     for mmap_mib, trim_mib in ((0, 256), (MMAP_MAX_MIB + 1, 256), (16, 8)):
         with pytest.raises(ValueError, match="mmap_mib"):
             keep_freed_memory(mmap_mib, trim_mib)
+
+
+def _with_lengths(name, lengths):
+    g = builtin_graph(name)
+    return dataclasses.replace(g, edge_lengths=np.broadcast_to(np.asarray(lengths, dtype=float), (g.m,)).copy())
+
+
+def test_on_the_clock_with_every_move_one_tick_the_environment_is_the_step_one():
+    g = _with_lengths("office", 1.0)  # 1 m edges at 1 m/s: every move one 1 s tick
+    runs = []
+    for speed in (None, 1.0):
+        env = mures_v0.torchrl_env(map=g, robots=3, batch_size=[6], seed=2, speed=speed)
+        torch.manual_seed(0)
+        runs.append((env, env.rollout(90, break_when_any_done=False)))
+    (step_env, a), (clock_env, b) = runs
+    assert clock_env.scenario.clock is not None and clock_env.scenario.t_max == step_env.scenario.t_max
+    for key in (("agents", "observation"), ("agents", "action_mask"), ("next", "agents", "reward"), ("next", "done")):
+        assert torch.equal(a[key], b[key]), key
+    assert bool(a["next", "done"].any())
+    head = 4 * g.n  # every robot's onehot(p) and the target's; the clock's state adds goals and ticks left
+    assert torch.equal(a["state"][..., :head], b["state"][..., :head])
+    assert clock_env.scenario.state_size == step_env.scenario.state_size + 3 * (g.n + 1)
+
+
+def test_on_the_clock_a_robot_in_transit_has_one_action_and_the_return_counts_steps_worth_of_ticks():
+    g = _with_lengths("office", np.linspace(1.0, 3.0, builtin_graph("office").m))
+    env = mures_v0.parallel_env(map=g, robots=2, seed=0, speed=0.5)  # moves of 2-6 ticks, a step 4 ticks
+    parallel_api_test(env, num_cycles=300)
+    check_env_specs(mures_v0.torchrl_env(map=g, robots=2, batch_size=[4], seed=0, speed=0.5))
+    assert env.scenario.ticks_per_step == pytest.approx(4.0) and env.scenario.t_max == 3 * g.n * 4
+    rng = np.random.default_rng(0)
+    in_transit = decided = 0
+    for ep in range(20):
+        obs, _ = env.reset(seed=ep)
+        total = 0.0
+        while env.agents:
+            ready = env.core.sim.ready[0].numpy()
+            for i, a in enumerate(env.agents):
+                mask = obs[a]["action_mask"]
+                if ready[i]:
+                    decided += 1
+                    assert mask.sum() == g.deg_closed[int(env.core.sim.pos[0, i])]
+                else:
+                    in_transit += 1
+                    assert mask.tolist() == [1] + [0] * (len(mask) - 1), "in transit: index 0 only"
+            obs, rewards, _terms, _truncs, infos = env.step(
+                {a: int(rng.choice(np.flatnonzero(obs[a]["action_mask"]))) for a in env.agents}
+            )
+            total += rewards["robot_0"]
+        info = infos["robot_0"]
+        assert info["capture_time_s"] == info["capture_time"] * 1.0  # 1 s ticks
+        assert total == pytest.approx(-info["capture_time"] / 4.0)  # minus the capture time in steps' worth
+    assert in_transit > decided > 0
+
+
+def test_on_the_clock_models_per_step_are_made_a_ticks_worth_and_models_per_tick_kept():
+    from shared.core.clock import TravelTimes
+    from shared.envs.core import make_scenario
+
+    g = _with_lengths("office", 2.0)  # at 0.5 m/s a step lasts 4 ticks
+    walk = uniform_walk(g)
+    per_step = make_scenario(g, 2, target=walk, speed=0.5)
+    assert np.array_equal(per_step.target.prob, TravelTimes.of(g, 0.5).model(walk).prob)
+    assert per_step.belief_model is per_step.target  # "true": the robots' model is the target's, per tick
+    per_tick = make_scenario(g, 2, target=walk, belief_model="identity", speed=0.5, models_per_tick=True)
+    assert per_tick.target is walk and per_tick.belief_model.kind == "identity"
+
+
+def test_on_the_clock_a_graph_without_edge_lengths_is_refused():
+    with pytest.raises(ValueError, match="no edge lengths"):
+        mures_v0.parallel_env(map="office", robots=2, speed=0.5)

@@ -146,9 +146,10 @@ def test_a_run_on_travel_times_names_what_cannot_train_on_them():
     assert run_speed(TrainingParams.model_validate({}), None) is None
     assert run_speed(TrainingParams.model_validate({}), (0.4, 1.0)) == 0.4  # the current version's speed
     assert run_speed(TrainingParams.model_validate({"speed": 0.7}), (0.4, 1.0)) == 0.7
+    assert run_speed(TrainingParams.model_validate({"speed": 0.5, "algorithm": "mappo"}), None) == 0.5
     for body, trained, says in (
-        ({"speed": 0.5, "algorithm": "mappo"}, None, "speed retrains CE-PG (cepg, pg) on travel times only; mappo"),
-        ({"algorithm": "best", "candidates": ["pg", "masac"]}, (0.5, 1.0), "trained on travel times: CE-PG"),
+        ({"speed": 0.5, "algorithm": "mambpo"}, None, "speed retrains on travel times, which mambpo cannot train on"),
+        ({"algorithm": "best", "candidates": ["pg", "mambpo"]}, (0.5, 1.0), "trained on travel times, so on travel"),
         ({}, (0.5, 2.0), "ticks of 2 s"),
     ):
         with pytest.raises(ValueError, match=re.escape(says)):

@@ -169,6 +169,32 @@ def test_mures_train_speed_and_evaluate_clock_from_the_command_line(tmp_path):
         assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, (args, r.stderr)
 
 
+def test_mures_train_speed_trains_a_marl_baseline_on_the_clock_with_em_per_tick(tmp_path):
+    g = _office(np.linspace(1.0, 3.0, builtin_graph("office").m))
+    graph_file = tmp_path / "office.json"
+    graph_file.write_text(json.dumps(g.to_json()))
+    team = tmp_path / "mappo"
+    r = mures("train", "--graph", str(graph_file), "--robots", "2", "--algorithm", "mappo", "--episodes", "200",
+              "--batch", "32", "--hp", "steps=16", "--em-first", "100", "--em-missions", "16", "--speed", "0.5",
+              "--out", str(team), "--quiet")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "mappo on OFFICE" in r.stderr and "on the clock at 0.5 m/s: moves of 2-6 ticks" in r.stderr
+    assert " team ticks) in " in r.stdout and " s); wrote" in r.stdout
+    meta = json.loads((team / "policy.json").read_text())
+    assert meta["algorithm"] == "mappo" and meta["training"]["speed"] == 0.5
+    em = meta["summary"]["em_updates"][0]
+    assert em["missions"] == 16 and em["kind"] == "em"  # fitted from the team's own timestamped missions
+    assert meta["summary"]["clock"]["unit"] == "ticks" and meta["summary"]["clock"]["step_s"] == pytest.approx(4.0)
+    r = mures("evaluate", "--graph", str(graph_file), "--robots", "2", "--searcher", f"policy:{team}",
+              "--episodes", "32", "--seed", "1", "--clock", "--speed", "0.5", "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["mean_capture_time_s"] > 0
+    r = mures("train", "--graph", str(graph_file), "--robots", "2", "--algorithm", "mambpo", "--speed", "0.5",
+              "--episodes", "8", "--out", str(tmp_path / "x"))  # fmt: skip
+    assert r.returncode == 2 and "mambpo counts steps" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "x").exists()
+
+
 def test_the_team_on_the_clock_drops_a_withdrawn_teammate_when_told_and_not_otherwise():
     from test_team import _snapshot
 

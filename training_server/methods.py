@@ -158,8 +158,8 @@ def train_team(
 ) -> TrainedTeam | None:
     """Train ``method``'s team for ``robots`` robots for ``episodes`` episodes in ``world`` (graph,
     the run's EM model, sensor), save it in ``folder`` and return it; None when stopped first
-    (a MARL team's checkpoint then holds where it was). ``speed``: CE-PG on the map's travel times,
-    the EM model being per tick."""
+    (a MARL team's checkpoint then holds where it was). ``speed``: the team trains on the map's
+    travel times (CE-PG and the MARL baselines but mambpo), the EM model being per tick."""
     from shared.learning.config import TrainConfig, fine_tune_defaults
     from shared.learning.team_snapshot import save_snapshot
 
@@ -205,7 +205,7 @@ def train_team(
     else:
         from shared.learning.marl import hyperparameters, train_marl
 
-        cfg = TrainConfig(robots=robots, seed=params.seed, belief="true", algorithm=method)
+        cfg = TrainConfig(robots=robots, seed=params.seed, belief="true", algorithm=method, speed=speed)
         items = check_hyperparameters(method, params.hyperparameters_of(method))
         hyper = hyperparameters(method, items, episodes=episodes)
         res = train_marl(
@@ -219,6 +219,7 @@ def train_team(
             should_stop=should_stop,
             checkpoint=folder.checkpoint_dir(method, robots),
             checkpoint_every=CHECKPOINT_EVERY_S,
+            models_per_tick=speed is not None,
         )
         config = {
             **cfg.to_dict(),

@@ -16,10 +16,21 @@ Per robot i (shapes for B episodes, N robots, n nodes, d = max |N[p]|):
     reward       (B, N)     float32   -1 per step for every robot while the search goes on, 0 for the
                                       step that reports a capture at t = 0; the return is -t_cap
     state        (B, S)     float32   for centralised critics in training only: every robot's
-                                      onehot(p) (N * n), onehot(target) (n), t / T_max (1); a critic
-                                      that wants the beliefs too reads the robots' observations
+                                      onehot(p) (N * n), onehot(target) (n), on the clock every
+                                      robot's onehot(goal) (N * n) and ticks left / ticks a step (N),
+                                      then t / T_max (1); a critic that wants the beliefs too reads
+                                      the robots' observations
 
 An episode terminates at capture and is truncated at T_max = 3n (docs/SPEC.md section 1).
+
+On the mission clock (``make_scenario(speed=...)``, docs/continuous-world.md "Training on the
+clock") a step is one tick: a move takes its edge's travel time in ticks (shared/core/clock.py),
+the target moves once a tick on its model made a tick's worth, and a robot in transit (``ready``
+False) reads nothing and has one action, index 0 (its action is ignored: it goes on to its goal);
+it decides again when it arrives, so the robots of a team decide at different ticks. Beliefs
+predict every tick and take each reading at the tick it was made. The reward is -1 / (ticks a step
+lasts) a tick, so the return is still minus the capture time in steps' worth (as CE-PG's J on the
+clock), and T_max is 3n steps' worth of ticks.
 """
 
 from __future__ import annotations
@@ -30,6 +41,7 @@ from typing import Any
 
 import torch
 
+from shared.core.clock import TICK_S, TravelTimes
 from shared.core.graph import Graph, builtin_graph, load_graph_file
 from shared.core.models import Sensor, TargetModel, identity_model, load_model_file, parse_target
 from shared.engine.batched_belief import BatchedBelief
@@ -47,10 +59,17 @@ class Scenario:
     sensor: Sensor
     belief_model: TargetModel
     robots: int
+    clock: TravelTimes | None = None  # the mission clock (module docstring); None: the paper's steps
 
     @property
     def t_max(self) -> int:
-        return 3 * self.graph.n
+        """The paper's T_max = 3n steps (in ticks on the clock)."""
+        return 3 * self.graph.n if self.clock is None else self.clock.t_max(self.graph.n)
+
+    @property
+    def ticks_per_step(self) -> float:
+        """The ticks one step of the model lasts (1 without a clock): the reward's unit."""
+        return 1.0 if self.clock is None else self.clock.ticks_per_step
 
     @property
     def d(self) -> int:
@@ -59,7 +78,8 @@ class Scenario:
 
     @property
     def state_size(self) -> int:
-        return (self.robots + 1) * self.graph.n + 1
+        clocked = 0 if self.clock is None else self.robots * (self.graph.n + 1)  # goals and ticks left
+        return (self.robots + 1) * self.graph.n + clocked + 1
 
 
 def make_scenario(
@@ -70,11 +90,18 @@ def make_scenario(
     detection: str = "node",
     target: str | TargetModel = "uniform",
     belief_model: str | TargetModel = "true",
+    speed: float | None = None,
+    tick: float = TICK_S,
+    models_per_tick: bool = False,
 ) -> Scenario:
     """The same options as `mures evaluate`: ``map`` a built-in name or a graph file's path;
     ``target`` uniform, lazy:STAY or a model.json path; ``belief_model`` the robots' Gamma_hat and
     b0: "true" (the target's own), "identity" (Gamma_hat_0 = I and a uniform b0, where CE-PG
-    starts), or a model.json path."""
+    starts), or a model.json path.
+
+    ``speed`` (m/s): the mission clock (module docstring), ticks of ``tick`` s, on a graph with
+    edge lengths (a ValueError otherwise); the target and belief models, given per step, are made
+    a tick's worth, unless ``models_per_tick`` (a model EM fitted per tick)."""
     if isinstance(map, Graph):
         graph = map
     elif isinstance(map, str) and (map.endswith(".json") or Path(map).exists()):
@@ -101,7 +128,12 @@ def make_scenario(
     for m, what in ((true_model, "target"), (model, "belief_model")):
         if m.n != graph.n:
             raise ValueError(f"{what} has {m.n} nodes, the map {graph.n}")
-    return Scenario(graph, true_model, sensor, model, robots)
+    clock = None if speed is None else TravelTimes.of(graph, speed, tick)
+    if clock is not None and not models_per_tick:
+        same = model is true_model
+        true_model = clock.model(true_model)
+        model = true_model if same else clock.model(model)
+    return Scenario(graph, true_model, sensor, model, robots, clock)
 
 
 class EnvCore:
@@ -130,7 +162,10 @@ class EnvCore:
             # captured: the simulator's own action check and that bookkeeping are skipped
             check_actions=False,
             details=False,
+            move_ticks=None if scenario.clock is None else scenario.clock.ticks,
+            t_max=scenario.t_max,
         )
+        self.reward_per_step = -1.0 / scenario.ticks_per_step  # (module docstring)
         self.belief = BatchedBelief(g, scenario.belief_model, scenario.sensor, self.device)
         self.nbr = torch.as_tensor(g.nbr, device=self.device)  # (n, d)
         deg = torch.as_tensor(g.deg_closed, device=self.device)
@@ -140,6 +175,8 @@ class EnvCore:
         self.dest_flat = torch.where(self.valid, self.nbr, self.nbr[:, :1]).reshape(-1)
         self.eye = torch.eye(self.n, dtype=torch.float32, device=self.device)  # onehot(p) rows
         self.offsets = torch.arange(self.N + 1, device=self.device) * self.n  # state's onehot blocks
+        # on the clock, each robot's onehot(goal) block of the state, after the target's
+        self.goal_offsets = (torch.arange(self.N, device=self.device) + self.N + 1) * self.n
         self.b = torch.zeros(batch, self.N, self.n, device=self.device)  # (B, N, n) beliefs
         self.last_reset = torch.arange(batch, device=self.device)  # (k,) the slots the last reset started
         # per slot since the last take_stats: episodes ended, their summed capture times, censored
@@ -203,10 +240,10 @@ class EnvCore:
             raise ValueError(f"action indices must be in [0, {self.d}), got {lo}..{hi}")
         obs, res = self.sim.step(self.destinations(self.sim.pos, action))
         moving = self.sim.moving
-        lik = self.belief.likelihood(obs.pos, obs.z)
+        lik = self.belief.likelihood(obs.pos, obs.z, obs.ready)  # in transit: no reading (Lambda = I)
         b = self.belief.update(self.b, lik)  # Eq. 1
         self.b = b if bool(moving.all()) else torch.where(moving.view(-1, 1, 1), b, self.b)
-        reward = -moving.to(torch.float32)
+        reward = moving.to(torch.float32) * self.reward_per_step
         truncated = res.censored  # a censored episode is done
         terminated = res.done ^ truncated
         ended, ct_sum, censored = self._ended
@@ -238,17 +275,36 @@ class EnvCore:
         return torch.cat([onehot, b], dim=-1)
 
     def action_mask(self) -> torch.Tensor:
-        """(B, N, d) bool."""
+        """(B, N, d) bool; on the clock a robot in transit has index 0 only."""
         pos = self.sim.pos
-        return self.valid.index_select(0, pos.reshape(-1)).view(*pos.shape, self.d)
+        mask = self.valid.index_select(0, pos.reshape(-1)).view(*pos.shape, self.d)
+        if self.scenario.clock is not None:
+            mask = mask & (self.sim.ready.unsqueeze(-1) | (torch.arange(self.d, device=self.device) == 0))
+        return mask
 
     def state(self) -> torch.Tensor:
         """(B, S) the global state for centralised critics (module docstring)."""
-        return self.encode_state(self.sim.pos, self.sim.target, self.sim.t)
+        if self.scenario.clock is None:
+            return self.encode_state(self.sim.pos, self.sim.target, self.sim.t)
+        return self.encode_state(self.sim.pos, self.sim.target, self.sim.t, self.sim.goal, self.sim.left)
 
-    def encode_state(self, pos: torch.Tensor, target: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """Positions (M, N), target rows (M,) and times (M,) as global states (M, S)."""
+    def encode_state(
+        self,
+        pos: torch.Tensor,
+        target: torch.Tensor,
+        t: torch.Tensor,
+        goal: torch.Tensor | None = None,
+        left: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Positions (M, N), target rows (M,) and times (M,) as global states (M, S); on the clock
+        also every robot's goal (M, N) and ticks left (M, N)."""
         where = torch.cat([pos, target.unsqueeze(1)], dim=1) + self.offsets  # (M, N + 1) columns of the ones
         out = torch.zeros(len(where), self.scenario.state_size, device=self.device)
         torch.div(t, self.scenario.t_max, out=out.select(1, -1))  # true division: t.float() / T_max
+        if self.scenario.clock is not None:
+            if goal is None or left is None:
+                raise ValueError("on the mission clock the state needs every robot's goal and ticks left")
+            where = torch.cat([where, goal + self.goal_offsets], dim=1)
+            start = (2 * self.N + 1) * self.n
+            out[:, start : start + self.N] = left / self.scenario.ticks_per_step
         return out.scatter_(1, where, 1.0)

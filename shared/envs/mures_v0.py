@@ -7,7 +7,9 @@
 Both run the engine's simulator with every robot's own belief (shared/envs/core.py has the
 observation, action, reward and state definitions). Options are those of `mures evaluate`:
 eta_fn, eta_fp, detection, target (uniform, lazy:STAY, model.json) and belief_model (the robots'
-Gamma_hat: true, identity or model.json).
+Gamma_hat: true, identity or model.json); ``speed`` (m/s, and ``tick`` s) puts a graph with edge
+lengths on the mission clock: a step is a tick, and a robot in transit has one action
+(shared/envs/core.py).
 """
 
 from __future__ import annotations
@@ -100,6 +102,8 @@ class MuresParallelEnv(ParallelEnv):
         if te or tr:
             for a in self.agents:
                 infos[a] = {"capture_time": int(self.core.sim.t[0]), "captured": te}
+                if self.scenario.clock is not None:  # capture_time counts ticks
+                    infos[a]["capture_time_s"] = int(self.core.sim.t[0]) * self.scenario.clock.tick_s
         out = (
             obs,
             {a: r for a in self.agents},

@@ -100,7 +100,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         model_text = "true model" if cfg.belief == "true" else "EM-estimated model"
         what = (
             f"{cfg.algorithm} on {graph.name} (n={graph.n}), N={args.robots}, {hyper.episodes:,} episodes, "
-            f"{model_text}; hyperparameters {hyper.to_dict()}"
+            f"{model_text}{clock_text}; hyperparameters {hyper.to_dict()}"
             if hyper is not None
             else f"{args.variant} on {graph.name} (n={graph.n}), N={args.robots}, beta={cfg.beta}, lr={cfg.lr}, "
             f"{cfg.episodes:,} episodes, {model_text}{clock_text}"
@@ -267,7 +267,8 @@ def _write_snapshot(
     s = res.summary
     resumed = f" (resumed at {s['resumed'][-1]['episodes']:,})" if s.get("resumed") else ""
     clock = s.get("clock")
-    unit = "steps" if not clock else "ticks when some robot decided"
+    # CE-PG's rollout steps only the ticks where some robot decides; a MARL environment every tick
+    unit = "steps" if not clock else ("ticks" if hyper is not None else "ticks when some robot decided")
     last = f"{s['final_mean_capture_time']:.2f}"
     if clock:
         last += f" ticks ({s['final_mean_capture_time'] * clock['tick_s']:.1f} s)"

@@ -60,9 +60,12 @@ def train_marl(
     should_stop: Callable[[], bool] | None = None,
     checkpoint: str | Path | None = None,
     checkpoint_every: float = CHECKPOINT_EVERY_S,
+    models_per_tick: bool = False,
 ) -> TrainResult:
     """Train ``name`` with ``hyper`` (see ``hyperparameters``); ``cfg`` gives N, the seed, the
-    device, the hidden width of the actors and the belief model (EM as CE-PG's, or true).
+    device, the hidden width of the actors, the belief model (EM as CE-PG's, or true) and, with
+    ``cfg.speed``, the mission clock (all but mambpo): ``target`` and ``init_model`` are models per
+    step made a tick's worth, unless ``models_per_tick`` (the server's EM fitted per tick).
 
     With ``checkpoint`` (a directory) the run is resumable: it continues from the checkpoint there
     if one exists (of this same run, or a ValueError says what differs), saves one every
@@ -71,7 +74,18 @@ def train_marl(
     the result is safely stored (``remove_checkpoint``)."""
     module = _module(name)
     run = MarlRun(
-        name, graph, target, sensor, cfg, hyper, init_model, progress, should_stop, checkpoint, checkpoint_every
+        name,
+        graph,
+        target,
+        sensor,
+        cfg,
+        hyper,
+        init_model,
+        progress,
+        should_stop,
+        checkpoint,
+        checkpoint_every,
+        models_per_tick,
     )
     result: TrainResult = module.train(run, hyper)
     return result

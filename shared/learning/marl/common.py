@@ -9,6 +9,12 @@ network's logits gathered at N[p]; indices beyond |N[p]| are masked, so the dist
 nodes is the one the agent samples. Critics see the global state (every robot's position, the
 target's, t / T_max) and robots' observations: training only.
 
+On the mission clock (``cfg.speed``, docs/continuous-world.md "Training on the clock") the
+environment's step is a tick (shared/envs/core.py): a robot in transit has one action, the reward
+is a step's worth of -1 spread over its ticks, and ``MarlRun.gamma`` is the discount per tick that
+makes ``hyper.gamma`` the discount per step's worth of ticks. EM then fits Gamma_hat per tick from
+the missions' timestamped records, as CE-PG's on the clock does.
+
 Shapes: B episodes side by side, N robots, n nodes, d = max |N[p]|, S = state size.
 """
 
@@ -52,7 +58,7 @@ class MarlHyper:
     envs: int = 128  # B episodes simulated side by side
     lr: float = 3e-4  # actor learning rate (Adam)
     critic_lr: float = 1e-3  # critic learning rate (Adam)
-    gamma: float = 0.99  # discount of the -1 per step reward
+    gamma: float = 0.99  # discount of the -1 per step reward (per step's worth of ticks on the clock)
     critic_hidden: int = 128  # critic MLP width (2 hidden layers)
     max_grad_norm: float = 10.0  # gradient clipping
 
@@ -216,13 +222,27 @@ class MarlRun:
         should_stop: Callable[[], bool] | None = None,
         checkpoint: str | Path | None = None,
         checkpoint_every: float = CHECKPOINT_EVERY_S,
+        models_per_tick: bool = False,
     ) -> None:
-        self.name, self.graph, self.target, self.sensor = name, graph, target, sensor
+        self.name, self.sensor = name, sensor
         self.cfg, self.hyper = cfg, hyper
         self.device = torch.device(cfg.device)
         torch.manual_seed(cfg.seed)
         model = target if cfg.belief == "true" else (init_model or identity_model(graph))
-        scenario = make_scenario(graph, cfg.robots, sensor.eta_fn, sensor.eta_fp, sensor.detection, target, model)
+        scenario = make_scenario(
+            graph,
+            cfg.robots,
+            sensor.eta_fn,
+            sensor.eta_fp,
+            sensor.detection,
+            target,
+            model,
+            speed=cfg.speed,
+            tick=cfg.tick,
+            models_per_tick=models_per_tick,
+        )
+        # on the clock the simulator's target (and so EM's reference) is the model per tick
+        self.graph, self.target, self.clock = graph, scenario.target, scenario.clock
         self.env = MuresTorchEnv(scenario, hyper.envs, seed=cfg.seed * 7_919, device=self.device)
         self.model_kind = model.kind
         self.progress, self.should_stop = progress, should_stop
@@ -311,6 +331,12 @@ class MarlRun:
     def belief(self) -> Any:
         return self.env.core.belief
 
+    @property
+    def gamma(self) -> float:
+        """The discount per environment step: ``hyper.gamma`` per step, or on the clock per tick
+        (hyper.gamma ** (1 / ticks a step lasts), so that a step's worth of ticks discounts as much)."""
+        return self.hyper.gamma ** (1.0 / self.env.scenario.ticks_per_step)
+
     def after_steps(self, steps: int) -> bool:
         """Account ``steps`` team steps (B per environment step) and the episodes they ended;
         run EM when due; log. True when training should end (budget spent or stop asked)."""
@@ -333,6 +359,7 @@ class MarlRun:
                     0,
                     1,
                     self.device,
+                    self.clock,
                 )
             )
             self.model_kind = "em"
@@ -390,6 +417,15 @@ class MarlRun:
             "resumed": self.resumed,
             "final_mean_capture_time": self.curve[-1]["mean_capture_time"] if self.curve else None,
             "belief_model": model.kind,
+            "clock": None
+            if self.clock is None
+            else {
+                "speed_m_s": self.cfg.speed,
+                "tick_s": self.clock.tick_s,
+                "step_s": round(self.clock.step_s, 3),
+                "unit": "ticks",
+                "gamma_per_tick": self.gamma,
+            },
             "hyperparameters": self.hyper.to_dict(),
             "em_updates": self.em_log,
             "learning_curve": self.curve,

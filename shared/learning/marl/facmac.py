@@ -67,7 +67,7 @@ class FacmacLearner(TargetActorCritic):
     def __init__(self, run: MarlRun, hyper: FacmacHyper) -> None:
         N, n, d = run.cfg.robots, run.graph.n, run.env.scenario.d
         critic = FactoredCritic(run.env.scenario.state_size, 2 * n, d, N, hyper.critic_hidden, hyper.mixing_embed)
-        super().__init__(run.logits.module, critic.to(run.device), hyper)
+        super().__init__(run.logits.module, critic.to(run.device), hyper, run.gamma)
         self.d = d
 
     def update(self, batch: TensorDictBase) -> None:
@@ -75,7 +75,7 @@ class FacmacLearner(TargetActorCritic):
         a = torch.nn.functional.one_hot(b["action"], self.d).float()
         with torch.no_grad():
             a_next = gumbel_actions(self.actor_target(b["next_obs"], b["next_mask"]), h.gumbel_tau)
-            y = b["reward"] + h.gamma * (1 - b["terminated"]) * self.critic_target(
+            y = b["reward"] + self.gamma * (1 - b["terminated"]) * self.critic_target(
                 b["next_state"], b["next_obs"], a_next
             )
         self.critic_step(self.critic(b["state"], b["obs"], a), y)

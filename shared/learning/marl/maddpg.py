@@ -50,7 +50,7 @@ class MaddpgLearner(TargetActorCritic):
     def __init__(self, run: MarlRun, hyper: MaddpgHyper) -> None:
         N, n, d = run.cfg.robots, run.graph.n, run.env.scenario.d
         critic = CentralQ(run.env.scenario.state_size + 2 * n + N * d, N, 1, hyper.critic_hidden).to(run.device)
-        super().__init__(run.logits.module, critic, hyper)
+        super().__init__(run.logits.module, critic, hyper, run.gamma)
         self.N, self.d = N, d
         self.eye = torch.eye(N, device=run.device).view(1, N, N, 1)
 
@@ -65,7 +65,7 @@ class MaddpgLearner(TargetActorCritic):
         with torch.no_grad():
             a_next = gumbel_actions(self.actor_target(b["next_obs"], b["next_mask"]), h.gumbel_tau)
             q_next = self.critic_target(b["next_state"], b["next_obs"], self.joint(a_next))  # (M, N, 1)
-            y = b["reward"].unsqueeze(1) + h.gamma * (1 - b["terminated"]).unsqueeze(1) * q_next
+            y = b["reward"].unsqueeze(1) + self.gamma * (1 - b["terminated"]).unsqueeze(1) * q_next
         self.critic_step(self.critic(b["state"], b["obs"], self.joint(a)), y)
 
         logits = self.actor(b["obs"], b["mask"])  # (M, N, d)

@@ -78,7 +78,7 @@ def train(run: MarlRun, hyper: MappoHyper) -> TrainResult:
         done=("agents", "done"),
         terminated=("agents", "terminated"),
     )
-    loss.make_value_estimator(ValueEstimators.GAE, gamma=hyper.gamma, lmbda=hyper.lmbda)
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=run.gamma, lmbda=hyper.lmbda)
     opt = torch.optim.Adam(
         [
             {"params": list(actor.parameters()), "lr": hyper.lr},

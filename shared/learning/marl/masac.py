@@ -96,7 +96,9 @@ def sac_loss(run: MarlRun, hyper: MasacHyper) -> DiscreteSACLoss:
         num_actions=d,
         num_qvalue_nets=2,
         alpha_init=hyper.alpha_init,
-        target_entropy=hyper.target_entropy * mean_log_degree(env.core.valid),
+        # on the clock a robot chooses about once a step's worth of ticks and has one action in
+        # between (entropy 0), so the target per tick is a step's over the ticks a step lasts
+        target_entropy=hyper.target_entropy * mean_log_degree(env.core.valid) / env.scenario.ticks_per_step,
         loss_function="l2",
     )
     loss.set_keys(
@@ -107,7 +109,7 @@ def sac_loss(run: MarlRun, hyper: MasacHyper) -> DiscreteSACLoss:
         terminated=("agents", "terminated"),
         value=("agents", "state_value"),
     )
-    loss.make_value_estimator(ValueEstimators.TD0, gamma=hyper.gamma)
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=run.gamma)
     return loss
 
 

@@ -49,8 +49,8 @@ class TargetActorCritic:
     """The team's actor and a critic, each with a Polyak-averaged target copy and an Adam
     optimiser (MADDPG and FACMAC): ``critic_step`` then ``actor_step`` per minibatch."""
 
-    def __init__(self, actor: torch.nn.Module, critic: torch.nn.Module, hyper: OffPolicyHyper) -> None:
-        self.actor, self.critic, self.hyper = actor, critic, hyper
+    def __init__(self, actor: torch.nn.Module, critic: torch.nn.Module, hyper: OffPolicyHyper, gamma: float) -> None:
+        self.actor, self.critic, self.hyper, self.gamma = actor, critic, hyper, gamma  # gamma: MarlRun.gamma
         self.actor_target = copy.deepcopy(actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(critic).requires_grad_(False)
         self.opt_actor = torch.optim.Adam(actor.parameters(), lr=hyper.lr)
