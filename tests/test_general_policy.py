@@ -169,7 +169,7 @@ def test_a_fine_tune_of_the_general_policy_takes_its_own_defaults_unless_told(tm
     assert r.returncode == 0, r.stderr
     cfg = json.loads((tmp_path / "a" / "policy.json").read_text())["training"]
     got = {k: cfg[k] for k in ("lr", "beta", "j_unit", "em_pseudo_count", "em_b0_pseudo_count", "batch")}
-    assert got == {**FINE_TUNE, "batch": 256}  # OFFICE: 24,000 / 60 episodes, at most 256
+    assert got == {**FINE_TUNE, "em_pseudo_count": 1.0, "em_b0_pseudo_count": 1.0, "batch": 256}  # OFFICE, n = 60
     assert cfg["em_missions"] == 16  # given
     assert "warning" not in r.stderr  # the per-map team's large-graph warning is not about this
     given = ["--lr", "0.005", "--beta", "0.5", "--j-unit", "1", "--batch", "32", "--em-pseudo-count", "0"]
@@ -185,6 +185,9 @@ def test_a_fine_tune_of_the_general_policy_takes_its_own_defaults_unless_told(tm
     )
     assert fine_tune_defaults(1_000)["batch"] == 24 and fine_tune_defaults(20)["batch"] == 256
     assert fine_tune_defaults(1_000)["em_missions"] == 128 and fine_tune_defaults(60)["em_missions"] == 512
+    # EM's prior grows with the floor: one pseudo-count per 50 nodes, at least 1
+    assert [fine_tune_defaults(n)["em_pseudo_count"] for n in (60, 99, 300, 1_000)] == [1.0, 1.0, 6.0, 20.0]
+    assert fine_tune_defaults(1_000)["em_b0_pseudo_count"] == 20.0
 
 
 def test_the_shipped_policy_is_there():

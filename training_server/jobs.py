@@ -158,19 +158,21 @@ class TrainingParams(BaseModel):
         description="share of the missions held out of the fit: the gate compares the policies under a model "
         "estimated from these alone, which the new policy was not trained on",
     )
-    em_pseudo_count: float = Field(
-        1.0,
+    em_pseudo_count: float | None = Field(
+        None,
         ge=0.0,
         le=1e6,
         allow_inf_nan=False,
-        description="Dirichlet prior of EM: expected transitions added to each entry of Gamma_hat's support",
+        description="Dirichlet prior of EM: expected transitions added to each entry of Gamma_hat's support "
+        "(default: one per 50 nodes of the map, at least 1)",
     )
-    em_b0_pseudo_count: float = Field(
-        1.0,
+    em_b0_pseudo_count: float | None = Field(
+        None,
         ge=0.0,
         le=1e6,
         allow_inf_nan=False,
-        description="Dirichlet prior of EM: expected starts added to every node of b0 (no node ruled out)",
+        description="Dirichlet prior of EM: expected starts added to every node of b0, so that no node is ruled "
+        "out (default: one per 50 nodes of the map, at least 1)",
     )
     team_searcher: Literal["auto", "fhpe-sa", "none"] = Field(
         "auto",
@@ -459,10 +461,19 @@ class _TrainingRun:
             "gate_model_converged": gate_est.converged if gate_est is not None else None,
             "skipped": dict(data.skipped),
             "impossible_missions": data.impossible[:100],
-            "prior": {"pseudo_count": self.p.em_pseudo_count, "b0_pseudo_count": self.p.em_b0_pseudo_count},
+            "prior": dict(zip(("pseudo_count", "b0_pseudo_count"), self.em_prior(), strict=True)),
             "per": "step" if self.clock is None else f"{self.clock.tick_s:g} s tick",
         }
         return est.model, gate_model, em_info
+
+    def em_prior(self) -> tuple[float, float]:
+        """EM's pseudo-counts on Gamma_hat's entries and on b0: the run's, else the map's default
+        (shared/learning/config.py ``em_prior``)."""
+        from shared.learning.config import em_prior
+
+        default = em_prior(self.graph.n)
+        given = (self.p.em_pseudo_count, self.p.em_b0_pseudo_count)
+        return (default if given[0] is None else given[0], default if given[1] is None else given[1])
 
     def _em(self, missions: Any, which: str) -> Any:
         from shared.core.models import uniform_walk
@@ -484,8 +495,8 @@ class _TrainingRun:
             max_iter=self.p.em_max_iter,
             tol=1e-5,
             progress=em_progress,
-            pseudo_count=self.p.em_pseudo_count,
-            b0_pseudo_count=self.p.em_b0_pseudo_count,
+            pseudo_count=self.em_prior()[0],
+            b0_pseudo_count=self.em_prior()[1],
         )
 
     def train(self, method: str, robots: int, model: Any) -> TrainedTeam:

@@ -154,14 +154,15 @@ class TrainConfig:
         default=0.0,
         metadata=_opt(
             "EM's Dirichlet prior: expected transitions added to each entry of Gamma_hat's support (0: maximum "
-            "likelihood, Algorithm 2 as the paper writes it; the server's retraining uses 1)",
+            "likelihood, Algorithm 2 as the paper writes it; a server's retraining uses one per 50 nodes, at least 1)",
             parse=non_negative,
         ),
     )
     em_b0_pseudo_count: float = field(
         default=0.0,
         metadata=_opt(
-            "EM's Dirichlet prior: expected starts added to every node of b0 (the server's: 1)", parse=non_negative
+            "EM's Dirichlet prior: expected starts added to every node of b0 (the server's: as --em-pseudo-count's)",
+            parse=non_negative,
         ),
     )
     speed: float | None = field(
@@ -248,26 +249,39 @@ def default(name: str) -> Any:
 # A fine-tune of the general policy on one map (`mures train --init general`, a training server's
 # retraining of a general version) takes these where it is not told otherwise: J in the general
 # training's own unit (j_unit 0: the running mean capture time), its beta, a tenth of the trainer's
-# learning rate, and EM with the server's Dirichlet prior; its beliefs start on the uniform walk it
-# was trained with (docs/general-policy.md, measured by benchmarks/general_finetune.py).
+# learning rate, and EM with a Dirichlet prior (``fine_tune_defaults``); its beliefs start on the
+# uniform walk it was trained with (docs/general-policy.md, measured by benchmarks/general_finetune.py).
 FINE_TUNE: dict[str, Any] = {
     "lr": [1e-3],
     "beta": [0.9],
     "j_unit": 0.0,
-    "em_pseudo_count": 1.0,
-    "em_b0_pseudo_count": 1.0,
 }
 FINE_TUNE_BATCH_ELEMENTS = 24_000  # a fine-tune's batch: this over n episodes, within [16, 256], as in its training
 FINE_TUNE_EM_ELEMENTS = 128_000  # its EM's missions: this over n, within [64, 512]
+EM_PRIOR_NODES = 50  # the fine-tune's and the server's EM pseudo-counts: one per this many nodes, at least 1
+
+
+def em_prior(n: int) -> float:
+    """EM's Dirichlet pseudo-count (on each entry of Gamma_hat's support, and on each node of b0)
+    for a map of n nodes, where a fine-tune of the general policy and a training server's
+    retraining are not told one: n / 50 rounded down, at least 1 (1 up to 99 nodes, 6 at 300, 20 at
+    1,000). With fewer missions a node, EM's per-row freedom fits drifts the target does not have,
+    and beliefs on such a model captured later than on the uniform walk, whichever walk the target
+    took (docs/general-policy.md, "EM's prior on a large floor"; benchmarks/general_em_prior.py)."""
+    return float(max(1, n // EM_PRIOR_NODES))
 
 
 def fine_tune_defaults(n: int) -> dict[str, Any]:
     """FINE_TUNE for a map of n nodes, with its batch and EM's missions: both scale as 1 / n, so
     that what a rollout holds (every state's belief, n floats) and what EM holds (every mission-step's
     likelihood, filter and smoother, n floats each) stay near a 100-node map's (a 1,000-node
-    fine-tune peaked at 2.0 GB, docs/general-policy.md). The paper's maps keep 256 and 512."""
+    fine-tune peaked at 2.0 GB, docs/general-policy.md). The paper's maps keep 256 and 512. EM's
+    pseudo-counts are ``em_prior(n)``."""
+    prior = em_prior(n)
     return {
         **FINE_TUNE,
+        "em_pseudo_count": prior,
+        "em_b0_pseudo_count": prior,
         "batch": int(min(max(FINE_TUNE_BATCH_ELEMENTS // n, 16), 256)),
         "em_missions": int(min(max(FINE_TUNE_EM_ELEMENTS // n, 64), 512)),
     }
