@@ -1,6 +1,6 @@
 """What EM's Dirichlet prior does to the general policy's captures on a large floor: the
 measurement behind the fine-tune's default pseudo-counts (shared/learning/config.py
-``fine_tune_defaults``: one per 50 nodes, at least 1).
+``em_prior``: 1 below 100 nodes, n / 15 up to 20 above).
 
     python benchmarks/general_em_prior.py [--sizes 300,1000] [--robots 4] [--episodes 400]
                                           [--pseudo-counts 1,5,20,default] [--targets uniform,lazy:0.6]
@@ -83,8 +83,7 @@ def main() -> None:
                 t0 = time.perf_counter()
                 est = em(graph, data, max_iter=60, tol=1e-5, pseudo_count=c, b0_pseudo_count=c)
                 info = {"pseudo_count": c, "em_seconds": round(time.perf_counter() - t0, 1),
-                        "em_passes": est.iterations, "mean_row_tv_to_true": round(mean_row_tv(est.model, true), 4),
-                        "fine_tune_default": c == defaults["em_pseudo_count"]}  # fmt: skip
+                        "em_passes": est.iterations, "mean_row_tv_to_true": round(mean_row_tv(est.model, true), 4)}  # fmt: skip
                 runs.append((f"EM, pseudo-count {c:g}", info, times(est.model)))
             base = runs[0][2]
             for name, info, ct in runs:

@@ -185,8 +185,8 @@ def test_a_fine_tune_of_the_general_policy_takes_its_own_defaults_unless_told(tm
     )
     assert fine_tune_defaults(1_000)["batch"] == 24 and fine_tune_defaults(20)["batch"] == 256
     assert fine_tune_defaults(1_000)["em_missions"] == 128 and fine_tune_defaults(60)["em_missions"] == 512
-    # EM's prior grows with the floor: one pseudo-count per 50 nodes, at least 1
-    assert [fine_tune_defaults(n)["em_pseudo_count"] for n in (60, 99, 300, 1_000)] == [1.0, 1.0, 6.0, 20.0]
+    # EM's prior: 1 on the paper's maps, stronger on larger floors, at most 20
+    assert [fine_tune_defaults(n)["em_pseudo_count"] for n in (60, 99, 100, 300, 1_000)] == [1.0, 1.0, 6.0, 20.0, 20.0]
     assert fine_tune_defaults(1_000)["em_b0_pseudo_count"] == 20.0
 
 

@@ -164,7 +164,7 @@ class TrainingParams(BaseModel):
         le=1e6,
         allow_inf_nan=False,
         description="Dirichlet prior of EM: expected transitions added to each entry of Gamma_hat's support "
-        "(default: one per 50 nodes of the map, at least 1)",
+        "(default: 1 on maps below 100 nodes, n / 15 up to 20 above: shared/learning/config.py em_prior)",
     )
     em_b0_pseudo_count: float | None = Field(
         None,
@@ -172,7 +172,7 @@ class TrainingParams(BaseModel):
         le=1e6,
         allow_inf_nan=False,
         description="Dirichlet prior of EM: expected starts added to every node of b0, so that no node is ruled "
-        "out (default: one per 50 nodes of the map, at least 1)",
+        "out (default: as em_pseudo_count's)",
     )
     team_searcher: Literal["auto", "fhpe-sa", "none"] = Field(
         "auto",

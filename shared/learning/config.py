@@ -154,7 +154,7 @@ class TrainConfig:
         default=0.0,
         metadata=_opt(
             "EM's Dirichlet prior: expected transitions added to each entry of Gamma_hat's support (0: maximum "
-            "likelihood, Algorithm 2 as the paper writes it; a server's retraining uses one per 50 nodes, at least 1)",
+            "likelihood, Algorithm 2 as the paper writes it; a server's retraining: 1 below 100 nodes, up to 20 above)",
             parse=non_negative,
         ),
     )
@@ -258,17 +258,22 @@ FINE_TUNE: dict[str, Any] = {
 }
 FINE_TUNE_BATCH_ELEMENTS = 24_000  # a fine-tune's batch: this over n episodes, within [16, 256], as in its training
 FINE_TUNE_EM_ELEMENTS = 128_000  # its EM's missions: this over n, within [64, 512]
-EM_PRIOR_NODES = 50  # the fine-tune's and the server's EM pseudo-counts: one per this many nodes, at least 1
+EM_PRIOR_FROM_NODES = 100  # below: EM's pseudo-count 1 (the paper's maps); from here n / 15, at most 20
+EM_PRIOR_MAX = 20.0
 
 
 def em_prior(n: int) -> float:
     """EM's Dirichlet pseudo-count (on each entry of Gamma_hat's support, and on each node of b0)
     for a map of n nodes, where a fine-tune of the general policy and a training server's
-    retraining are not told one: n / 50 rounded down, at least 1 (1 up to 99 nodes, 6 at 300, 20 at
-    1,000). With fewer missions a node, EM's per-row freedom fits drifts the target does not have,
-    and beliefs on such a model captured later than on the uniform walk, whichever walk the target
-    took (docs/general-policy.md, "EM's prior on a large floor"; benchmarks/general_em_prior.py)."""
-    return float(max(1, n // EM_PRIOR_NODES))
+    retraining are not told one: 1 below 100 nodes (the paper's maps, where the fine-tune was
+    measured with it), then n / 15 rounded down, at most 20 (6 at 100 nodes, 20 from 300). On
+    larger floors beliefs on EM's model from a few hundred missions captured later than on the
+    uniform walk unless the prior was strong, whichever walk the target took: 20 left no
+    separable cost at 300 and 1,000 nodes (docs/general-policy.md, "EM's prior on a large floor";
+    benchmarks/general_em_prior.py)."""
+    if n < EM_PRIOR_FROM_NODES:
+        return 1.0
+    return float(min(EM_PRIOR_MAX, n // 15))
 
 
 def fine_tune_defaults(n: int) -> dict[str, Any]:
