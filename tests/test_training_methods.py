@@ -156,6 +156,31 @@ def test_a_run_on_travel_times_names_what_cannot_train_on_them():
             run_speed(TrainingParams.model_validate(body), trained)
 
 
+def test_a_retraining_of_a_marl_baseline_on_travel_times_trains_it_on_the_runs_model_per_tick(tmp_path):
+    """What the server's run does for ``{"algorithm": "mappo", "speed": ...}``: the team trains on
+    the map's travel times under the run's EM model as fitted (per tick, not made a tick's worth
+    again), and its snapshot says it was trained on the clock."""
+    import dataclasses
+
+    from shared.core.clock import TravelTimes
+    from shared.learning.team_snapshot import load_snapshot
+    from training_server.methods import RunFolder, train_team
+
+    g = builtin_graph("office")
+    g = dataclasses.replace(g, edge_lengths=np.linspace(1.0, 3.0, g.m))
+    per_tick = TravelTimes.of(g, 0.5).model(uniform_walk(g))  # what the run's EM fits from timed records
+    params = TrainingParams.model_validate(
+        {"algorithm": "mappo", "hyperparameters": {"mappo": {"envs": 16, "steps": 8}}}
+    )
+    team = train_team("mappo", 2, 64, (g, per_tick, Sensor()), params, None, RunFolder(tmp_path), lambda _: None,
+                      lambda: False, speed=0.5)  # fmt: skip
+    assert team is not None
+    snap = load_snapshot(tmp_path / "teams" / "mappo-2", g)
+    assert snap.clock == (0.5, 1.0) and snap.model.kind == per_tick.kind  # not made a tick's worth twice
+    assert np.allclose(snap.model.prob, per_tick.prob, atol=1e-6)  # as stored
+    assert snap.meta["summary"]["clock"]["unit"] == "ticks"
+
+
 def test_an_unknown_hyperparameter_fails_the_run_at_once_naming_it(fleet):
     body = {"algorithm": "masac", "hyperparameters": {"masac": {"learning_speed": 2}}, "min_missions": 1, **TINY}
     done = _finished(fleet.api, fleet.api.post("/api/v1/training-runs", body)["id"], timeout=60)
