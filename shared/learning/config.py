@@ -258,8 +258,9 @@ FINE_TUNE: dict[str, Any] = {
 }
 FINE_TUNE_BATCH_ELEMENTS = 24_000  # a fine-tune's batch: this over n episodes, within [16, 256], as in its training
 FINE_TUNE_EM_ELEMENTS = 128_000  # its EM's missions: this over n, within [64, 512]
-EM_PRIOR_FROM_NODES = 100  # below: EM's pseudo-count 1 (the paper's maps); from here n / 15, at most 20
-EM_PRIOR_MAX = 20.0
+EM_PRIOR_FROM_NODES = 100  # below: EM's pseudo-count 1 (the paper's maps)
+EM_PRIOR_NODES_PER_COUNT = 15  # from EM_PRIOR_FROM_NODES: one pseudo-count per this many nodes ...
+EM_PRIOR_MAX = 20.0  # ... at most this
 
 
 def em_prior(n: int) -> float:
@@ -273,14 +274,14 @@ def em_prior(n: int) -> float:
     benchmarks/general_em_prior.py)."""
     if n < EM_PRIOR_FROM_NODES:
         return 1.0
-    return float(min(EM_PRIOR_MAX, n // 15))
+    return float(min(EM_PRIOR_MAX, n // EM_PRIOR_NODES_PER_COUNT))
 
 
 def fine_tune_defaults(n: int) -> dict[str, Any]:
     """FINE_TUNE for a map of n nodes, with its batch and EM's missions: both scale as 1 / n, so
     that what a rollout holds (every state's belief, n floats) and what EM holds (every mission-step's
     likelihood, filter and smoother, n floats each) stay near a 100-node map's (a 1,000-node
-    fine-tune peaked at 2.0 GB, docs/general-policy.md). The paper's maps keep 256 and 512. EM's
+    fine-tune peaked at 1.3-2.0 GB, docs/general-policy.md). The paper's maps keep 256 and 512. EM's
     pseudo-counts are ``em_prior(n)``."""
     prior = em_prior(n)
     return {
