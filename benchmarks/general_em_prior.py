@@ -98,7 +98,10 @@ def main() -> None:
                 print(f"n={n} {target_name:9s} {name:26s}{tv:12s} {mean:7.1f} ± {half:5.1f}   "
                       f"minus the true model's {d_mean:+7.1f} ± {d_half:5.1f}", flush=True)  # fmt: skip
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps({"settings": vars(args), "rows": rows}, indent=1) + "\n", encoding="utf-8")
+    Path(args.json).write_text(
+        json.dumps({"settings": {k: v for k, v in vars(args).items() if k != "json"}, "rows": rows}, indent=1) + "\n",
+        encoding="utf-8",
+    )
     print(f"wrote {args.json}")
 
 
