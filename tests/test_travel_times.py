@@ -34,6 +34,13 @@ def _office(lengths: np.ndarray | float):
     return dataclasses.replace(g, edge_lengths=np.broadcast_to(np.asarray(lengths, dtype=float), (g.m,)).copy())
 
 
+def _office_file(tmp_path):
+    """OFFICE with doors 1-3 m apart (at 0.5 m/s moves of 2-6 ticks, a step 4) as a graph file."""
+    graph_file = tmp_path / "office.json"
+    graph_file.write_text(json.dumps(_office(np.linspace(1.0, 3.0, builtin_graph("office").m)).to_json()))
+    return graph_file
+
+
 def _line(ticks: int):
     """Three rooms in a row, each door ``ticks`` m apart (1 m/s, 1 s ticks: ``ticks`` ticks a move)."""
     g = graph_from_dict({"name": "LINE", "nodes": [0, 1, 2], "edges": [[0, 1], [1, 2]], "start_node": 0})
@@ -125,9 +132,7 @@ def test_records_on_the_clock_hold_each_robots_readings_at_their_ticks_and_em_fi
 
 
 def test_mures_train_speed_and_evaluate_clock_from_the_command_line(tmp_path):
-    g = _office(np.linspace(1.0, 3.0, builtin_graph("office").m))
-    graph_file = tmp_path / "office.json"
-    graph_file.write_text(json.dumps(g.to_json()))
+    graph_file = _office_file(tmp_path)
     team = tmp_path / "team"
     r = mures("train", "--graph", str(graph_file), "--robots", "2", "--episodes", "512", "--em-first", "256",
               "--em-missions", "16", "--speed", "0.5", "--seed", "1", "--out", str(team), "--quiet")  # fmt: skip
@@ -170,9 +175,7 @@ def test_mures_train_speed_and_evaluate_clock_from_the_command_line(tmp_path):
 
 
 def test_mures_train_speed_trains_a_marl_baseline_on_the_clock_with_em_per_tick(tmp_path):
-    g = _office(np.linspace(1.0, 3.0, builtin_graph("office").m))
-    graph_file = tmp_path / "office.json"
-    graph_file.write_text(json.dumps(g.to_json()))
+    graph_file = _office_file(tmp_path)
     team = tmp_path / "mappo"
     r = mures("train", "--graph", str(graph_file), "--robots", "2", "--algorithm", "mappo", "--episodes", "200",
               "--batch", "32", "--hp", "steps=16", "--em-first", "100", "--em-missions", "16", "--speed", "0.5",

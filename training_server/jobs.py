@@ -488,6 +488,7 @@ class _TrainingRun:
                 self.say("em", iteration=iteration, max_iter=self.p.em_max_iter, message=message)
             self.check()
 
+        pseudo_count, b0_pseudo_count = self.em_prior()
         return em(
             self.graph,
             missions,
@@ -495,8 +496,8 @@ class _TrainingRun:
             max_iter=self.p.em_max_iter,
             tol=1e-5,
             progress=em_progress,
-            pseudo_count=self.em_prior()[0],
-            b0_pseudo_count=self.em_prior()[1],
+            pseudo_count=pseudo_count,
+            b0_pseudo_count=b0_pseudo_count,
         )
 
     def train(self, method: str, robots: int, model: Any) -> TrainedTeam:

@@ -96,6 +96,10 @@ class TravelTimes:
         """Ticks one step of the model lasts (at least one)."""
         return max(1.0, self.step_s / self.tick_s)
 
+    def summary(self) -> dict[str, float]:
+        """What a run's or an evaluation's JSON says of the clock: speed, tick and step, in m/s and s."""
+        return {"speed_m_s": self.speed, "tick_s": self.tick_s, "step_s": round(self.step_s, 3)}
+
     def t_max(self, n: int) -> int:
         """The paper's T_max = 3n steps, in ticks."""
         return 3 * n * round(self.ticks_per_step)

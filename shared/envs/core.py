@@ -284,8 +284,6 @@ class EnvCore:
 
     def state(self) -> torch.Tensor:
         """(B, S) the global state for centralised critics (module docstring)."""
-        if self.scenario.clock is None:
-            return self.encode_state(self.sim.pos, self.sim.target, self.sim.t)
         return self.encode_state(self.sim.pos, self.sim.target, self.sim.t, self.sim.goal, self.sim.left)
 
     def encode_state(
@@ -297,7 +295,7 @@ class EnvCore:
         left: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Positions (M, N), target rows (M,) and times (M,) as global states (M, S); on the clock
-        also every robot's goal (M, N) and ticks left (M, N)."""
+        also every robot's goal (M, N) and ticks left (M, N) (read only there)."""
         where = torch.cat([pos, target.unsqueeze(1)], dim=1) + self.offsets  # (M, N + 1) columns of the ones
         out = torch.zeros(len(where), self.scenario.state_size, device=self.device)
         torch.div(t, self.scenario.t_max, out=out.select(1, -1))  # true division: t.float() / T_max

@@ -202,9 +202,7 @@ def train(
         "interrupted": interrupted,
         "final_mean_capture_time": curve.points[-1]["mean_capture_time"] if curve.points else None,
         "belief_model": model.kind,
-        "clock": None
-        if clock is None
-        else {"speed_m_s": cfg.speed, "tick_s": clock.tick_s, "step_s": round(clock.step_s, 3), "unit": "ticks"},
+        "clock": None if clock is None else {**clock.summary(), "unit": "ticks"},
         "em_updates": em_log,
         "learning_curve": curve.points,
     }

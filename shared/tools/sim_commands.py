@@ -125,7 +125,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         "wall_seconds": round(res.wall_seconds, 3),
     }
     if clock is not None:  # capture times above in ticks; in seconds here
-        summary["clock"] = {"speed_m_s": args.speed, "tick_s": clock.tick_s, "step_s": round(clock.step_s, 3)}
+        summary["clock"] = clock.summary()
         summary["mean_capture_time_s"] = summary["mean_capture_time"] * clock.tick_s
         summary["ci95_halfwidth_s"] = summary["ci95_halfwidth"] * clock.tick_s
     if team is not None:

@@ -419,13 +419,7 @@ class MarlRun:
             "belief_model": model.kind,
             "clock": None
             if self.clock is None
-            else {
-                "speed_m_s": self.cfg.speed,
-                "tick_s": self.clock.tick_s,
-                "step_s": round(self.clock.step_s, 3),
-                "unit": "ticks",
-                "gamma_per_tick": self.gamma,
-            },
+            else {**self.clock.summary(), "unit": "ticks", "gamma_per_tick": self.gamma},
             "hyperparameters": self.hyper.to_dict(),
             "em_updates": self.em_log,
             "learning_curve": self.curve,
