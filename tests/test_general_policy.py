@@ -122,6 +122,35 @@ def test_a_killed_training_run_goes_on_from_its_checkpoint_to_the_same_weights(t
     assert all(np.array_equal(a[k], b[k]) for k in a)
 
 
+def test_rollouts_on_a_local_dask_cluster_give_the_weights_of_one_process(tmp_path):
+    """`mures train-general --workers 2 --floors-per-update 2` flies each update's two floors (and the
+    imitation phase's planner) on two Dask workers; the weights are those of the same run in one
+    process with one torch thread, as the command runs it. One floor per update is today's loop."""
+    cmd = [sys.executable, "-m", "shared.tools.cli", "train-general", "--out", str(tmp_path / "dask")]
+    cmd += ["--episodes", "800", "--min-nodes", "12", "--max-nodes", "20", "--max-robots", "3", "--pool", "3"]
+    cmd += ["--batch-elements", "200", "--hidden", "8", "--imitation-episodes", "2", "--imitation-epochs", "2"]
+    dask = [*cmd, "--floors-per-update", "2", "--workers", "2"]
+    r = subprocess.run(dask, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "rollouts on 2 Dask workers" in r.stderr
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        here = train_general(_tiny(floors_per_update=2), tmp_path / "here")
+        one = train_general(_tiny(), tmp_path / "one")
+    finally:
+        torch.set_num_threads(threads)
+    meta = json.loads((tmp_path / "dask" / META).read_text())["training"]
+    assert meta["updates"] == here["updates"] and meta["ran_on"].startswith("2 Dask workers")
+    assert here["ran_on"] == "this process" and one["updates"] > here["updates"]  # two floors an update: fewer
+    a, b = load_general(tmp_path / "dask").weights, load_general(tmp_path / "here").weights
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+    c = load_general(tmp_path / "one").weights
+    assert not all(np.array_equal(a[k], c[k]) for k in a)
+    r = subprocess.run([*cmd, "--floors-per-update", "4"], capture_output=True, text=True)
+    assert r.returncode == 2 and "floors_per_update must be 1 to the pool's 3" in r.stderr
+
+
 def test_the_shipped_general_policy_beats_greedy_on_a_floor_it_never_saw():
     """Zero shot, paired on the same 200 episodes: a generated floor of 150 nodes (the training pool's
     seeds start at 10,000), a team of 3."""

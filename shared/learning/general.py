@@ -16,8 +16,10 @@ imitation phase (``imitate``, R2PS's pull toward a planner, as a start): FHPE-SA
 every robot's observations with the true model, flies ``imitation_episodes`` episodes on each pool
 building and the network is fitted to its moves by cross-entropy (each robot's features on the
 collective belief, with its role). Then CE-PG: each update draws one building and team size from
-the pool, flies a batch of episodes with the network's stochastic policy, each robot on its own
-belief, and takes one Adam step. The target is the uniform walk and the robots' beliefs use it; a
+the pool (``floors_per_update`` distinct ones, their gradients averaged), flies a batch of episodes
+with the network's stochastic policy, each robot on its own belief, and takes one Adam step; the
+rollouts and the imitation phase's planner may run on a Dask cluster (``FloorWorkers``), with the
+same numbers. The target is the uniform walk and the robots' beliefs use it; a
 fleet's robots later keep theirs with the model EM learned, and the network reads whatever belief
 it is given. The skip connection starts at "move toward the most likely node" (weight
 ``-SKIP_INIT`` on ``mode_distance_change``), so the first rollouts end; RL changes it from there.
@@ -247,22 +249,47 @@ class GeneralConfig:
     seed: int = 0
     checkpoint_every: float = 300.0
     init: str = ""  # a general policy directory to go on from (its weights; no imitation phase)
+    floors_per_update: int = 1  # pool entries flown per update, gradients averaged (side by side on a cluster)
 
     def check(self) -> None:
         if not 2 <= self.min_nodes <= self.max_nodes:
             raise ValueError(f"expected 2 <= min_nodes <= max_nodes, got {self.min_nodes} and {self.max_nodes}")
         if self.max_robots < 1 or self.pool < 1 or self.episodes < 1:
             raise ValueError("episodes, pool and max_robots must be at least 1")
+        if not 1 <= self.floors_per_update <= self.pool:
+            raise ValueError(f"floors_per_update must be 1 to the pool's {self.pool}, got {self.floors_per_update}")
         if self.imitation_episodes < 0 or self.imitation_epochs < 0:
             raise ValueError("imitation_episodes and imitation_epochs must be at least 0")
         if not 0.0 < self.beta <= 1.0:
             raise ValueError(f"beta must be in (0, 1], got {self.beta}")
 
 
+@dataclass(frozen=True)
+class FloorSpec:
+    """A pool entry as the numbers that make it, so that a Dask worker builds the same one."""
+
+    nodes: int
+    graph_seed: int
+    robots: int
+    batch: int  # episodes per rollout
+    sim_seed: int
+
+    def build(self, net: GeneralNet) -> _Building:
+        graph = office_graph(self.nodes, seed=self.graph_seed)
+        target, sensor = uniform_walk(graph), Sensor()
+        sim = SearchSim(
+            graph, target, sensor, self.robots, self.batch, seed=self.sim_seed, auto_reset=False,
+            check_actions=False, details=False,
+        )  # fmt: skip
+        belief = BatchedBelief(graph, target, sensor)
+        return _Building(self, graph, self.robots, target, sim, belief, GraphTeam(net, graph, self.robots))
+
+
 @dataclass
 class _Building:
     """One pool entry: a generated floor and team size, with its simulator, beliefs and scale."""
 
+    spec: FloorSpec
     graph: Graph
     robots: int
     target: TargetModel  # the uniform walk: the simulated target's and the robots' beliefs' model
@@ -275,20 +302,12 @@ class _Building:
 def training_pool(cfg: GeneralConfig, net: GeneralNet) -> list[_Building]:
     """The pool of generated buildings: seeds 10_000 + k (the evaluations use other seeds)."""
     rng = np.random.default_rng(cfg.seed)
-    sensor = Sensor()
     pool = []
     for k in range(cfg.pool):
         n = round(math.exp(rng.uniform(math.log(cfg.min_nodes), math.log(cfg.max_nodes))))
         robots = int(rng.integers(1, cfg.max_robots + 1))
-        graph = office_graph(n, seed=10_000 + k)
-        target = uniform_walk(graph)
         batch = int(np.clip(cfg.batch_elements // n, 16, 256))
-        sim = SearchSim(
-            graph, target, sensor, robots, batch, seed=cfg.seed * 7_919 + k, auto_reset=False,
-            check_actions=False, details=False,
-        )  # fmt: skip
-        belief = BatchedBelief(graph, target, sensor)
-        pool.append(_Building(graph, robots, target, sim, belief, GraphTeam(net, graph, robots)))
+        pool.append(FloorSpec(n, 10_000 + k, robots, batch, cfg.seed * 7_919 + k).build(net))
     return pool
 
 
@@ -327,14 +346,27 @@ def imitation_data(b: _Building, episodes: int, seed: int) -> tuple[torch.Tensor
     return feats, slot, valid
 
 
-def imitate(net: GeneralNet, pool: list[_Building], cfg: GeneralConfig, say: Callable[[str], None]) -> dict[str, Any]:
+def imitate(
+    net: GeneralNet,
+    pool: list[_Building],
+    cfg: GeneralConfig,
+    say: Callable[[str], None],
+    workers: FloorWorkers | None = None,
+) -> dict[str, Any]:
     """The imitation phase (R2PS's pull toward a planner, as a start): FHPE-SA flies
-    ``imitation_episodes`` episodes on every pool building, and the network is fitted to its moves
-    by cross-entropy for ``imitation_epochs`` epochs. Returns the phase's figures."""
+    ``imitation_episodes`` episodes on every pool building (on the ``workers`` when given), and the
+    network is fitted to its moves by cross-entropy for ``imitation_epochs`` epochs. Returns the
+    phase's figures."""
     t0 = time.perf_counter()
+    seeds = [cfg.seed * 7_919 + 50_000 + k for k in range(len(pool))]
+    flown: Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+    if workers is None:
+        flown = (imitation_data(b, cfg.imitation_episodes, seed) for b, seed in zip(pool, seeds, strict=True))
+    else:
+        flown = workers.imitation([b.spec for b in pool], cfg.hidden, cfg.imitation_episodes, seeds)
     parts = []
-    for k, b in enumerate(pool):
-        parts.append(imitation_data(b, cfg.imitation_episodes, seed=cfg.seed * 7_919 + 50_000 + k))
+    for k, (b, part) in enumerate(zip(pool, flown, strict=True)):
+        parts.append(part)
         say(f"imitation: FHPE-SA on building {k + 1}/{len(pool)} ({b.graph.n} nodes, N = {b.robots})")
     d = max(p[0].shape[1] for p in parts)  # buildings differ in their largest |N[p]|: pad to the largest
     feats = torch.cat([nn.functional.pad(p[0], (0, 0, 0, d - p[0].shape[1])) for p in parts])
@@ -363,15 +395,149 @@ def imitate(net: GeneralNet, pool: list[_Building], cfg: GeneralConfig, say: Cal
     }
 
 
+def floor_gradients(
+    b: _Building, net: GeneralNet, gen: torch.Generator, cfg: GeneralConfig
+) -> tuple[list[torch.Tensor], float, int]:
+    """One pool entry's share of an update: a batch of episodes flown with the network's stochastic
+    policy (``gen`` draws its actions), each robot on its own belief, and the gradient of the CE-PG
+    loss (Eq. 9-13) on it, J in units of the entry's running mean capture time (updated here).
+    Returns (one gradient per parameter of ``net``, the batch's mean capture time, its episodes)."""
+    ro = rollout(b.sim, b.team, b.belief, False, gen)  # type: ignore[arg-type]  # B episodes on one building
+    mean_ct = float(ro.capture_time.float().mean())
+    b.scale = mean_ct if b.scale is None else 0.9 * b.scale + 0.1 * mean_ct
+    beta = torch.full((b.robots,), cfg.beta)
+    terms = cepg_loss(b.team, ro, beta, cfg.eps, j_unit=max(b.scale, 1.0))  # type: ignore[arg-type]  # Eq. 9-13
+    net.zero_grad()
+    (terms.loss / b.robots).backward()
+    grads = [torch.zeros_like(p) if p.grad is None else p.grad.detach().clone() for p in net.parameters()]
+    return grads, mean_ct, int(ro.length.numel())
+
+
+# a Dask worker's own copies of the pool entries it has flown, built once per worker process
+_WORKER_FLOORS: dict[tuple[FloorSpec, int], tuple[GeneralNet, _Building]] = {}
+
+
+def _worker_floor(spec: FloorSpec, hidden: int, threads: int) -> tuple[GeneralNet, _Building]:
+    torch.set_num_threads(threads)  # the training process's: floating-point sums depend on it
+    if (spec, hidden) not in _WORKER_FLOORS:
+        net = GeneralNet(hidden)
+        _WORKER_FLOORS[spec, hidden] = (net, spec.build(net))
+    return _WORKER_FLOORS[spec, hidden]
+
+
+def _remote_gradients(
+    spec: FloorSpec,
+    cfg: GeneralConfig,
+    weights: dict[str, torch.Tensor],
+    scale: float | None,
+    sim_state: torch.Tensor,
+    gen_state: torch.Tensor,
+    threads: int,
+) -> dict[str, Any]:
+    """``floor_gradients`` on a worker, from the training process's weights and random states;
+    returns what it changed (the entry's scale, the simulator's and the actions' random states)."""
+    net, b = _worker_floor(spec, cfg.hidden, threads)
+    net.load_state_dict(weights)
+    b.scale = scale
+    b.sim.gen.set_state(sim_state)
+    gen = torch.Generator()
+    gen.set_state(gen_state)
+    grads, mean_ct, episodes = floor_gradients(b, net, gen, cfg)
+    return {"grads": grads, "mean_ct": mean_ct, "episodes": episodes, "scale": b.scale,
+            "sim_state": b.sim.gen.get_state(), "gen_state": gen.get_state()}  # fmt: skip
+
+
+def _remote_imitation(
+    spec: FloorSpec, hidden: int, episodes: int, seed: int, threads: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    return imitation_data(_worker_floor(spec, hidden, threads)[1], episodes, seed)
+
+
+class FloorWorkers:
+    """The pool entries' rollouts on a Dask distributed cluster (`dask scheduler` / `dask worker`,
+    the ``cluster`` extra; shared/tools/runner.py's ``local_dask_cluster`` on one machine): each
+    update's entries fly side by side, each worker keeping its own copy of the entries it has
+    flown. The weights and every random state go out with each task and come back with its result,
+    so the run's numbers are the same as in one process."""
+
+    def __init__(self, scheduler: str) -> None:
+        try:
+            from distributed import Client
+        except ModuleNotFoundError:
+            raise ValueError("a Dask cluster needs dask and distributed: pip install 'mures-fleet[cluster]'") from None
+        try:
+            self.client = Client(scheduler, timeout=15)
+        except OSError as exc:
+            raise ValueError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+        self.where = f"{len(self.client.scheduler_info()['workers'])} Dask workers at {scheduler}"
+
+    def gradients(
+        self, net: GeneralNet, floors: list[_Building], gens: list[torch.Generator], cfg: GeneralConfig
+    ) -> list[tuple[list[torch.Tensor], float, int]]:
+        """``floor_gradients`` of each entry with its generator, on the cluster; the entries'
+        scales and random states (and the generators') move on as if they had run here."""
+        weights = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        threads = torch.get_num_threads()
+        futures = [
+            self.client.submit(
+                _remote_gradients,
+                b.spec,
+                cfg,
+                weights,
+                b.scale,
+                b.sim.gen.get_state(),
+                gen.get_state(),
+                threads,
+                pure=False,
+            )
+            for b, gen in zip(floors, gens, strict=True)
+        ]
+        out = []
+        for b, gen, r in zip(floors, gens, self.client.gather(futures), strict=True):
+            b.scale = r["scale"]
+            b.sim.gen.set_state(r["sim_state"])
+            gen.set_state(r["gen_state"])
+            out.append((r["grads"], r["mean_ct"], r["episodes"]))
+        return out
+
+    def imitation(
+        self, specs: list[FloorSpec], hidden: int, episodes: int, seeds: list[int]
+    ) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """``imitation_data`` of every entry, all at once on the cluster, in the pool's order."""
+        futures = [
+            self.client.submit(_remote_imitation, spec, hidden, episodes, seed, torch.get_num_threads(), pure=False)
+            for spec, seed in zip(specs, seeds, strict=True)
+        ]
+        for fut in futures:
+            yield fut.result()
+
+    def close(self) -> None:
+        self.client.close()
+
+
+def _update_generators(gen: torch.Generator, seed: int, update: int, floors: int) -> list[torch.Generator]:
+    """The generators drawing the actions of an update's ``floors`` entries: the run's own for the
+    first, one seeded by the run's seed, the update and the entry's place for each other."""
+    out = [gen]
+    for j in range(1, floors):
+        g = torch.Generator()
+        g.manual_seed(int(np.random.SeedSequence([seed, update, j]).generate_state(1)[0]))
+        out.append(g)
+    return out
+
+
 def train_general(
     cfg: GeneralConfig,
     out: str | Path,
     progress: Callable[[dict[str, Any]], None] | None = None,
     command: str = "",
     say: Callable[[str], None] = lambda _text: None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     """Train the general policy into ``out`` (module docstring); returns the training summary.
-    ``progress`` gets the learning curve's points, ``say`` the imitation phase's lines."""
+    ``progress`` gets the learning curve's points, ``say`` the imitation phase's lines. With
+    ``scheduler`` (a Dask scheduler's address) the imitation phase's planner runs and each update's
+    ``floors_per_update`` rollouts fly on that cluster (``FloorWorkers``), with the same numbers."""
     cfg.check()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -419,42 +585,51 @@ def train_general(
         torch.save(blob, ckpt.with_suffix(".tmp"))
         ckpt.with_suffix(".tmp").replace(ckpt)
 
-    if cfg.imitation_episodes and cfg.imitation_epochs and "imitation" not in state:
-        state["imitation"] = imitate(net, pool, cfg, say)
-        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)  # RL starts with fresh moments
-        checkpoint()
-    while state["episodes"] < cfg.episodes:
-        b = pool[pick.randrange(len(pool))]
-        ro = rollout(b.sim, b.team, b.belief, False, gen)  # type: ignore[arg-type]  # B episodes on one building
-        mean_ct = float(ro.capture_time.float().mean())
-        b.scale = mean_ct if b.scale is None else 0.9 * b.scale + 0.1 * mean_ct
-        beta = torch.full((b.robots,), cfg.beta)
-        terms = cepg_loss(b.team, ro, beta, cfg.eps, j_unit=max(b.scale, 1.0))  # type: ignore[arg-type]  # Eq. 9-13
-        lr = cfg.lr * (1.0 - (1.0 - cfg.lr_final) * min(1.0, state["episodes"] / cfg.episodes))
-        for group in opt.param_groups:
-            group["lr"] = lr
-        opt.zero_grad()
-        (terms.loss / b.robots).backward()
-        nn.utils.clip_grad_norm_(net.parameters(), 1.0)
-        opt.step()
-        state["episodes"] += int(ro.length.numel())
-        state["updates"] += 1
-        window.append(mean_ct / max(b.graph.n, 1))
-        if state["updates"] % 20 == 0 or state["episodes"] >= cfg.episodes:
-            point = {
-                "episodes": state["episodes"],
-                "updates": state["updates"],
-                "capture_time_per_node": round(float(np.mean(window)), 4),
-                "wall_seconds": round(time.perf_counter() - t0, 1),
-                "total": cfg.episodes,
-            }
-            state["curve"].append(point)
-            window.clear()
-            if progress:
-                progress(point)
-        if time.perf_counter() - last_ckpt > cfg.checkpoint_every:
+    workers = FloorWorkers(scheduler) if scheduler else None
+    try:
+        if workers is not None:
+            say(f"rollouts on {workers.where}")
+        if cfg.imitation_episodes and cfg.imitation_epochs and "imitation" not in state:
+            state["imitation"] = imitate(net, pool, cfg, say, workers)
+            opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)  # RL starts with fresh moments
             checkpoint()
-            last_ckpt = time.perf_counter()
+        while state["episodes"] < cfg.episodes:
+            k = cfg.floors_per_update
+            picked = [pick.randrange(len(pool))] if k == 1 else pick.sample(range(len(pool)), k)  # k distinct entries
+            floors = [pool[i] for i in picked]
+            gens = _update_generators(gen, cfg.seed, state["updates"], k)
+            if workers is None:
+                shares = [floor_gradients(b, net, g, cfg) for b, g in zip(floors, gens, strict=True)]
+            else:
+                shares = workers.gradients(net, floors, gens, cfg)
+            lr = cfg.lr * (1.0 - (1.0 - cfg.lr_final) * min(1.0, state["episodes"] / cfg.episodes))
+            for group in opt.param_groups:
+                group["lr"] = lr
+            for j, p in enumerate(net.parameters()):  # the entries' gradients averaged
+                p.grad = torch.stack([share[0][j] for share in shares]).sum(0) / k
+            nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+            opt.step()
+            state["episodes"] += sum(share[2] for share in shares)
+            state["updates"] += 1
+            window.extend(share[1] / max(b.graph.n, 1) for b, share in zip(floors, shares, strict=True))
+            if state["updates"] % 20 == 0 or state["episodes"] >= cfg.episodes:
+                point = {
+                    "episodes": state["episodes"],
+                    "updates": state["updates"],
+                    "capture_time_per_node": round(float(np.mean(window)), 4),
+                    "wall_seconds": round(time.perf_counter() - t0, 1),
+                    "total": cfg.episodes,
+                }
+                state["curve"].append(point)
+                window.clear()
+                if progress:
+                    progress(point)
+            if time.perf_counter() - last_ckpt > cfg.checkpoint_every:
+                checkpoint()
+                last_ckpt = time.perf_counter()
+    finally:
+        if workers is not None:
+            workers.close()
     summary = {
         "config": asdict(cfg),
         "episodes": state["episodes"],
@@ -464,6 +639,7 @@ def train_general(
         "learning_curve": state["curve"],
         "imitation": state.get("imitation"),
         "command": command,
+        "ran_on": "this process" if workers is None else workers.where,
     }
     save_general(out, net.numpy_weights(), {"training": summary})
     ckpt.unlink(missing_ok=True)  # done: the same command trains afresh

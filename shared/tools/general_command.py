@@ -1,13 +1,18 @@
 """`mures train-general`: the general policy trained with CE-PG on many generated buildings
 (shared/learning/general.py), written as a general policy directory; progress on stderr, a
-checkpoint in the output directory that the same command goes on from after a kill or Ctrl-C."""
+checkpoint in the output directory that the same command goes on from after a kill or Ctrl-C.
+With --dask-scheduler (or --workers K, a local cluster) the rollouts run on Dask workers, with the
+same numbers as in one process."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shlex
 import sys
+import tempfile
 from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -24,6 +29,14 @@ def cmd_train_general(args: argparse.Namespace) -> int:
         cfg.check()
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if args.workers and args.dask_scheduler:
+        raise CliError("train-general: --workers starts a local cluster; give it or --dask-scheduler, not both")
+    if (args.workers or args.dask_scheduler) and cfg.floors_per_update == 1:
+        print(
+            "note: with --floors-per-update 1 each update flies one floor, so one worker at a time is busy "
+            "after the imitation phase",
+            file=sys.stderr,
+        )
     torch.set_num_threads(args.threads)
     print(
         f"training the general policy: {cfg.episodes:,} episodes on {cfg.pool} generated floors of "
@@ -43,16 +56,25 @@ def cmd_train_general(args: argparse.Namespace) -> int:
         )
 
     command = "mures " + shlex.join(sys.argv[1:])
-    try:
-        summary = train_general(
-            cfg,
-            args.out,
-            None if args.quiet else progress,
-            command=command,
-            say=(lambda _t: None) if args.quiet else (lambda t: print(t, file=sys.stderr, flush=True)),
-        )
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
+    with contextlib.ExitStack() as stack:
+        scheduler = args.dask_scheduler
+        if args.workers:
+            from shared.tools.runner import local_dask_cluster
+
+            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="mures-train-general-")))
+            project = Path(__file__).resolve().parents[2]  # the checkout the workers import from
+            scheduler = stack.enter_context(local_dask_cluster(args.workers, work, project))
+        try:
+            summary = train_general(
+                cfg,
+                args.out,
+                None if args.quiet else progress,
+                command=command,
+                say=(lambda _t: None) if args.quiet else (lambda t: print(t, file=sys.stderr, flush=True)),
+                scheduler=scheduler,
+            )
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
     print(f"wrote {args.out} ({summary['episodes']:,} episodes, {summary['wall_seconds']:.0f} s)", file=sys.stderr)
     return 0
 
@@ -84,6 +106,7 @@ def add_general_command(sub: Any) -> None:
         "seed": "random seed",
         "checkpoint_every": "seconds between checkpoints",
         "init": "a general policy directory to go on from (its weights, no imitation phase)",
+        "floors_per_update": "pool floors flown per update, their gradients averaged (side by side on Dask workers)",
     }
     for f in fields(GeneralConfig):
         counts = ("seed", "imitation_episodes", "imitation_epochs")  # may be 0
@@ -94,6 +117,18 @@ def add_general_command(sub: Any) -> None:
             "--" + f.name.replace("_", "-"), dest=f.name, type=kind, default=f.default,
             help=f"{helps[f.name]} (default {f.default})",
         )  # fmt: skip
-    p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1)")
+    p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1; workers use as many)")
+    p.add_argument(
+        "--dask-scheduler",
+        metavar="ADDRESS",
+        help="fly the imitation phase's planner and each update's rollouts on this Dask cluster (the cluster extra)",
+    )
+    p.add_argument(
+        "--workers",
+        type=whole_number,
+        default=0,
+        metavar="K",
+        help="start a local Dask cluster of K one-thread workers for them (default 0: this process)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_train_general)
