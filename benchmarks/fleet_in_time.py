@@ -24,7 +24,10 @@ Per map (imported with `mures map import`'s defaults) and team size N:
 3. (--team-clock steps) the same fleet-sim without --world (the step world: every step together),
    for the share of decisions on the team's plan when steps are simultaneous;
 4. `mures evaluate --graph G --world MAP.yaml --robots N --searcher sweep --episodes 500` (the
-   batched continuous world; other missions than 2's, so a reference, not a paired comparison).
+   batched continuous world; other missions than 2's, so a reference, not a paired comparison);
+5. (--team-clock seconds) the team's plan given the true model and every observation at once (the
+   batched world's ``fhpe-sa``) on 2's missions (each target walking by its mission's seed), so the
+   fleet's capture times are paired with the plan's mission by mission.
 Prints a row per map and N and writes every run's summary as JSON. With --against, an earlier
 run's JSON on the same seeds (so the same missions: the continuous world draws the target's path
 from the mission seed alone), each row adds the paired difference of the capture times in seconds
@@ -47,6 +50,11 @@ from shipped_maps import MAPS, imported  # benchmarks/shipped_maps.py, beside th
 
 from shared.engine.evaluate import mean_ci95
 from shared.floorplan.floors import office_floor
+from shared.floorplan.occupancy import read_map
+from shared.tools.fleetsim import fleet_mission_seed
+from shared.world.continuous import building, fly
+
+RANGE_M = 4.0  # the world's sensor range, fleet-sim's and evaluate's default
 
 MURES = [sys.executable, "-m", "shared.tools.cli"]
 
@@ -133,6 +141,15 @@ def main() -> None:
                 "fleet_sim_in_time": {k: v for k, v in in_time.items() if k != "results"},
                 "capture_time_s": [r["capture_time_s"] for r in in_time["results"]],
             }
+            if args.team_clock == "seconds":  # the plan with the true model and every observation, same missions
+                seeds = [fleet_mission_seed(args.seed, k) for k in range(in_time["missions"])]
+                world = building(read_map(yaml_path), graph, RANGE_M)
+                plan = fly(world, "fhpe-sa", robots, len(seeds), mission_seeds=seeds).capture_s
+                row["plan_capture_time_s"] = plan.tolist()
+                row["plan_mean_capture_time_s"], row["plan_ci95_halfwidth_s"] = mean_ci95(plan)
+                diff = np.subtract(row["capture_time_s"], plan)
+                row["fleet_minus_plan_s"], row["fleet_minus_plan_ci95_s"] = mean_ci95(diff)
+                row["fleet_over_plan"] = float(np.mean(row["capture_time_s"]) / max(np.mean(plan), 1e-9))
             before = earlier.get((name, robots))
             if before is not None and len(before["capture_time_s"]) == len(row["capture_time_s"]):
                 diff = np.subtract(row["capture_time_s"], before["capture_time_s"])
@@ -150,6 +167,13 @@ def main() -> None:
                     f"   paired vs earlier {row['paired_difference_s']:+.1f} ± {row['paired_ci95_s']:.1f} s "
                     f"({100 * (row['relative_to_earlier'] - 1):+.0f}%)"
                     if "paired_difference_s" in row
+                    else ""
+                )
+                + (
+                    f"   plan {row['plan_mean_capture_time_s']:.1f} s, fleet - plan "
+                    f"{row['fleet_minus_plan_s']:+.1f} ± {row['fleet_minus_plan_ci95_s']:.1f} s "
+                    f"(fleet / plan {row['fleet_over_plan']:.2f})"
+                    if "plan_mean_capture_time_s" in row
                     else ""
                 ),
                 flush=True,

@@ -15,6 +15,7 @@ from shared.core.models import Sensor
 from shared.floorplan.graph_file import graph_dict
 from shared.floorplan.occupancy import read_map
 from shared.floorplan.rooms import segment
+from shared.tools.fleetsim import fleet_mission_seed
 from shared.world.continuous import building, fly
 
 
@@ -127,6 +128,23 @@ def test_sweeping_robots_capture_in_the_two_rooms(tmp_path):
     world = building(grid, graph, sensor_range_m=3.0)
     f = fly(world, "sweep", robots=1, missions=30, seed=4)
     assert f.captured.all() and f.decisions > 0
+
+
+def test_missions_flown_by_their_own_seeds_meet_the_same_target_in_any_batch(tmp_path):
+    """fly(mission_seeds=...): each mission's target walks by its seed's generator, as in the world
+    served to robot agents, so a mission is the same whichever missions fly beside it, and a
+    searcher's flight is paired with a fleet's on those seeds."""
+    grid, graph = _two_rooms(tmp_path)
+    world = building(grid, graph, sensor_range_m=3.0)
+    seeds = [fleet_mission_seed(7, k) for k in range(12)]
+    batch = fly(world, "sweep", robots=1, missions=12, seed=4, mission_seeds=seeds)
+    alone = [fly(world, "sweep", robots=1, missions=1, seed=99, mission_seeds=[s]).capture_s[0] for s in seeds[-3:]]
+    assert batch.captured.all() and batch.capture_s[-3:].tolist() == alone
+    assert len(set(batch.capture_s.tolist())) > 3  # the seeds give different missions
+    shared = fly(world, "sweep", robots=1, missions=12, seed=4)  # one generator for the batch: other missions
+    assert shared.capture_s.tolist() != batch.capture_s.tolist()
+    with pytest.raises(ValueError, match="one mission seed a mission"):
+        fly(world, "sweep", robots=1, missions=2, mission_seeds=[1])
 
 
 def test_map_import_writes_what_each_nodes_robot_sees_as_the_graphs_sensing_table(tmp_path):

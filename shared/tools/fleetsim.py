@@ -403,6 +403,12 @@ def _serve(fleet: Fleet, robots: int) -> None:
         signal.signal(signal.SIGTERM, old)
 
 
+def fleet_mission_seed(seed: int, k: int) -> int:
+    """The seed of fleet-sim --seed ``seed``'s mission k (from 0): the world's target path follows
+    from it alone (shared/world/continuous.py ``target_generator``)."""
+    return seed * 100_003 + k
+
+
 def run_fleet_sim(
     graph: Graph,
     graph_args: list[str],
@@ -445,7 +451,7 @@ def run_fleet_sim(
     try:
         say(f"fleet-sim: {robots} agents online after {time.perf_counter() - t0:.1f} s; flying {missions} missions")
         for k in range(missions):
-            mission_seed = seed * 100_003 + k
+            mission_seed = fleet_mission_seed(seed, k)
             if kill:
                 m = fleet.fly_losing(ids, mission_seed, kill, kill_by)
                 results.append({**_mission_result(fleet, m), "killed": m["killed"]})

@@ -44,7 +44,7 @@ import zenoh
 
 from shared.core.models import Sensor, TargetModel, uniform_walk
 from shared.tools.world import World, _Mission
-from shared.world.continuous import Building, Targets
+from shared.world.continuous import Building, Targets, target_generator
 
 TOGETHER_S = 0.5  # robots arriving this close after the earliest are answered with it (robot_agent TEAM_WAIT_S)
 
@@ -102,7 +102,7 @@ class TimedWorld(World):
     def _new_mission(self, msg: dict[str, Any]) -> _Mission:
         seed = int(msg.get("seed", 0)) % (2**63)
         rng = np.random.default_rng(seed)  # the readings'
-        target_rng = np.random.default_rng([seed, 1 << 32])  # the target's own: its path is the seed's alone
+        target_rng = target_generator(seed)  # the target's own: its path is the seed's alone
         robots = list(msg.get("robots") or [])
         targets = Targets.start(self.building, 1, target_rng, self.motion.target_dwell_s, self.motion.target)
         m = _TimedMission(

@@ -204,6 +204,43 @@ class Targets:
         return out
 
 
+def target_generator(mission_seed: int) -> np.random.Generator:
+    """The generator a mission's target walks by, from the mission's seed alone: the world served
+    to robot agents (shared/tools/timed_world.py) and ``fly(mission_seeds=...)`` draw the same path
+    from the same seed, so a fleet and a searcher flown on one seed meet the same target."""
+    return np.random.default_rng([int(mission_seed) % (2**63), 1 << 32])
+
+
+class SeededTargets:
+    """``Targets`` for B missions, each walking by its own mission seed's generator
+    (``target_generator``): what ``Targets`` does with one shared generator, mission by mission."""
+
+    def __init__(
+        self, world: Building, mission_seeds: list[int], dwell_s: float, model: TargetModel | None = None
+    ) -> None:
+        self.rngs = [target_generator(seed) for seed in mission_seeds]
+        self.each = [Targets.start(world, 1, rng, dwell_s, model) for rng in self.rngs]
+
+    def advance(
+        self,
+        world: Building,
+        dt: float,
+        moving: np.ndarray,
+        _rng: np.random.Generator,
+        speed: float,
+        dwell_s: float,
+        model: TargetModel | None = None,
+    ) -> None:
+        """``Targets.advance`` for each mission where ``moving``, with its own generator."""
+        for b in np.flatnonzero(moving):
+            self.each[b].advance(world, dt, np.ones(1, dtype=bool), self.rngs[b], speed, dwell_s, model)
+
+    def pixels(self, world: Building, which: np.ndarray) -> np.ndarray:
+        """(k, 2) the pixel of each mission ``which``'s target."""
+        one = np.zeros(1, dtype=np.int64)
+        return np.array([self.each[b].pixels(world, one)[0] for b in np.asarray(which).tolist()]).reshape(-1, 2)
+
+
 @dataclass
 class Flight:
     """What ``fly`` measured: per mission its capture time in seconds (``max_s`` when not
@@ -233,11 +270,15 @@ def fly(
     target_model: TargetModel | None = None,
     stop_prob: float = 0.0,
     stop_s: float = 30.0,
+    mission_seeds: list[int] | None = None,
 ) -> Flight:
     """B = ``missions`` missions of ``robots`` robots with ``searcher`` (``SEARCHERS``). The target
     walks the uniform walk in continuous time, or ``target_model`` (``Targets``), which greedy's
     beliefs and the fhpe-sa plan then use. A move is held up with probability ``stop_prob`` for an
-    exponential time of mean ``stop_s`` (as in the world served to the agents)."""
+    exponential time of mean ``stop_s`` (as in the world served to the agents). With
+    ``mission_seeds`` (one a mission) each target walks by its mission seed's generator, as in the
+    world served to the agents (``SeededTargets``): the same missions as a fleet flown on those
+    seeds, for comparisons paired mission by mission."""
     if searcher not in SEARCHERS:
         raise ValueError(f"searcher must be one of {', '.join(SEARCHERS)}, got {searcher!r}")
     g, b_n, r_n = world.graph, missions, robots
@@ -246,7 +287,13 @@ def fly(
     model = target_model or uniform_walk(g)
     gamma = model.dense()  # the step model's Gamma, for the greedy robots' beliefs
     (in0, in1), (out0, out1) = sensor.likelihoods()
-    target = Targets.start(world, b_n, rng, target_dwell_s, target_model)
+    if mission_seeds is not None and len(mission_seeds) != b_n:
+        raise ValueError(f"expected one mission seed a mission ({b_n}), got {len(mission_seeds)}")
+    target: Targets | SeededTargets = (
+        Targets.start(world, b_n, rng, target_dwell_s, target_model)
+        if mission_seeds is None
+        else SeededTargets(world, mission_seeds, target_dwell_s, target_model)
+    )
     # the robots: heading to (or on) r_at, arriving in r_left seconds; their beliefs (greedy)
     r_at = np.full((b_n, r_n), g.start)
     r_left = np.zeros((b_n, r_n))
