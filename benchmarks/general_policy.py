@@ -18,7 +18,7 @@ withdrawals: N = 5 on OFFICE and MUSEUM with robots withdrawn at fixed steps, th
 episodes of results/team_switching/<map>-N5-simulated.json (`benchmarks/team_switching.py
 --simulated`): the general policy against that benchmark's per-map teams (switching, keeping the
 5-robot team, the team built for the robots left).
-decision: milliseconds one robot's numpy decision takes (``GeneralAgent.act``, one thread) at
+decision: milliseconds one robot's numpy decision takes (``GeneralAgent.act``, one thread, three teammates) at
 2,000 nodes, with the hop-distance table built once and row by row (cold).
 """
 
@@ -194,8 +194,9 @@ def part_decision(policy: str, nodes: int = 2000, decisions: int = 200) -> dict:
         p, times = graph.start, []
         for _ in range(decisions):
             b = rng.dirichlet(np.ones(graph.n) * 0.1)
+            mates = rng.integers(0, graph.n, size=3)  # robot 0's three teammates, last heard there
             t = time.perf_counter()
-            p = agent.act(p, b)
+            p = agent.act(p, b, mates)
             times.append(1000 * (time.perf_counter() - t))
         out[f"ms_{label}_mean"] = round(float(np.mean(times)), 2)
         out[f"ms_{label}_p95"] = round(float(np.percentile(times, 95)), 2)

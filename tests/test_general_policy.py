@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from shared.core.graph import builtin_graph, office_graph
-from shared.core.graph_policy import Distances, GeneralAgent, hop_distances
+from shared.core.graph_policy import FEATURE_COUNTS, FEATURES, Distances, GeneralAgent, hop_distances
 from shared.core.models import Sensor, uniform_walk
 from shared.core.snapshot_format import GENERAL_META as META
 from shared.core.snapshot_format import GENERAL_WEIGHTS as WEIGHTS
@@ -68,10 +68,47 @@ def test_the_robots_numpy_decision_is_the_trainers_network(tmp_path):
     for s in range(5):
         for i in range(3):
             agent = GeneralAgent(policy.weights, graph, i, 3)
-            p = int(pos[s, i])
+            p, mates = int(pos[s, i]), np.delete(pos[s].numpy(), i)  # the teammates where they are
             want = logits[s, i, graph.closed(p)].double().numpy()
-            assert np.allclose(agent.logits(p, belief[s, i].double().numpy()), want, atol=1e-4)
+            assert np.allclose(agent.logits(p, belief[s, i].double().numpy(), mates), want, atol=1e-4)
             assert (logits[s, i] > -1e8).sum() == len(graph.closed(p))  # only N[p] is allowed
+    # a teammate not known (-1, or left out) is no teammate: robot 0 with robot 2 withdrawn
+    active = torch.tensor([[True, True, False]] * 5)
+    with torch.no_grad():
+        partial = team.scatter_logits(pos, net(team.features(pos, belief, active=active)))
+    agent = GeneralAgent(policy.weights, graph, 0, 3)
+    p = int(pos[0, 0])
+    b = belief[0, 0].double().numpy()
+    want = partial[0, 0, graph.closed(p)].double().numpy()
+    for mates in ([int(pos[0, 1]), -1], [int(pos[0, 1])]):
+        assert np.allclose(agent.logits(p, b, np.array(mates)), want, atol=1e-4)
+    alone = agent.logits(p, b, np.array([], dtype=np.int64))
+    assert np.allclose(alone, agent.logits(p, b), atol=1e-9) and not np.allclose(alone, want, atol=1e-4)
+
+
+def test_a_general_policy_without_the_teammates_features_still_flies(tmp_path):
+    """The first shipped policy read every feature but the teammates' (FEATURE_COUNTS[0]): it loads,
+    flies (its scores ignore where the teammates are) and saves as it was."""
+    graph = office_graph(60, seed=3)
+    torch.manual_seed(0)
+    old = GeneralNet(8, FEATURE_COUNTS[0])
+    path = save_general(tmp_path / "old", old.numpy_weights(), {})
+    policy = load_general(path)
+    assert policy.meta["features"] == list(FEATURES[: FEATURE_COUNTS[0]])
+    agent = GeneralAgent(policy.weights, graph, 0, 2)
+    b = np.full(graph.n, 1.0 / graph.n)
+    assert np.array_equal(agent.logits(5, b, np.array([7])), agent.logits(5, b, np.array([40])))
+    net = GeneralNet.from_weights(policy.weights)
+    assert net.w1.shape[0] == FEATURE_COUNTS[0]
+    with torch.no_grad():
+        team = GraphTeam(net, graph, 2)
+        logits = team.logits(torch.tensor([[5, 7]]), torch.as_tensor(b, dtype=torch.float32).expand(1, 2, -1))
+    assert np.allclose(logits[0, 0, graph.closed(5)].double().numpy(), agent.logits(5, b), atol=1e-4)
+    meta = json.loads((path / META).read_text())
+    meta["features"] = list(FEATURES[:10])
+    (path / META).write_text(json.dumps(meta))
+    with pytest.raises(SnapshotError, match="features are not this version's"):
+        load_general(path)
 
 
 def test_a_bad_general_policy_directory_is_named(tmp_path):

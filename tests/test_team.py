@@ -432,3 +432,41 @@ def test_snapshot_combine_writes_one_version_with_a_team_per_size(tmp_path, caps
     assert snap.team_sizes == [1, 3] and snap.meta["training"]["teams_from"] == [str(tmp_path / "N1")]
     assert combine("N3", "N3", "d") == 2
     assert "a team for 3 robots is there already" in capsys.readouterr().err and not (tmp_path / "d").exists()
+
+
+def test_a_general_policy_flown_as_a_robots_own_reads_where_its_teammates_were_heard(monkeypatch):
+    """The general policy's teammates' features (docs/general-policy.md) come from the observations
+    a robot hears: by step, each teammate's latest node (none for one not heard or withdrawn); on
+    the mission clock, where each is headed."""
+    from shared.core.graph_policy import GeneralAgent
+    from shared.core.graph_policy import param_shapes as general_shapes
+    from shared.core.timed_team import TimedTeamAgent
+
+    graph = builtin_graph("office")
+    rng = np.random.default_rng(0)
+    weights = {k: rng.normal(size=s).astype(np.float32) for k, s in general_shapes(8).items()}
+    meta = {"architecture": "general", "variant": "cepg", "robots": 3, "hidden": 8}
+    snap = SnapshotData(meta=meta, weights=weights, model=uniform_walk(graph), sensor=Sensor())
+    heard: list[list[int]] = []
+
+    def act(self, p, belief, mates=None):
+        heard.append(sorted(np.asarray(mates).tolist()))
+        return p
+
+    monkeypatch.setattr(GeneralAgent, "act", act)
+    robots = ["a", "b", "c"]
+    agent = TeamAgent(snap, graph, robots, "a", seed=1, searcher=None)
+    agent.observe("a", 0, 5, 0)
+    agent.observe("b", 0, 7, 0)
+    agent.act(0, 5)
+    agent.observe("b", 1, 8, 0)
+    agent.observe("c", 1, 9, 0)
+    agent.act(1, 5)
+    agent.withdraw("b")
+    agent.act(2, 5)
+    assert heard == [[7], [8, 9], [9]]
+    timed = TimedTeamAgent(snap, graph, robots, "a", seed=1, searcher=None, step_s=8.0)
+    timed.observe_at("a", 0, 5, 0, 0.0)
+    timed.observe_at("b", 0, 7, 0, 0.0, goal=11)
+    timed.act_at(0.0, 5)
+    assert heard[-1] == [11]

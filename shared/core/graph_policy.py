@@ -13,10 +13,13 @@ The features (``FEATURES``) are read from hop distances D on the graph (``Distan
 robot's belief b (Eq. 1): for each scale L in ``SCALES`` the belief mass within about L hops of a,
 m_L(a) = sum_v b(v) exp(-D(a, v) / L), as it is and against the same mass around p (the direction
 toward the mass at that scale); the change in expected distance to the target, E_b[D(a, .)] -
-E_b[D(p, .)]; the change in distance to the most likely node; a's degree; and the robot's role i in
+E_b[D(p, .)]; the change in distance to the most likely node; a's degree; the robot's role i in
 a team of N (i / (N - 1), 1 / N), which lets robots with the same belief on the same node split up
-(the cross-entropy term of Eq. 9 rewards that, shared/learning/general.py). Weights do not depend
-on n or N.
+(the cross-entropy term of Eq. 9 rewards that, shared/learning/general.py); and how near a is to
+its teammates' latest known nodes p_j (``TEAMMATE_FEATURES``: the mean of exp(-D(a, p_j) / 4) over
+the teammates known, and its change from p), which lets a robot keep clear of the others. Weights do
+not depend on n or N. A general policy reads the first k of ``FEATURES``, k in ``FEATURE_COUNTS``
+(w1's rows): the first shipped policy read none of the teammates' features.
 
 Shapes: n nodes, d = max |N[p]| (the graph's ``nbr`` table, padded by repeating p), F features,
 H hidden units. Features are computed for any leading batch shape (...).
@@ -48,16 +51,31 @@ FEATURES = (
     "team_inverse",  # 1 / N
     "mass_far",  # E_b[D(p, .)] / (E_b[D(p, .)] + 10)
     "graph_size",  # log10(n) / 4
+    "mates_near",  # mean over the teammates known of exp(-D(a, p_j) / MATE_SCALE), 0 with none known
+    "mates_toward",  # MATE_SCALE (mates_near(a) - mates_near(p))
 )
 F = len(FEATURES)
+TEAMMATE_FEATURES = 2  # the last two: a policy without them reads the first F - 2
+FEATURE_COUNTS = (F - TEAMMATE_FEATURES, F)
+MATE_SCALE = 4.0  # hops
 PARAMS = ("w1", "b1", "w2", "b2", "w3", "skip")  # shapes in ``param_shapes``
 ALL_PAIRS_MAX = 5_000  # above this a graph's hop distances are computed row by row, as moves need them
 ROW_CACHE = 4_096  # rows kept when computed row by row (each n float32)
 
 
-def param_shapes(hidden: int) -> dict[str, tuple[int, ...]]:
-    """The network's tensors and their shapes for H = ``hidden``: none depends on n or N."""
-    return {"w1": (F, hidden), "b1": (hidden,), "w2": (hidden, hidden), "b2": (hidden,), "w3": (hidden,), "skip": (F,)}
+def param_shapes(hidden: int, features: int = F) -> dict[str, tuple[int, ...]]:
+    """The network's tensors and their shapes for H = ``hidden`` reading the first ``features`` of
+    ``FEATURES``: none depends on n or N."""
+    k = features
+    return {"w1": (k, hidden), "b1": (hidden,), "w2": (hidden, hidden), "b2": (hidden,), "w3": (hidden,), "skip": (k,)}
+
+
+def feature_count(weights: dict[str, np.ndarray]) -> int:
+    """The features a general policy's ``weights`` read: w1's rows when that is one of
+    ``FEATURE_COUNTS``, else F (so that a shape check names the bad tensor)."""
+    w1 = weights.get("w1")
+    k = int(w1.shape[0]) if w1 is not None and getattr(w1, "ndim", 0) == 2 else F
+    return k if k in FEATURE_COUNTS else F
 
 
 def draw(nbrs: np.ndarray, logits: np.ndarray, rng: np.random.Generator, most_likely: bool = False) -> int:
@@ -126,10 +144,17 @@ class Distances:
 
 
 def move_features(
-    graph: Graph, dist: Distances, pos: np.ndarray, belief: np.ndarray, role: np.ndarray, team: np.ndarray
+    graph: Graph,
+    dist: Distances,
+    pos: np.ndarray,
+    belief: np.ndarray,
+    role: np.ndarray,
+    team: np.ndarray,
+    mates: np.ndarray | None = None,
 ) -> np.ndarray:
     """f(a; p, b, i, N) for every slot a of the ``nbr`` table at p: pos (...,) node rows, belief (..., n),
-    role (...,) i / (N - 1), team (...,) N -> (..., d, F) float32 (padded slots repeat p's stay)."""
+    role (...,) i / (N - 1), team (...,) N, mates (..., M) the teammates' latest known node rows (-1:
+    not known; None: none) -> (..., d, F) float32 (padded slots repeat p's stay)."""
     pos = np.asarray(pos, dtype=np.int64)
     belief = np.asarray(belief, dtype=np.float32)
     cand = graph.nbr[pos]  # (..., d)
@@ -154,6 +179,13 @@ def move_features(
     role_f = np.broadcast_to(np.asarray(role, dtype=np.float32)[..., None], cand.shape)
     team_f = np.broadcast_to(1.0 / np.asarray(team, dtype=np.float32)[..., None], cand.shape)
     far = expected[..., :1]
+    near = np.zeros((*cand.shape, 1), dtype=np.float32)  # mates_near: 0 with no teammate known
+    if mates is not None and np.shape(mates)[-1]:
+        m = np.asarray(mates, dtype=np.int64)
+        known = np.broadcast_to((m >= 0)[..., None, :], (*cand.shape, m.shape[-1]))  # (..., d, M)
+        cols = np.broadcast_to(np.maximum(m, 0)[..., None, :], known.shape)
+        weight = np.where(known, np.exp(-np.take_along_axis(d_cand, cols, -1) / MATE_SCALE), 0.0)
+        near = (weight.sum(-1) / np.maximum(known.sum(-1), 1))[..., None].astype(np.float32)
     parts = [
         (slot == 0).astype(np.float32)[..., None],
         (b_cand / np.maximum(belief.max(-1, keepdims=True), 1e-12))[..., None],
@@ -169,6 +201,8 @@ def move_features(
         team_f[..., None],
         np.broadcast_to(far / (far + 10.0), cand.shape)[..., None],
         np.full((*cand.shape, 1), np.log10(graph.n) / 4.0),
+        near,
+        MATE_SCALE * (near - near[..., :1, :]),
     ]
     return np.concatenate(parts, axis=-1).astype(np.float32)
 
@@ -179,7 +213,9 @@ def roles(team: int) -> np.ndarray:
 
 
 def scores(weights: dict[str, np.ndarray], feats: np.ndarray) -> np.ndarray:
-    """The network: (..., d, F) -> (..., d) scores (logits before the mask to N[p])."""
+    """The network: (..., d, F) -> (..., d) scores (logits before the mask to N[p]), on the first
+    ``feature_count(weights)`` features."""
+    feats = feats[..., : weights["w1"].shape[0]]
     h = np.maximum(feats @ weights["w1"] + weights["b1"], 0.0)
     h = np.maximum(h @ weights["w2"] + weights["b2"], 0.0)
     return h @ weights["w3"] + feats @ weights["skip"]
@@ -187,8 +223,9 @@ def scores(weights: dict[str, np.ndarray], feats: np.ndarray) -> np.ndarray:
 
 class GeneralAgent:
     """One robot's decisions with the general policy, in numpy: robot ``robot`` of a team of
-    ``team`` on ``graph``, with the network's float32 ``weights`` (``param_shapes``). ``act(p, b)``
-    -> next node row in N[p], b the robot's belief (Eq. 1) or the team's collective one."""
+    ``team`` on ``graph``, with the network's float32 ``weights`` (``param_shapes``). ``act(p, b,
+    mates)`` -> next node row in N[p], b the robot's belief (Eq. 1) or the team's collective one,
+    ``mates`` its teammates' latest known node rows (as heard; None or empty: none known)."""
 
     def __init__(
         self,
@@ -209,13 +246,14 @@ class GeneralAgent:
         self.rng = rng or np.random.default_rng(0)
         self.greedy_actions = greedy_actions
 
-    def logits(self, p: int, belief: np.ndarray) -> np.ndarray:
+    def logits(self, p: int, belief: np.ndarray, mates: np.ndarray | None = None) -> np.ndarray:
         """The scores of N[p] in ``graph.closed(p)``'s order: (|N[p]|,) float64."""
+        m = None if mates is None else np.asarray(mates, dtype=np.int64).reshape(-1)
         feats = move_features(
-            self.graph, self.dist, np.asarray(p), belief, np.asarray(self.role), np.asarray(self.team)
+            self.graph, self.dist, np.asarray(p), belief, np.asarray(self.role), np.asarray(self.team), m
         )
         return scores(self.weights, feats.astype(np.float64))[: int(self.graph.deg_closed[p])]
 
-    def act(self, p: int, belief: np.ndarray) -> int:
+    def act(self, p: int, belief: np.ndarray, mates: np.ndarray | None = None) -> int:
         """a ~ pi_i(. | p, b) over N[p] (the most likely with ``greedy_actions``) -> node row."""
-        return draw(self.graph.closed(p), self.logits(p, belief), self.rng, self.greedy_actions)
+        return draw(self.graph.closed(p), self.logits(p, belief, mates), self.rng, self.greedy_actions)

@@ -50,7 +50,7 @@ from shared.core.belief_filter import BeliefFilter
 from shared.core.choices import ALGORITHMS, TEAM_SEARCHERS, VARIANTS
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
-from shared.core.graph_policy import FEATURES, SCALES, GeneralAgent, draw
+from shared.core.graph_policy import FEATURE_COUNTS, FEATURES, SCALES, GeneralAgent, draw, feature_count
 from shared.core.graph_policy import PARAMS as GENERAL_PARAMS
 from shared.core.graph_policy import param_shapes as general_shapes
 from shared.core.models import ModelError, Sensor, TargetModel, from_matrix
@@ -208,7 +208,7 @@ def write_snapshot(
         if teams or robots is None:
             raise ValueError("a general policy's snapshot names its robots and holds no teams (it flies every size)")
         hidden, names = int(weights["b1"].shape[0]), GENERAL_PARAMS
-        _check_shapes(weights, general_shapes(hidden), str(path))
+        _check_shapes(weights, general_shapes(hidden, feature_count(weights)), str(path))
     else:
         robots, n, hidden = weights["w_pos"].shape
         names = PARAMS
@@ -356,7 +356,7 @@ def read_snapshot(path: str | Path, graph: Graph, legacy: Callable[[bytes], Weig
     general = meta.get("architecture") == GENERAL
     if general:
         names: tuple[str, ...] = GENERAL_PARAMS
-        _check_shapes(weights, general_shapes(int(meta["hidden"])), f"{where}/{name}")
+        _check_shapes(weights, general_shapes(int(meta["hidden"]), feature_count(weights)), f"{where}/{name}")
         if meta.get("teams"):
             raise SnapshotError(f"{where}/{META}: a general policy flies every team size itself and holds no teams")
     else:
@@ -499,13 +499,14 @@ class PolicyAgent:
         tick) predicts the ``ticks`` since the last reading."""
         self.belief = self.filter.update(p, z, ticks)
 
-    def act(self, p: int, belief: np.ndarray | None = None) -> int:
+    def act(self, p: int, belief: np.ndarray | None = None, mates: np.ndarray | None = None) -> int:
         """Next node row from N[p] for the robot's own belief (or ``belief``, a team's collective
-        one): a ~ pi_i(. | onehot(p), b) (Algorithm 1, line 3)."""
+        one): a ~ pi_i(. | onehot(p), b) (Algorithm 1, line 3). The general policy also reads
+        ``mates``, the teammates' latest known node rows (the per-map networks read no teammate)."""
         b = self.belief if belief is None else belief
         assert b is not None, "reset() first"
         if self.general is not None:
-            return self.general.act(p, b)
+            return self.general.act(p, b, mates)
         nbrs = self.graph.closed(p)
         h = np.maximum(self.w_pos[p] + b @ self.w_bel + self.b1, 0.0)
         return draw(nbrs, h @ self.w2[:, nbrs] + self.b2[nbrs], self.rng, self.greedy_actions)
@@ -533,7 +534,7 @@ def save_general(path: str | Path, weights: Weights, meta: dict[str, Any]) -> Pa
     full = {
         **meta,
         "format": GENERAL_FORMAT,
-        "features": list(FEATURES),
+        "features": list(FEATURES[: feature_count(weights)]),
         "scales": list(SCALES),
         "hidden": int(weights["b1"].shape[0]),
         "weights": {"file": GENERAL_WEIGHTS, "sha256": sha256_hex(blob), "bytes": len(blob)},
@@ -555,8 +556,13 @@ def load_general(path: str | Path) -> GeneralPolicy:
     if not isinstance(meta, dict) or meta.get("format") != GENERAL_FORMAT:
         got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
         raise SnapshotError(f"{where / GENERAL_META}: expected format {GENERAL_FORMAT!r}, got {got!r}")
-    if meta.get("features") != list(FEATURES) or meta.get("scales") != list(SCALES):
-        raise SnapshotError(f"{where / GENERAL_META}: its features are not this version's ({', '.join(FEATURES)})")
+    features = meta.get("features")
+    known = [list(FEATURES[:k]) for k in FEATURE_COUNTS]
+    if features not in known or meta.get("scales") != list(SCALES):
+        raise SnapshotError(
+            f"{where / GENERAL_META}: its features are not this version's ({', '.join(FEATURES)}, "
+            f"or all but the last {FEATURE_COUNTS[1] - FEATURE_COUNTS[0]})"
+        )
     hidden = meta.get("hidden")
     if not isinstance(hidden, int) or isinstance(hidden, bool) or hidden < 1:
         raise SnapshotError(f"{where / GENERAL_META}: hidden must be a positive integer, got {hidden!r}")
@@ -565,7 +571,7 @@ def load_general(path: str | Path) -> GeneralPolicy:
         weights = dict(load_safetensors(raw))
     except Exception as exc:  # safetensors raises several types for a bad file
         raise SnapshotError(f"{where / GENERAL_WEIGHTS}: cannot be read as weights ({exc})") from None
-    _check_shapes(weights, general_shapes(hidden), str(where / GENERAL_WEIGHTS))
+    _check_shapes(weights, general_shapes(hidden, len(features)), str(where / GENERAL_WEIGHTS))
     return GeneralPolicy(weights, meta)
 
 

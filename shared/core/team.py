@@ -305,14 +305,14 @@ class TeamAgent:
         few of the teammates' observations delivered in time, ``link_quality``)."""
         self.decided = t
         if self.searcher is None:
-            return self._own(p)
+            return self._own(p, self._mates(t))
         complete = self.complete(t)
         self.incomplete_run = 0 if complete else self.incomplete_run + 1
         usable = complete or (self.heard(t) and self.fresh(t))
         gave_up = self.fallback_after is not None and self.incomplete_run >= self.fallback_after
         poor_links = not self.alone() and self.link_quality() < self.link_quality_min
         if not usable or gave_up or poor_links:
-            return self._own(p)
+            return self._own(p, self._mates(t))
         mode = "team" if complete else "partial"
         self.steps[mode] += 1
         b = self.collective.belief(t)
@@ -337,9 +337,17 @@ class TeamAgent:
         heard, sent = self.link_counts()
         return (self.link_history.heard + heard + 1) / (self.link_history.sent + sent + 1)
 
-    def _own(self, p: int) -> tuple[int, str]:
+    def _own(self, p: int, mates: np.ndarray) -> tuple[int, str]:
+        """Its own policy on its own belief; the general policy also reads ``mates``, the teammates'
+        latest known node rows."""
         self.steps["own"] += 1
-        return self.own.act(p), "own"
+        return self.own.act(p, mates=mates), "own"
+
+    def _mates(self, t: int) -> np.ndarray:
+        """The node rows of the teammates not withdrawn at their latest observations up to step
+        ``t``, those heard at all."""
+        rows = [self._where(r, t, -1) for r in self.robots if r != self.me and r not in self.withdrawn]
+        return np.array([row for row in rows if row >= 0], dtype=np.int64)
 
     def _team_plan(self, t: int, b: np.ndarray, pos: np.ndarray, active: np.ndarray) -> np.ndarray:
         """FHPE-SA's moves for the whole team; its ties are broken by a generator seeded by the

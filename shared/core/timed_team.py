@@ -106,6 +106,11 @@ class TimedTeamAgent(TeamAgent):
         if goal is not None:
             self.goal[robot] = goal
 
+    def _heading(self) -> np.ndarray:
+        """The node rows the teammates not withdrawn were last heard to be headed for."""
+        rows = [self.goal[r] for r in self.robots if r != self.me and r not in self.withdrawn and r in self.goal]
+        return np.array(rows, dtype=np.int64)
+
     def _team_live(self, now_s: float) -> list[str]:
         """This robot and the teammates not withdrawn that were heard within ``timeout_s`` (all of
         them in the mission's first ``timeout_s``)."""
@@ -121,14 +126,14 @@ class TimedTeamAgent(TeamAgent):
         observation given), and how it was decided (module docstring)."""
         self.decided_s = time_s
         if self.searcher is None:
-            return self._own(p)
+            return self._own(p, self._heading())
         live = self._team_live(time_s)
         heard = [r for r in live if r != self.me and self.heard_s[r] > -math.inf]
         poor_links = not self.alone() and self.link_quality() < self.link_quality_min
         # at the mission's start every robot is on the start node: its teammates are known to be there
         # before any is heard; later a robot that hears none cannot tell their absence from its link's
         if (not heard and not self.alone() and time_s > 0) or poor_links:
-            return self._own(p)
+            return self._own(p, self._heading())
         mode = "team" if len(heard) == len(live) - 1 else "partial"
         self.steps[mode] += 1
         k = self.tick(time_s)

@@ -45,7 +45,7 @@ from torch import nn
 
 from shared.core.fhpe_sa import FhpeSAPlanner
 from shared.core.graph import Graph, office_graph
-from shared.core.graph_policy import FEATURES, PARAMS, distances_of, move_features, roles
+from shared.core.graph_policy import FEATURES, PARAMS, distances_of, feature_count, move_features, roles
 from shared.core.models import Sensor, TargetModel, uniform_walk
 from shared.core.snapshot_format import GeneralPolicy, load_general, save_general
 from shared.engine.batched_belief import BatchedBelief, BeliefTracker
@@ -60,11 +60,12 @@ CHECKPOINT = "checkpoint.pt"
 
 class GeneralNet(nn.Module):
     """The general policy's network in torch (``graph_policy.scores`` is its numpy twin):
-    (..., d, F) -> (..., d), an MLP F -> H -> H -> 1 plus a linear skip."""
+    (..., d, F) -> (..., d), an MLP k -> H -> H -> 1 plus a linear skip on the first k = ``features``
+    of the F features (``FEATURE_COUNTS``)."""
 
-    def __init__(self, hidden: int = 64) -> None:
+    def __init__(self, hidden: int = 64, features: int = len(FEATURES)) -> None:
         super().__init__()
-        F = len(FEATURES)
+        F = features
         k1, k2 = 1 / math.sqrt(F), 1 / math.sqrt(hidden)
         self.w1 = nn.Parameter(torch.empty(F, hidden).uniform_(-k1, k1))
         self.b1 = nn.Parameter(torch.zeros(hidden))
@@ -76,6 +77,7 @@ class GeneralNet(nn.Module):
         self.skip = nn.Parameter(skip)
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        feats = feats[..., : self.w1.shape[0]]
         h = torch.relu(feats @ self.w1 + self.b1)
         h = torch.relu(h @ self.w2 + self.b2)
         return h @ self.w3 + feats @ self.skip
@@ -86,7 +88,7 @@ class GeneralNet(nn.Module):
     @classmethod
     def from_weights(cls, weights: dict[str, np.ndarray]) -> GeneralNet:
         """The network with these float32 weights (a snapshot's or a general policy's)."""
-        net = cls(int(weights["b1"].shape[0]))
+        net = cls(int(weights["b1"].shape[0]), feature_count(weights))
         with torch.no_grad():
             for k in PARAMS:
                 getattr(net, k).copy_(torch.as_tensor(np.ascontiguousarray(weights[k])))
@@ -130,16 +132,22 @@ class GraphTeam:
         belief: torch.Tensor,
         role: torch.Tensor | None = None,
         team: torch.Tensor | None = None,
+        active: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """pos (S, k), belief (S, k, n) -> (S, k, d, F); robot slot j has role ``role[j]`` (or
-        ``role[s, j]``; default: i / (N - 1)) in a team of ``team[s]`` (default: N)."""
+        ``role[s, j]``; default: i / (N - 1)) in a team of ``team[s]`` (default: N), and its
+        teammates are the other slots (those ``active`` (S, k), default all: known where they are)."""
         S, k = pos.shape
         role = (self.role if role is None else role).expand(S, k)
         size = torch.full((S, 1), self.N) if team is None else team.reshape(S, 1)
         p, b, r, t = pos.cpu().numpy(), belief.detach().cpu().numpy(), role.cpu().numpy(), size.cpu().numpy()
+        others = np.array([[j for j in range(k) if j != i] for i in range(k)], dtype=np.int64).reshape(k, k - 1)
+        mates = p[:, others]  # (S, k, k - 1): slot i's teammates' nodes
+        if active is not None:
+            mates = np.where(active.cpu().numpy()[:, others], mates, -1)
         rows = max(1, FEATURE_CHUNK // (k * self.graph.nbr.shape[1] * self.n))
         out = [
-            move_features(self.graph, self.dist, p[a : a + rows], b[a : a + rows], r[a : a + rows], t[a : a + rows])
+            move_features(self.graph, self.dist, *(x[a : a + rows] for x in (p, b, r, t, mates)))
             for a in range(0, S, rows)
         ]
         if not out:  # no states (the cross-entropy term found no shared ones)
@@ -221,7 +229,8 @@ class GeneralSearcher:
         pos, active = obs.pos[live], obs.active[live]
         left = active.sum(1)  # the robots not withdrawn
         role = (active.cumsum(1) - 1).float() / (left - 1).clamp_min(1).unsqueeze(1)  # each one's rank among them
-        logits = self.team.scatter_logits(pos, self.team.net(self.team.features(pos, b[live], role, left.clamp_min(1))))
+        feats = self.team.features(pos, b[live], role, left.clamp_min(1), active)
+        logits = self.team.scatter_logits(pos, self.team.net(feats))
         if self.greedy_actions:
             act[live] = logits.argmax(-1)
         else:
