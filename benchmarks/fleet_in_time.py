@@ -6,7 +6,7 @@ plan, beside the same fleet in the step world.
     python benchmarks/fleet_in_time.py [--robots 2 4] [--missions 30] [--episodes 20000] [--seed 1]
                                        [--offices 2] [--maps depot,bookstore,...] [--workdir DIR]
                                        [--team-clock steps|seconds] [--step-limit 3] [--belief em|true]
-                                       [--train-speed M_PER_S] [--against BEFORE.json]
+                                       [--train-speed M_PER_S] [--em-pseudo-count C] [--against BEFORE.json]
                                        [--json results/fleet_in_time/before.json]
 
 Per map (imported with `mures map import`'s defaults) and team size N:
@@ -14,7 +14,8 @@ Per map (imported with `mures map import`'s defaults) and team size N:
    TEAM` (B em: the model the team's beliefs and plan use learned by EM, as the trainer does by
    default; true: the true model, the uniform walk); with --train-speed S also `--speed S`: the team
    trained on the map's travel times (its model per tick, EM per tick), which the agents fly on
-   the mission clock;
+   the mission clock; with --em-pseudo-count C also `--em-pseudo-count C --em-b0-pseudo-count C`:
+   EM with the Dirichlet prior a training server's retraining uses (C = 1 there);
 2. `mures fleet-sim --graph G --world MAP.yaml --robots N --missions K --seed S --init-policy TEAM
    --json`: the agents in the continuous world (docs/continuous-world.md: 0.5 m/s, 4 m range in
    line of sight, a target walking at 0.5 m/s and dwelling 10 s on average);
@@ -89,6 +90,7 @@ def main() -> None:
     ap.add_argument("--team-clock", choices=("steps", "seconds"), default="steps")
     ap.add_argument("--belief", choices=("em", "true"), default="em", help="the teams' model: mures train --belief")
     ap.add_argument("--train-speed", type=float, metavar="M_PER_S", help="train the teams on travel times at it")
+    ap.add_argument("--em-pseudo-count", type=float, metavar="C", help="train the teams with EM's prior of C")
     ap.add_argument(
         "--step-limit", type=int, default=3, metavar="K", help="each mission's step limit, K n (the server's: 3)"
     )
@@ -110,13 +112,17 @@ def main() -> None:
         for robots in args.robots:
             t0 = time.perf_counter()
             team = work / f"team-{name}-N{robots}" if args.belief == "em" else work / f"team-{name}-N{robots}-true"
-            clock = [] if args.train_speed is None else ["--speed", str(args.train_speed)]
-            if clock:
+            train_extra = [] if args.train_speed is None else ["--speed", str(args.train_speed)]
+            if args.train_speed is not None:
                 team = team.with_name(f"{team.name}-clock")
+            if args.em_pseudo_count is not None:
+                c = str(args.em_pseudo_count)
+                train_extra += ["--em-pseudo-count", c, "--em-b0-pseudo-count", c]
+                team = team.with_name(f"{team.name}-prior{args.em_pseudo_count:g}")
             if not team.exists():
                 run("train", "--graph", str(graph_file), "--robots", str(robots), "--episodes", str(args.episodes),
                     "--team-searcher", "fhpe-sa", "--seed", "0", "--belief", args.belief, "--out", str(team),
-                    "--quiet", *clock)  # fmt: skip
+                    "--quiet", *train_extra)  # fmt: skip
             common = ["--graph", str(graph_file), "--robots", str(robots), "--missions", str(args.missions),
                       "--seed", str(args.seed), "--init-policy", str(team), "--max-steps", str(args.step_limit * graph.n),
                       "--json"]  # fmt: skip
