@@ -186,6 +186,19 @@ def test_rollouts_on_a_local_dask_cluster_give_the_weights_of_one_process(tmp_pa
     assert not all(np.array_equal(a[k], c[k]) for k in a)
     r = subprocess.run([*cmd, "--floors-per-update", "4"], capture_output=True, text=True)
     assert r.returncode == 2 and "floors_per_update must be 1 to the pool's 3" in r.stderr
+    # going on from a policy of the first 24 features: the workers' networks take its shape
+    torch.manual_seed(0)
+    old = save_general(tmp_path / "old", GeneralNet(8, FEATURE_COUNTS[0]).numpy_weights(), {})
+    init = ["--init", str(old), "--episodes", "400"]
+    r = subprocess.run([*dask[:5], str(tmp_path / "old-dask"), *dask[6:], *init], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    torch.set_num_threads(1)
+    try:
+        train_general(_tiny(floors_per_update=2, init=str(old), episodes=400), tmp_path / "old-here")
+    finally:
+        torch.set_num_threads(threads)
+    a, b = load_general(tmp_path / "old-dask").weights, load_general(tmp_path / "old-here").weights
+    assert a["w1"].shape[0] == FEATURE_COUNTS[0] and all(np.array_equal(a[k], b[k]) for k in a)
 
 
 def test_the_shipped_general_policy_beats_greedy_on_a_floor_it_never_saw():

@@ -423,15 +423,20 @@ def floor_gradients(
 
 
 # a Dask worker's own copies of the pool entries it has flown, built once per worker process
-_WORKER_FLOORS: dict[tuple[FloorSpec, int], tuple[GeneralNet, _Building]] = {}
+_WORKER_FLOORS: dict[tuple[FloorSpec, int, int], tuple[GeneralNet, _Building]] = {}
 
 
-def _worker_floor(spec: FloorSpec, hidden: int, threads: int) -> tuple[GeneralNet, _Building]:
+def _worker_floor(
+    spec: FloorSpec, hidden: int, threads: int, features: int = len(FEATURES)
+) -> tuple[GeneralNet, _Building]:
+    """The worker's copy of a pool entry with a network of the training run's shape (``features``:
+    a run going on from a policy of fewer features keeps them)."""
     torch.set_num_threads(threads)  # the training process's: floating-point sums depend on it
-    if (spec, hidden) not in _WORKER_FLOORS:
-        net = GeneralNet(hidden)
-        _WORKER_FLOORS[spec, hidden] = (net, spec.build(net))
-    return _WORKER_FLOORS[spec, hidden]
+    key = (spec, hidden, features)
+    if key not in _WORKER_FLOORS:
+        net = GeneralNet(hidden, features)
+        _WORKER_FLOORS[key] = (net, spec.build(net))
+    return _WORKER_FLOORS[key]
 
 
 def _remote_gradients(
@@ -445,7 +450,7 @@ def _remote_gradients(
 ) -> dict[str, Any]:
     """``floor_gradients`` on a worker, from the training process's weights and random states;
     returns what it changed (the entry's scale, the simulator's and the actions' random states)."""
-    net, b = _worker_floor(spec, cfg.hidden, threads)
+    net, b = _worker_floor(spec, cfg.hidden, threads, int(weights["w1"].shape[0]))
     net.load_state_dict(weights)
     b.scale = scale
     b.sim.gen.set_state(sim_state)
