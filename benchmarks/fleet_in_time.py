@@ -21,7 +21,8 @@ Per map (imported with `mures map import`'s defaults) and team size N:
    line of sight, a target walking at 0.5 m/s and dwelling 10 s on average);
    with --team-clock seconds, the agents match their teammates' observations by the mission clock
    (shared/core/timed_team.py) instead of by step index; each mission's step limit is --step-limit
-   times n (a robot on the clock that stays spends a step a second);
+   times n (a robot on the clock that stays spends a step a second), or with --step-limit 0
+   fleet-sim's own limit: in the continuous world a time limit of 3 n moves of the median edge;
 3. (--team-clock steps) the same fleet-sim without --world (the step world: every step together),
    for the share of decisions on the team's plan when steps are simultaneous;
 4. `mures evaluate --graph G --world MAP.yaml --robots N --searcher sweep --episodes 500` (the
@@ -92,7 +93,12 @@ def main() -> None:
     ap.add_argument("--train-speed", type=float, metavar="M_PER_S", help="train the teams on travel times at it")
     ap.add_argument("--em-pseudo-count", type=float, metavar="C", help="train the teams with EM's prior of C")
     ap.add_argument(
-        "--step-limit", type=int, default=3, metavar="K", help="each mission's step limit, K n (the server's: 3)"
+        "--step-limit",
+        type=int,
+        default=3,
+        metavar="K",
+        help="each mission's step limit, K n (the server's: 3); 0: none given, so fleet-sim's default limits "
+        "(in the continuous world a time limit of 3 n moves of the median edge)",
     )
     ap.add_argument("--against", help="an earlier run's JSON on the same settings: paired differences")
     ap.add_argument("--json", default="results/fleet_in_time/before.json")
@@ -125,8 +131,9 @@ def main() -> None:
                     "--team-searcher", "fhpe-sa", "--seed", "0", "--belief", args.belief, "--out", str(team),
                     "--quiet", *train_extra)  # fmt: skip
             common = ["--graph", str(graph_file), "--robots", str(robots), "--missions", str(args.missions),
-                      "--seed", str(args.seed), "--init-policy", str(team), "--max-steps", str(args.step_limit * graph.n),
-                      "--json"]  # fmt: skip
+                      "--seed", str(args.seed), "--init-policy", str(team), "--json"]  # fmt: skip
+            if args.step_limit:
+                common += ["--max-steps", str(args.step_limit * graph.n)]
             in_time = run("fleet-sim", *common, "--world", str(yaml_path), "--team-clock", args.team_clock)
             in_steps = run("fleet-sim", *common) if args.team_clock == "steps" else {"coordinated_share": None}
             sweep = run("evaluate", "--graph", str(graph_file), "--world", str(yaml_path), "--robots", str(robots),

@@ -68,7 +68,7 @@ def main() -> None:
             trained = json.loads((probe / "policy.json").read_text(encoding="utf-8"))["summary"]
             start_up = time.perf_counter() - t0 - trained["wall_seconds"]
             rate = trained["episodes"] / trained["wall_seconds"]  # the training loop's own rate
-            episodes = int(rate * (args.minutes * 60 - start_up) * 0.9) // 256 * 256  # 10 % left for EM
+            episodes = int(rate * (args.minutes * 60 - start_up) * 0.8) // 256 * 256  # 20 % left for EM and load
             out = Path(tmp) / f"{env}-{N}-{belief}"
             t0 = time.perf_counter()
             mures("train", "--env", env, "--robots", str(N), "--init", "general", "--episodes", str(episodes),

@@ -63,6 +63,7 @@ from shared.core.wire import (
     mission_key,
     parse_message,
     telemetry_key,
+    time_limit,
     withdrawal_key,
     withdrawal_message,
 )
@@ -492,6 +493,7 @@ class Agent:
         """Fly one mission (Algorithm 1, this robot's part) from its start message to its end, then
         leave its episode record in the outbox."""
         agent, header, max_steps, auto_capture = self._begin_mission(msg)
+        max_seconds = time_limit(msg)
         mid = header["mission_id"]
         steps: list[dict[str, Any]] = []
         decide_us: list[float] = []
@@ -504,7 +506,7 @@ class Agent:
         )
         self.team, self.last_failure = team, None
         try:
-            end = self._search(backend, msg, agent, team, max_steps, auto_capture, steps, decide_us)
+            end = self._search(backend, msg, agent, team, (max_steps, max_seconds), auto_capture, steps, decide_us)
         except MissionOver:
             end = self._control_for(mid, wait=END_WAIT_S)
         except BackendError as exc:
@@ -582,17 +584,20 @@ class Agent:
         msg: dict[str, Any],
         agent: TeamAgent,
         team: Teamwork,
-        max_steps: int,
+        limits: tuple[int, float | None],
         auto_capture: bool,
         steps: list[dict[str, Any]],
         decide_us: list[float],
     ) -> dict[str, Any] | None:
         """From the mission's start (``msg``): sense, update the belief, decide and move until the
-        mission ends (the end message, or None at the step limit or on stop); each step is
-        appended to ``steps`` as it is taken."""
+        mission ends (the end message, or None at the step limit, at the first reading at or past
+        the time limit on the mission clock, or on stop); each step is appended to ``steps`` as it
+        is taken. ``limits``: (max_steps, max_seconds or None)."""
         assert self.graph is not None
         graph, mid = self.graph, team.mission_id
+        max_steps, max_seconds = limits
         timed = agent if isinstance(agent, TimedTeamAgent) else None
+        clocked = timed is not None or max_seconds is not None  # readings carry the mission clock
         node = backend.begin(msg)  # a label on the map, z a 0 or 1 (CheckedBackend)
         started = float(msg.get(RECEIVED, time.monotonic()))  # the mission clock's zero: the start's arrival
         t, now_s = 0, 0.0
@@ -602,24 +607,26 @@ class Agent:
             p = graph.index[node]
             # Eq. 1 (own belief; t = 0: b_0 ∝ Lambda(p_0, z_0) b0) and Eq. 6 (the team's, with the
             # teammates' observations as they come)
-            if timed is not None:  # the reading's time: the backend's mission clock, else this agent's
+            if clocked:  # the reading's time: the backend's mission clock, else this agent's
                 clock = getattr(backend, "clock", lambda: None)()  # CheckedBackend.clock: checked seconds or None
                 now_s = clock if clock is not None else time.monotonic() - started
+            if timed is not None:
                 timed.observe_at(self.robot_id, t, p, z, now_s)
             else:
                 agent.observe(self.robot_id, t, p, z)
                 team.publish(t, node, z)
-            steps.append({"t": t, "node": node, "z": z, **({"time_s": now_s} if timed is not None else {})})
+            steps.append({"t": t, "node": node, "z": z, **({"time_s": now_s} if clocked else {})})
             self.journal.step(t, node, z)
             if z:  # the server decides whether this detection ends the mission (docs/SPEC.md section 6)
-                self.report_detection(mid, t, node, now_s if timed is not None else None)
+                self.report_detection(mid, t, node, now_s if clocked else None)
                 if timed is not None:  # its teammates learn the moment now, whatever the robot decides next
                     team.publish(t, node, z, time_s=now_s)
             # under "auto" the server's verdict comes at once: wait for it before moving on (a robot
             # that has found the target stays with it); under "confirm" the search goes on meanwhile
-            wait = z and (auto_capture or t >= max_steps)
+            last = t >= max_steps or (max_seconds is not None and now_s >= max_seconds)  # the mission's limit
+            wait = z and (auto_capture or last)
             end = self._control_for(mid, wait=VERDICT_WAIT_S if wait else 0.0)
-            if end is not None or t >= max_steps or self.stop.is_set():
+            if end is not None or last or self.stop.is_set():
                 return end
             waited = time.perf_counter()
             team.gather(t)  # the teammates' step t, waiting a bounded time for what is missing

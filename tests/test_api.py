@@ -168,6 +168,11 @@ def test_missions_start_follow_stop(api):
     assert c.post("/api/v1/missions/m-a/stop", headers=auth(OP)).json()["status"] == "stopped"
     assert srv.bus.published[-1] == {"type": "stop", "mission_id": "m-a", "reason": "operator"}
     assert c.get("/api/v1/missions/nope", headers=auth(AG)).status_code == 404
+    # a time limit on the mission clock: the step limit then only guards
+    r = c.post("/api/v1/missions", json={"seed": 8, "max_seconds": 600}, headers=auth(OP))
+    assert r.status_code == 201 and r.json()["params"]["max_seconds"] == 600
+    assert r.json()["params"]["max_steps"] == 100_000
+    assert srv.bus.published[-1]["max_seconds"] == 600 and srv.bus.published[-1]["max_steps"] == 100_000
 
 
 @pytest.mark.parametrize(
@@ -180,6 +185,9 @@ def test_missions_start_follow_stop(api):
         ("/api/v1/missions", {"seed": 2**63}, "seed"),  # does not fit the database
         ("/api/v1/missions", {"robots": ["bad id!"]}, "robots"),
         ("/api/v1/missions", {"colour": "red"}, "colour"),
+        ("/api/v1/missions", {"max_seconds": 0}, "max_seconds"),
+        ("/api/v1/missions", {"max_seconds": "60"}, "max_seconds"),
+        ("/api/v1/missions", '{"max_seconds": Infinity}', "max_seconds"),
         ("/api/v1/training-runs", '{"lr": NaN}', "lr"),
         ("/api/v1/training-runs", {"episodes": 5000.5}, "episodes"),
         ("/api/v1/training-runs", {"gate": "yes"}, "gate"),
@@ -618,6 +626,36 @@ def test_the_api_docs_load_from_the_server_itself_not_a_cdn(api):
         assert scripts and all(s.startswith("/") for s in scripts), (page, scripts)
         for s in scripts:
             assert c.get(s).status_code == 200, s
+
+
+def test_a_mission_that_ran_to_its_time_limit_counts_its_last_reading(api):
+    """The robots stop at their first reading at or past max_seconds; the server ends the mission as
+    "time limit", and it counts in trials and per-version figures: its last reading's seconds and
+    its last step (a mission stopped early counts for nothing)."""
+    import json
+
+    srv, _c = api
+    g = srv.graph
+    params = {"max_steps": 100_000, "max_seconds": 60.0, "seed": 0,
+              "canary": {"arm": "baseline", "pair": 0, "canary_version": 9}}  # fmt: skip
+    srv.store.add_mission("t0", "default", ["r1", "r2"], params, 1)
+    for robot, steps, last_s in (("r1", 7, 61.5), ("r2", 12, 60.0)):
+        rec = make_record(g, fleet="default", mission_id="t0", robot_id=robot, nodes=[g.start] * steps,
+                          z=[0] * steps, sensor=Sensor(), captured=False, capture_time=None, captured_by=None,
+                          policy_version=1, times=np.linspace(0.0, last_s, steps))  # fmt: skip
+        srv.store.add_episodes([("default", robot, "t0", 1, steps, False, None, json.dumps(rec), None)])
+    srv.records_complete("t0")
+    assert srv.store.get_mission("t0")["event"]["reason"] == "time limit"
+    (outcome,) = srv.store.canary_outcomes("default", 9)
+    assert srv.store.counted_seconds(outcome) == 61.5 and srv.store.counted_capture_time(outcome) == 11
+    # a mission whose robots stopped before the limit (each its own end) is not at it
+    srv.store.add_mission("t1", "default", ["r1"], {**params, "canary": None}, 1)
+    rec = make_record(g, fleet="default", mission_id="t1", robot_id="r1", nodes=[g.start] * 3, z=[0] * 3,
+                      sensor=Sensor(), captured=False, capture_time=None, captured_by=None, policy_version=1,
+                      times=[0.0, 5.0, 9.0])  # fmt: skip
+    srv.store.add_episodes([("default", "r1", "t1", 1, 3, False, None, json.dumps(rec), None)])
+    srv.records_complete("t1")
+    assert srv.store.get_mission("t1")["event"]["reason"] == "ended by the robots"
 
 
 def test_a_trial_on_the_mission_clock_counts_seconds_and_one_in_steps_counts_steps(api):

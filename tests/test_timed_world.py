@@ -12,6 +12,7 @@ import pytest
 from test_continuous_world import _two_rooms
 from test_floorplan import NAV2, mures
 
+from shared.core.clock import move_seconds
 from shared.core.graph import load_graph_file
 from shared.core.models import Sensor
 from shared.floorplan.occupancy import read_map
@@ -153,7 +154,8 @@ def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
               "fhpe-sa", "--out", str(team))  # fmt: skip
     assert r.returncode == 0, r.stderr
     r = mures("fleet-sim", "--graph", str(graph_file), "--world", str(depot), "--robots", "2", "--missions", "4",
-              "--seed", "2", "--init-policy", str(team), "--speed-cv", "0.2", "--json")  # fmt: skip
+              "--seed", "2", "--init-policy", str(team), "--speed-cv", "0.2", "--team-clock", "steps",
+              "--json")  # fmt: skip
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
     assert res["missions"] == 4 and res["episodes_stored"] == 8
@@ -164,18 +166,22 @@ def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
     for m in res["results"]:
         assert m["capture_time_s"] >= m["capture_time"] * fastest - 1e-6  # steps take time
     assert np.mean([m["capture_time_s"] for m in res["results"]]) == pytest.approx(res["mean_capture_time_s"])
-    # on the mission clock: the agents decide without waiting for travelling teammates, and their
-    # records carry each reading's time, the capturing one's the world's capture time
+    # on the mission clock (fleet-sim's default with --world): the agents decide without waiting for
+    # travelling teammates, and their records carry each reading's time, the capturing one's the
+    # world's capture time; each mission is limited to 3 n moves of the median edge in time
     work = tmp_path / "on-the-clock"
     r = mures("fleet-sim", "--graph", str(graph_file), "--world", str(depot), "--robots", "2", "--missions", "4",
-              "--seed", "2", "--init-policy", str(team), "--team-clock", "seconds", "--workdir", str(work),
-              "--json")  # fmt: skip
+              "--seed", "2", "--init-policy", str(team), "--workdir", str(work), "--json")  # fmt: skip
     assert r.returncode == 0, r.stderr
     timed = json.loads(r.stdout)
     assert timed["episodes_stored"] == 8 and 0 < timed["coordinated_share"] <= 1
     with sqlite3.connect(next((work / "server").glob("*.db"))) as db:
         records = [json.loads(row[0]) for row in db.execute("SELECT record FROM episodes")]
         events = {mid: json.loads(ev) for mid, ev in db.execute("SELECT id, event FROM missions")}
+        limits = [json.loads(p) for (p,) in db.execute("SELECT params FROM missions")]
+    graph = load_graph_file(graph_file)
+    expected = round(3 * graph.n * move_seconds(graph, 0.5), 1)  # the graph file's median edge at 0.5 m/s
+    assert [p["max_seconds"] for p in limits] == [expected] * 4 and all(p["max_steps"] == 100_000 for p in limits)
     assert len(records) == 8 and all("time_s" in step for rec in records for step in rec["steps"])
     by_mission = {(rec["mission_id"], rec["robot_id"]): rec for rec in records}
     for m in timed["results"]:
@@ -191,6 +197,39 @@ def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
             for robot in ("r1", "r2"):  # each robot's own readings up to the capture's moment, whatever its step count
                 rec = by_mission[m["mission_id"], robot]
                 assert rec["outcome"]["captured"] and rec["steps"][-1]["time_s"] <= m["capture_time_s"] + 1e-3
+
+
+def test_a_mission_on_the_clock_ends_at_its_time_limit_whatever_each_robots_step_count(tmp_path):
+    depot = NAV2 / "depot.yaml"
+    graph_file, work = tmp_path / "depot.json", tmp_path / "work"
+    assert mures("map", "import", str(depot), "--out", str(graph_file)).returncode == 0
+    r = mures("fleet-sim", "--graph", str(graph_file), "--world", str(depot), "--robots", "2", "--missions", "4",
+              "--seed", "5", "--max-seconds", "12", "--speed-cv", "0.3", "--workdir", str(work),
+              "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["missions"] == 4 and res["episodes_stored"] == 8
+    with sqlite3.connect(next((work / "server").glob("*.db"))) as db:
+        records = {(mid, robot): json.loads(rec) for mid, robot, rec in db.execute(
+            "SELECT mission_id, robot_id, record FROM episodes")}  # fmt: skip
+        events = {mid: json.loads(ev) for mid, ev in db.execute("SELECT id, event FROM missions")}
+    timed_out = [m for m in res["results"] if not m["captured"]]
+    assert timed_out, "a 12 s limit on the depot leaves some mission uncaptured"
+    for m in timed_out:
+        assert events[m["mission_id"]]["reason"] == "time limit"
+        ends = []
+        for robot in ("r1", "r2"):
+            times = [step["time_s"] for step in records[m["mission_id"], robot]["steps"]]
+            assert times[-1] >= 12 and all(x < 12 for x in times[:-1])  # each stops at its first reading past it
+            ends.append(times[-1])
+        assert m["capture_time_s"] == pytest.approx(max(ends), abs=1e-3)  # the world's clock at the mission's end
+        assert m["capture_time"] == max(len(records[m["mission_id"], r]["steps"]) for r in ("r1", "r2")) - 1
+    for m in res["results"]:
+        if m["captured"]:
+            assert m["capture_time_s"] < 12 + 1e-3 or events[m["mission_id"]]["type"] == "captured"
+    # a time limit needs the mission clock of the continuous world
+    r = mures("fleet-sim", "--graph", str(graph_file), "--robots", "2", "--missions", "1", "--max-seconds", "12")
+    assert r.returncode == 2 and "--max-seconds goes with --world" in r.stderr
 
 
 def test_a_fleet_on_the_clock_retrains_over_http_on_its_timestamped_records_and_flies_a_team_trained_on_it(tmp_path):

@@ -234,8 +234,8 @@ class Server:
 
     def records_complete(self, mission_id: str) -> None:
         """No robot is left flying a running mission: each has sent its record or withdrawn
-        (docs/operating.md). The robots ended it themselves (at its step limit, or a robot's own
-        end), or their backends failed; the server ends it too, as "stopped" with the reason."""
+        (docs/operating.md). The robots ended it themselves (at its step limit or its time limit,
+        or a robot's own end), or their backends failed; the server ends it too, as "stopped" with the reason."""
         m = self.store.get_mission(mission_id)
         if m is None or m["status"] != "running" or mission_id in getattr(self.bus, "capturing", {}):
             return  # (a detection's verdict is due: it ends the mission)
@@ -243,9 +243,12 @@ class Server:
         if not set(m["robots"]) <= {r for r, *_ in recs} | set(m["withdrawn"]):
             return
         steps = self.store.mission_steps(self.fleet, mission_id)
-        limit = m["params"]["max_steps"]
+        limit, seconds = m["params"]["max_steps"], m["params"].get("max_seconds")
+        last_s = self.store.mission_last_reading_s(self.fleet, mission_id) if seconds else None
         if steps >= limit + 1:
             reason = "step limit"
+        elif last_s is not None and last_s >= seconds:
+            reason = "time limit"
         elif m["withdrawn"]:
             reason = "no robot left: " + "; ".join(
                 f"{r} withdrew ({w['reason']})" for r, w in sorted(m["withdrawn"].items())

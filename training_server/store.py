@@ -550,6 +550,7 @@ class Store:
                     func.max(e.policy_version),
                     func.max(e.captured),
                     first_capture,
+                    func.max(e.steps),
                 )
                 .where(e.fleet == fleet)
                 .group_by(e.mission_id)
@@ -561,7 +562,7 @@ class Store:
                 ).all()
             }
             out = []
-            for mid, v_lo, v_hi, captured, ct in per:
+            for mid, v_lo, v_hi, captured, ct, steps in per:
                 status, params, ev = info.get(mid, (None, {}, None))
                 out.append(
                     {
@@ -572,6 +573,7 @@ class Store:
                         "policy_version": v_lo if v_lo == v_hi else None,  # None: robots flew different versions
                         "captured": bool(captured),
                         "capture_time": ct,
+                        "steps": steps,  # the most steps (t = 0, 1, ...) a record holds
                         "seconds": self._seconds(conn, fleet, mid, ev or {}, bool(captured)),
                     }
                 )
@@ -583,28 +585,44 @@ class Store:
         not captured, its last reading's time when every record carries times; None otherwise."""
         if captured:
             return event.get("time_s") if event.get("type") == "captured" else None
-        if event.get("reason") != "step limit":  # stopped or timed out early: it counts for nothing
+        if event.get("reason") not in ("step limit", "time limit"):  # stopped or timed out early: it counts for nothing
             return None
+        return Store._last_reading_s(conn, fleet, mission_id)
+
+    @staticmethod
+    def _last_reading_s(conn: Connection, fleet: str, mission_id: str) -> float | None:
+        """The latest last reading's time (mission clock, seconds) over the mission's stored
+        records; None unless every record carries times."""
         e = episodes.c
         rows = conn.execute(select(e.record).where(e.fleet == fleet, e.mission_id == mission_id)).all()
         last = [(_from_json(rec) or {}).get("steps", [{}])[-1].get("time_s") for (rec,) in rows]
-        return max(last) if last and all(isinstance(x, int | float) for x in last) else None
+        return float(max(last)) if last and all(isinstance(x, int | float) for x in last) else None
+
+    def mission_last_reading_s(self, fleet: str, mission_id: str) -> float | None:
+        """The mission clock of the latest reading in the mission's stored records (seconds), None
+        when a record has no times (robots not on the clock) or none is stored."""
+        if not _storable(fleet, mission_id):
+            return None
+        with self._tx() as conn:
+            return self._last_reading_s(conn, fleet, mission_id)
 
     @staticmethod
     def counted_capture_time(outcome: dict[str, Any]) -> float | None:
         """The capture time a mission outcome (``mission_outcomes``, ``canary_outcomes``) counts
-        for: its capture time when captured, its step limit when it ran to it, None when it was
-        stopped or timed out early (it does not count)."""
+        for: its capture time when captured, its step limit when it ran to it, its last step when it
+        ran to its time limit, None when it was stopped or timed out early (it does not count)."""
         if outcome["captured"] and outcome["capture_time"] is not None:
             return float(outcome["capture_time"])
         if outcome["stop_reason"] == "step limit" and outcome["max_steps"]:
             return float(outcome["max_steps"])
+        if outcome["stop_reason"] == "time limit" and outcome.get("steps"):
+            return float(outcome["steps"] - 1)
         return None
 
     @staticmethod
     def counted_seconds(outcome: dict[str, Any]) -> float | None:
         """On the mission clock (``canary_outcomes``' "seconds"): the capture's moment, or the last
-        reading's when the mission ran to its step limit; None where ``counted_capture_time`` is
+        reading's when the mission ran to its step or time limit; None where ``counted_capture_time`` is
         None or the mission was not on the clock. A robot's step count on the clock is its own
         (a robot that stays reads once a second), so trials compare seconds where both arms have them."""
         if Store.counted_capture_time(outcome) is None:
@@ -624,11 +642,11 @@ class Store:
             out = []
             for mid, robots, params, ev in rows:
                 recs = conn.execute(
-                    select(e.robot_id, e.captured, e.capture_time).where(e.fleet == fleet, e.mission_id == mid)
+                    select(e.robot_id, e.captured, e.capture_time, e.steps).where(e.fleet == fleet, e.mission_id == mid)
                 ).all()
-                if not set(_from_json(robots)) <= {r for r, _c, _t in recs}:
+                if not set(_from_json(robots)) <= {r for r, _c, _t, _s in recs}:
                     continue
-                p, caps = _from_json(params), [t for _r, c, t in recs if c and t is not None]
+                p, caps = _from_json(params), [t for _r, c, t, _s in recs if c and t is not None]
                 event = _from_json(ev) or {}
                 out.append(
                     {
@@ -639,6 +657,7 @@ class Store:
                         "stop_reason": event.get("reason"),
                         "captured": bool(caps),
                         "capture_time": min(caps) if caps else None,
+                        "steps": max(s for _r, _c, _t, s in recs),
                         "seconds": self._seconds(conn, fleet, mid, event, bool(caps)),  # on the mission clock
                     }
                 )

@@ -23,7 +23,7 @@ Key expressions, segment by segment (``<fleet>`` defaults to ``default``; ids ma
 
 Mission-control messages (JSON objects with a ``type``):
 
-    {"type": "start", "mission_id", "robots": [ids], "seed": int, "max_steps": int,
+    {"type": "start", "mission_id", "robots": [ids], "seed": int, "max_steps": int[, "max_seconds": float],
      "sensor": {...}, "policy_version": int|null}
     {"type": "captured", "mission_id", "t": int, "captured_by": id[, "time_s"]}  (the mission is over)
     {"type": "stop", "mission_id", "reason": str}                        (the mission is over)
@@ -37,9 +37,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+import math
 from typing import Any
 
 from shared.core.records import ID_RE, is_seconds
+
+log = logging.getLogger("mures.wire")
 
 DEFAULT_FLEET = "default"
 DEFAULT_ZENOH_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -339,3 +343,18 @@ def parse_message(payload: bytes) -> dict[str, Any] | None:
     if not isinstance(msg.get("mission_id"), str):
         return None
     return msg
+
+
+def time_limit(msg: dict[str, Any]) -> float | None:
+    """A start message's time limit on the mission clock (``max_seconds``, seconds), or None: none
+    given, or not a positive finite number (then the step limit alone ends the mission, and the
+    agent says why)."""
+    value = msg.get("max_seconds")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
+        log.warning(
+            "mission %s: max_seconds %r is not a positive number of seconds; ignored", msg.get("mission_id"), value
+        )
+        return None
+    return float(value)

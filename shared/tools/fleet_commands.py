@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.core.choices import DETECTIONS
+from shared.core.clock import move_seconds
 from shared.core.wire import add_zenoh_arguments
 from shared.learning.config import positive_int, seconds, whole_number
 from shared.learning.team_snapshot import load_snapshot
@@ -20,6 +21,7 @@ from shared.tools.cli_args import (
     add_world_args,
     building_of,
     eta_arg,
+    positive_number,
     probability,
     world_of,
 )
@@ -50,8 +52,12 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         server_extra += ["--map-image", str(Path(args.map_image).resolve())]
     if args.step_timeout <= 0:
         raise CliError("fleet-sim: --step-timeout must be more than 0 seconds")
-    if args.max_steps is not None and args.kill:
-        raise CliError("fleet-sim: --max-steps goes without --kill")
+    if (args.max_steps is not None or args.max_seconds is not None) and args.kill:
+        raise CliError("fleet-sim: --max-steps and --max-seconds go without --kill")
+    if args.max_seconds is not None and not args.world:
+        raise CliError("fleet-sim: --max-seconds goes with --world (the continuous world keeps the mission clock)")
+    if args.team_clock is None:  # the mission clock where the world has one
+        args.team_clock = "seconds" if args.world else "steps"
     if args.kill >= args.robots:
         raise CliError(f"fleet-sim: --kill {args.kill} leaves no robot of {args.robots} to search")
     agent_extra = ["--link-loss", str(args.link_loss)] if args.link_loss else []
@@ -63,10 +69,15 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
     if args.world and (args.team_clock == "seconds" or init_clock is not None):
         retrain["speed"] = args.speed  # the fleet flies on the clock: retrain on the map's travel times
     continuous = {}
+    limits: dict[str, Any] = {} if args.max_steps is None else {"max_steps": args.max_steps}
     if args.world:
         if args.step_delay:
             raise CliError("fleet-sim: --step-delay is the step world's; --world moves robots at --speed")
         continuous = {"building": building_of(args, graph), "motion": motion_of(args, target)}
+        if args.max_seconds is not None:
+            limits["max_seconds"] = args.max_seconds
+        elif args.max_steps is None:  # the step limit's horizon on the clock: 3 n moves of the median edge
+            limits["max_seconds"] = round(3 * graph.n * move_seconds(graph, args.speed), 1)
     try:
         res = run_fleet_sim(
             graph,
@@ -89,7 +100,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
             step_timeout=args.step_timeout,
             kill=args.kill,
             kill_by=args.kill_by,
-            max_steps=args.max_steps,
+            limits=limits,
             server_extra=server_extra or None,
             agent_extra=agent_extra or None,
             **continuous,
@@ -284,15 +295,24 @@ def add_fleet_commands(sub: Any) -> None:
         type=positive_int,
         default=None,
         metavar="K",
-        help="each mission's step limit per robot (default the server's, 3 n); on the mission clock a step that "
-        "stays takes --stay-seconds, so a robot that waits uses its steps fast",
+        help="each mission's step limit per robot (default the server's, 3 n; with --world, a time limit instead: "
+        "--max-seconds); on the mission clock a step that stays takes --stay-seconds, so a robot that waits uses "
+        "its steps fast",
+    )
+    p.add_argument(
+        "--max-seconds",
+        type=positive_number,
+        default=None,
+        metavar="S",
+        help="with --world: each mission's time limit on the mission clock; each robot stops at its first reading "
+        "at or past it (default, unless --max-steps is given: 3 n moves of the map's median edge at --speed)",
     )
     p.add_argument(
         "--team-clock",
         choices=("steps", "seconds"),
-        default="steps",
-        help="how the agents match their teammates' observations (robot-agent --team-clock): by step index "
-        "(default) or, with --world, by the mission clock (docs/continuous-world.md)",
+        default=None,
+        help="how the agents match their teammates' observations (robot-agent --team-clock): by the mission clock "
+        "(the default with --world, docs/continuous-world.md) or by step index (the default without)",
     )
     p.add_argument(
         "--kill",

@@ -424,13 +424,14 @@ def run_fleet_sim(
     retrains: int | None = None,
     kill: int = 0,
     kill_by: int = 10,
-    max_steps: int | None = None,
+    limits: dict[str, Any] | None = None,
     **launch_kw: Any,
 ) -> dict[str, Any]:
     """Fly ``missions`` missions and return the summary (see ``mures fleet-sim``), retraining
     every ``retrain_every`` missions (at most ``retrains`` times), killing ``kill`` robots in each
-    at steps up to ``kill_by`` (``Fleet.fly_losing``); with ``serve``, then keep the fleet up for
-    the operator console until Ctrl-C (or SIGTERM)."""
+    at steps up to ``kill_by`` (``Fleet.fly_losing``); ``limits``: each mission's max_steps and
+    max_seconds where given (POST /api/v1/missions; the server's defaults otherwise); with
+    ``serve``, then keep the fleet up for the operator console until Ctrl-C (or SIGTERM)."""
 
     def say(text: str) -> None:  # progress on stderr, also beside --json's object on stdout
         print(text, file=sys.stderr, flush=True)
@@ -456,8 +457,7 @@ def run_fleet_sim(
                 m = fleet.fly_losing(ids, mission_seed, kill, kill_by)
                 results.append({**_mission_result(fleet, m), "killed": m["killed"]})
             else:
-                limit = {"max_steps": max_steps} if max_steps else {}
-                results.append(_mission_result(fleet, fleet.fly(ids, seed=mission_seed, **limit)))
+                results.append(_mission_result(fleet, fleet.fly(ids, seed=mission_seed, **(limits or {}))))
             if on_trial is not None:
                 trial = _trial_decided(fleet, on_trial, say)
                 if trial is not None:
@@ -532,10 +532,13 @@ def _missions_flown_since(fleet: Fleet, since: float, known: set[str]) -> list[d
 
 
 def _mission_result(fleet: Fleet, m: dict[str, Any]) -> dict[str, Any]:
-    """A flown mission's line in the summary: a censored mission counts its step limit; the robots'
-    decisions on their team's plan (complete or partial) and on their own policies, from their records."""
+    """A flown mission's line in the summary: a censored mission counts its step limit (at a time
+    limit: its last step); the robots' decisions on their team's plan (complete or partial) and on
+    their own policies, from their records."""
     out = m["outcome"] or {}
     ct = out.get("capture_time")
+    timed_out = m["params"].get("max_seconds") and out.get("steps") is not None  # its step limit only a guard
+    censored = out["steps"] if timed_out else m["params"]["max_steps"]
     team = own = 0
     for robot in m.get("episodes_received", m["robots"]):  # a robot killed before its first step sends none
         coordination = fleet.api.get(f"/api/v1/episodes/{robot}/{m['id']}").get("coordination") or {}
@@ -549,7 +552,7 @@ def _mission_result(fleet: Fleet, m: dict[str, Any]) -> dict[str, Any]:
         **seconds,
         "mission_id": m["id"],
         "captured": ct is not None,
-        "capture_time": ct if ct is not None else m["params"]["max_steps"],
+        "capture_time": ct if ct is not None else censored,
         "policy_version": (out.get("policy_versions") or [m["policy_version"]])[0],
         "team_steps": team,
         "own_steps": own,

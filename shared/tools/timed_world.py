@@ -43,6 +43,7 @@ import numpy as np
 import zenoh
 
 from shared.core.models import Sensor, TargetModel, uniform_walk
+from shared.core.wire import time_limit
 from shared.tools.world import World, _Mission
 from shared.world.continuous import Building, Targets, target_generator
 
@@ -109,6 +110,7 @@ class TimedWorld(World):
             robots=robots,
             rng=rng,
             max_steps=int(msg.get("max_steps") or 3 * self.graph.n),
+            max_seconds=time_limit(msg),
             target=int(targets.at[0]),
             active=set(robots),
             confirm=msg.get("capture") == "confirm",
@@ -190,7 +192,9 @@ class TimedWorld(World):
             q.reply(q.key_expr, f'{{"z": {z}, "time_s": {due:.3f}}}'.encode())
             q.drop()
             answered[robot] = {"node": int(self.graph.labels[row]), "z": z, "seen": seen, "t": t, "time_s": due}
-            if t >= m.max_steps:  # the agent stops there on its own
+            # the agent stops there on its own: its step limit, or its first reading at or past the
+            # time limit (the clock as it reads it, to the millisecond)
+            if t >= m.max_steps or (m.max_seconds is not None and float(f"{due:.3f}") >= m.max_seconds):
                 m.active.discard(robot)
                 m.finished_robots.add(robot)
         m.target = int(m.targets.at[0])

@@ -42,6 +42,7 @@ class _Mission:
     rng: np.random.Generator
     max_steps: int
     target: int  # e_t, a row
+    max_seconds: float | None = None  # the time limit on the mission clock (the continuous world's)
     t: int = 0
     active: set[str] = field(default_factory=set)
     reports: dict[str, tuple[int, Any]] = field(default_factory=dict)  # robot -> (row, query)

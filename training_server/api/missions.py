@@ -12,6 +12,7 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from training_server.api.deps import READ, WRITE, Srv, errors, fleet_scope
 from training_server.api.models import (
     MAX_ID,
+    MAX_MISSION_STEPS,
     Mission,
     MissionList,
     MissionParams,
@@ -88,12 +89,15 @@ def start_mission(req: MissionRequest, response: Response, srv: Srv) -> Mission:
     timeout = min(req.timeout_s or srv.mission_timeout, srv.mission_timeout)
     seed = req.seed if req.seed is not None else random.SystemRandom().randrange(2**31)
     pv, seed, canary = srv.mission_policy(seed)  # during a canary, every other mission flies it
-    params = {
+    params: dict[str, Any] = {
         "seed": seed,
-        "max_steps": req.max_steps or 3 * srv.graph.n,
+        # under a time limit the step limit only guards: a robot on the clock that stays reads once a second
+        "max_steps": req.max_steps or (MAX_MISSION_STEPS if req.max_seconds else 3 * srv.graph.n),
         "start_node": int(srv.graph.labels[srv.graph.start]),
         "capture": req.capture or srv.default_capture(),
     }
+    if req.max_seconds is not None:
+        params["max_seconds"] = req.max_seconds
     if canary is not None:
         params["canary"] = canary
     srv.store.add_mission(mid, srv.fleet, robots, params, pv, deadline=time.time() + timeout)

@@ -19,6 +19,7 @@ RobotId = Annotated[str, Field(pattern=ID_RE.pattern, description="1-128 charact
 # clients holding numbers as doubles (JavaScript, schema validators) hold exactly, so that a client
 # and the server agree on which values are in range; the database's own limit (2^63 - 1) is above
 MAX_ID = 2**53 - 1
+MAX_MISSION_STEPS = 100_000  # a mission's step limit at most (the default guard under a time limit)
 
 
 class Error(BaseModel):
@@ -138,8 +139,16 @@ class MissionRequest(_Request):
     seed: Annotated[int, Field(ge=0, le=MAX_ID), INTEGRAL] | None = Field(
         default=None, description="mission seed (agents' and simulated world's randomness)"
     )
-    max_steps: Annotated[int, Field(ge=1, le=100_000), INTEGRAL] | None = Field(
-        default=None, description="step limit (default 3n)"
+    max_steps: Annotated[int, Field(ge=1, le=MAX_MISSION_STEPS), INTEGRAL] | None = Field(
+        default=None, description="step limit (default 3n; with max_seconds, 100000: a guard only)"
+    )
+    max_seconds: float | None = Field(
+        default=None,
+        gt=0,
+        le=7 * 24 * 3600,
+        allow_inf_nan=False,
+        description="time limit on the mission clock, seconds: each robot stops at its first reading at or past it "
+        "(robots on the mission clock; docs/continuous-world.md). Default none: the step limit alone",
     )
     timeout_s: float | None = Field(
         default=None,
@@ -160,6 +169,7 @@ class MissionRequest(_Request):
 class MissionParams(BaseModel):
     seed: int
     max_steps: int
+    max_seconds: float | None = Field(default=None, description="the time limit on the mission clock, if any")
     start_node: int
     capture: Literal["auto", "confirm"] | None = Field(
         default=None, description="how detections end this mission (None: a mission from before capture modes)"

@@ -596,6 +596,7 @@ pages.missions = async function (ctx) {
     const body = { robots: picked };
     if ($("#mission-seed").value !== "") body.seed = Number($("#mission-seed").value);
     if ($("#mission-steps").value !== "") body.max_steps = Number($("#mission-steps").value);
+    if ($("#mission-seconds").value !== "") body.max_seconds = Number($("#mission-seconds").value);
     if ($("#mission-capture").value !== "") body.capture = $("#mission-capture").value;
     const m = await act("Mission started", () => api("/api/v1/missions", { method: "POST", body }));
     if (m) notice(`Mission ${m.id} started with ${m.robots.join(", ")}`, true);
