@@ -6,12 +6,13 @@ plan, beside the same fleet in the step world.
     python benchmarks/fleet_in_time.py [--robots 2 4] [--missions 30] [--episodes 20000] [--seed 1]
                                        [--offices 2] [--maps depot,bookstore,...] [--workdir DIR]
                                        [--team-clock steps|seconds] [--step-limit 3] [--belief em|true]
-                                       [--train-speed M_PER_S] [--em-pseudo-count C] [--against BEFORE.json]
+                                       [--train-speed M_PER_S] [--em-pseudo-count C] [--general]
+                                       [--against BEFORE.json]
                                        [--json results/fleet_in_time/before.json]
 
 Per map (imported with `mures map import`'s defaults) and team size N:
 1. `mures train --graph G --robots N --episodes E --team-searcher fhpe-sa --seed 0 --belief B --out
-   TEAM` (B em: the model the team's beliefs and plan use learned by EM, as the trainer does by
+   TEAM` (with --general none: TEAM is the shipped general policy, zero shot; B em: the model the team's beliefs and plan use learned by EM, as the trainer does by
    default; true: the true model, the uniform walk); with --train-speed S also `--speed S`: the team
    trained on the map's travel times (its model per tick, EM per tick), which the agents fly on
    the mission clock; with --em-pseudo-count C also `--em-pseudo-count C --em-b0-pseudo-count C`:
@@ -93,6 +94,11 @@ def main() -> None:
     ap.add_argument("--train-speed", type=float, metavar="M_PER_S", help="train the teams on travel times at it")
     ap.add_argument("--em-pseudo-count", type=float, metavar="C", help="train the teams with EM's prior of C")
     ap.add_argument(
+        "--general",
+        action="store_true",
+        help="fly the shipped general policy (fleet-sim --init-policy general) instead of a team trained per map",
+    )
+    ap.add_argument(
         "--step-limit",
         type=int,
         default=3,
@@ -126,12 +132,13 @@ def main() -> None:
                 c = str(args.em_pseudo_count)
                 train_extra += ["--em-pseudo-count", c, "--em-b0-pseudo-count", c]
                 team = team.with_name(f"{team.name}-prior{args.em_pseudo_count:g}")
-            if not team.exists():
+            if not args.general and not team.exists():
                 run("train", "--graph", str(graph_file), "--robots", str(robots), "--episodes", str(args.episodes),
                     "--team-searcher", "fhpe-sa", "--seed", "0", "--belief", args.belief, "--out", str(team),
                     "--quiet", *train_extra)  # fmt: skip
+            init = "general" if args.general else str(team)  # general: the server's own first version
             common = ["--graph", str(graph_file), "--robots", str(robots), "--missions", str(args.missions),
-                      "--seed", str(args.seed), "--init-policy", str(team), "--json"]  # fmt: skip
+                      "--seed", str(args.seed), "--init-policy", init, "--json"]  # fmt: skip
             if args.step_limit:
                 common += ["--max-steps", str(args.step_limit * graph.n)]
             in_time = run("fleet-sim", *common, "--world", str(yaml_path), "--team-clock", args.team_clock)
