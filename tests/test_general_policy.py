@@ -276,9 +276,9 @@ def test_the_shipped_policy_is_there():
 
 def test_a_server_without_init_policy_flies_the_general_policy_and_fine_tunes_it(tmp_path):
     """fleet-sim's server starts with no --init-policy: version 1 is the general policy bound to the
-    map, the robot agents fly it from the first mission (their capture times agree with `mures
-    evaluate` of the same snapshot), and the retraining fine-tunes it (the gate then decides, as for
-    any run)."""
+    map with FHPE-SA as its team searcher, the robot agents fly it from the first mission (their
+    capture times agree with `mures evaluate` of the same snapshot flown as a team), and the
+    retraining fine-tunes it (the gate then decides, as for any run)."""
     work = tmp_path / "work"
     cmd = [sys.executable, "-m", "shared.tools.cli", "fleet-sim", "--env", "museum", "--robots", "3"]
     cmd += ["--missions", "48", "--retrain-every", "40", "--retrain-episodes", "256", "--seed", "0"]
@@ -290,10 +290,11 @@ def test_a_server_without_init_policy_flies_the_general_policy_and_fine_tunes_it
     assert flown["missions"] >= 40
     v1 = work / "server" / "policies" / "v1" / "snapshot"
     meta = json.loads((v1 / "policy.json").read_text())
-    assert meta["architecture"] == "general" and meta["robots"] == 3
+    assert meta["architecture"] == "general" and meta["robots"] == 3 and meta["team_searcher"] == "fhpe-sa"
+    assert out["coordinated_share"] > 0.9  # links up: the team's plan on every observation
     ev = [sys.executable, "-m", "shared.tools.cli", "evaluate", "--env", "museum", "--robots", "3"]
-    r = subprocess.run([*ev, "--searcher", f"policy:{v1}", "--episodes", "500", "--seed", "5", "--json"],
-                       capture_output=True, text=True, timeout=300)  # fmt: skip
+    r = subprocess.run([*ev, "--searcher", f"policy:{v1}", "--team-searcher", "fhpe-sa", "--episodes", "200",
+                        "--seed", "5", "--json"], capture_output=True, text=True, timeout=600)  # fmt: skip
     assert r.returncode == 0, r.stderr
     batched = json.loads(r.stdout)
     se = ((flown["ci95_halfwidth"] / 1.96) ** 2 + (batched["ci95_halfwidth"] / 1.96) ** 2) ** 0.5

@@ -512,32 +512,19 @@ class Server:
 
     def ensure_initial_policy(self, robots: int, init_policy: str | None, sensor: Any, seed: int) -> None:
         """Version 1 when there is none: ``init_policy`` None or "general" (the shipped general policy,
-        flown by ``robots`` robots on the uniform walk until EM has learned a model), "untrained" (a
-        per-map team of random networks) or a snapshot directory."""
+        flown by ``robots`` robots on the uniform walk until EM has learned a model, with FHPE-SA as
+        its team searcher: ``write_general_version``), "untrained" (a per-map team of random
+        networks) or a snapshot directory."""
         if self.store.get_setting("current_version") is not None:
             return
         from shared.learning.team_snapshot import load_snapshot, save_snapshot
 
         staging = self.data_dir / "staging" / "initial"
         if init_policy in (None, "general"):
-            from shared.core.models import uniform_walk
-            from shared.core.snapshot_format import load_general, shipped_general_path, write_snapshot
+            from shared.core.snapshot_format import write_general_version
             from shared.learning.team_snapshot import provenance
 
-            general = load_general(shipped_general_path())
-            write_snapshot(  # its weights as they are: nothing of the map (distances, masks) is built here
-                staging,
-                self.graph,
-                general.weights,
-                uniform_walk(self.graph),
-                sensor,
-                "cepg",
-                [1.0] * robots,
-                {"episodes": 0, "seed": seed, "belief": "uniform walk", "map": self.graph.name, "general": True},
-                {"episodes": 0, "note": "the general policy, not trained on this map",
-                 "general_training": general.meta.get("training", {}).get("command"), "trained_with": provenance()},
-                robots=robots,
-            )  # fmt: skip
+            write_general_version(staging, self.graph, sensor, robots, seed, {"trained_with": provenance()})
             note = "the general policy"
         elif init_policy != "untrained":
             load_snapshot(init_policy, self.graph)  # clear error before anything is written (either format)

@@ -578,3 +578,32 @@ def load_general(path: str | Path) -> GeneralPolicy:
 def shipped_general_path() -> Path:
     """The general policy shipped with the project (trained by `mures train-general`)."""
     return Path(__file__).resolve().parent / "policies" / "general"
+
+
+GENERAL_TEAM_SEARCHER = "fhpe-sa"  # a fleet's first version plans together (docs/general-policy.md)
+
+
+def write_general_version(
+    path: str | Path, graph: Graph, sensor: Sensor, robots: int, seed: int, summary: dict[str, Any]
+) -> Path:
+    """The shipped general policy bound to ``graph`` as a snapshot at ``path``, as a training
+    server's first version: beliefs on the uniform walk until EM has learned a model, FHPE-SA as its
+    team searcher (the team's plan on every observation heard; the network where links fail), flown
+    by ``robots`` robots (any team size flies it). ``summary`` is added to the snapshot's summary."""
+    from shared.core.models import uniform_walk
+
+    general = load_general(shipped_general_path())
+    return write_snapshot(  # its weights as they are: nothing of the map (distances, masks) is built here
+        path,
+        graph,
+        general.weights,
+        uniform_walk(graph),
+        sensor,
+        "cepg",
+        [1.0] * robots,
+        {"episodes": 0, "seed": seed, "belief": "uniform walk", "map": graph.name, "general": True},
+        {"episodes": 0, "note": "the general policy, not trained on this map",
+         "general_training": general.meta.get("training", {}).get("command"), **summary},
+        team_searcher=GENERAL_TEAM_SEARCHER,
+        robots=robots,
+    )  # fmt: skip
