@@ -169,16 +169,17 @@ class Fleet:
         )
 
     def fly_losing(
-        self, robots: list[str], seed: int, kill: int, kill_by: int, timeout: float = 300.0
+        self, robots: list[str], seed: int, kill: int, kill_by: int, timeout: float = 300.0, **extra: Any
     ) -> dict[str, Any]:
         """A mission in which ``kill`` of ``robots`` (drawn from the mission seed) are killed
         (SIGKILL: their liveliness goes, as a robot's that dies) each at a step drawn from 1..``kill_by``;
         they are started again once the others have finished (their journals send what they flew)
-        and the mission is returned when every record is stored, with ``killed``: [robot, step]."""
+        and the mission (``extra``: more fields of its POST, its limits) is returned when every
+        record is stored, with ``killed``: [robot, step]."""
         rng = np.random.default_rng([seed, 57])
         victims = [robots[i] for i in rng.choice(len(robots), size=kill, replace=False)]
         schedule = sorted(zip((int(s) for s in rng.integers(1, kill_by + 1, size=kill)), victims, strict=True))
-        mid = self.api.post("/api/v1/missions", {"robots": robots, "seed": seed})["id"]
+        mid = self.api.post("/api/v1/missions", {"robots": robots, "seed": seed, **extra})["id"]
         world = self.world.missions
         killed = []
         for step, robot in schedule:
@@ -454,7 +455,7 @@ def run_fleet_sim(
         for k in range(missions):
             mission_seed = fleet_mission_seed(seed, k)
             if kill:
-                m = fleet.fly_losing(ids, mission_seed, kill, kill_by)
+                m = fleet.fly_losing(ids, mission_seed, kill, kill_by, **(limits or {}))
                 results.append({**_mission_result(fleet, m), "killed": m["killed"]})
             else:
                 results.append(_mission_result(fleet, fleet.fly(ids, seed=mission_seed, **(limits or {}))))
