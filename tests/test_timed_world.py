@@ -232,6 +232,23 @@ def test_a_mission_on_the_clock_ends_at_its_time_limit_whatever_each_robots_step
     assert r.returncode == 2 and "--max-seconds goes with --world" in r.stderr
 
 
+def test_fleet_sim_kill_in_the_continuous_world_keeps_the_missions_time_limit(tmp_path):
+    """fleet-sim --kill: a robot of each mission killed (SIGKILL) at a step, the others fly on; its
+    missions have the same limits as any (in the continuous world, the time limit)."""
+    depot = NAV2 / "depot.yaml"
+    graph_file, work = tmp_path / "depot.json", tmp_path / "work"
+    assert mures("map", "import", str(depot), "--out", str(graph_file)).returncode == 0
+    r = mures("fleet-sim", "--graph", str(graph_file), "--world", str(depot), "--robots", "3", "--missions", "2",
+              "--kill", "1", "--kill-by", "3", "--seed", "4", "--workdir", str(work), "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["missions"] == 2 and all(len(m["killed"]) == 1 for m in res["results"])
+    with sqlite3.connect(next((work / "server").glob("*.db"))) as db:
+        limits = [json.loads(p) for (p,) in db.execute("SELECT params FROM missions")]
+    graph = load_graph_file(graph_file)
+    assert [p.get("max_seconds") for p in limits] == [round(3 * graph.n * move_seconds(graph, 0.5), 1)] * 2
+
+
 def test_a_fleet_on_the_clock_retrains_over_http_on_its_timestamped_records_and_flies_a_team_trained_on_it(tmp_path):
     depot = NAV2 / "depot.yaml"
     graph_file, team = tmp_path / "depot.json", tmp_path / "team"
