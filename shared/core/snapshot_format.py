@@ -53,7 +53,7 @@ from shared.core.graph import Graph
 from shared.core.graph_policy import FEATURE_COUNTS, FEATURES, SCALES, GeneralAgent, draw, feature_count
 from shared.core.graph_policy import PARAMS as GENERAL_PARAMS
 from shared.core.graph_policy import param_shapes as general_shapes
-from shared.core.models import ModelError, Sensor, TargetModel, from_matrix
+from shared.core.models import ModelError, Sensor, TargetModel, from_matrix, uniform_walk
 
 FORMAT = "mures.policy/1"
 WEIGHTS = "weights.safetensors"
@@ -590,8 +590,6 @@ def write_general_version(
     server's first version: beliefs on the uniform walk until EM has learned a model, FHPE-SA as its
     team searcher (the team's plan on every observation heard; the network where links fail), flown
     by ``robots`` robots (any team size flies it). ``summary`` is added to the snapshot's summary."""
-    from shared.core.models import uniform_walk
-
     general = load_general(shipped_general_path())
     return write_snapshot(  # its weights as they are: nothing of the map (distances, masks) is built here
         path,

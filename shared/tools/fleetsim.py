@@ -538,8 +538,8 @@ def _mission_result(fleet: Fleet, m: dict[str, Any]) -> dict[str, Any]:
     their own policies, from their records."""
     out = m["outcome"] or {}
     ct = out.get("capture_time")
-    timed_out = m["params"].get("max_seconds") and out.get("steps") is not None  # its step limit only a guard
-    censored = out["steps"] if timed_out else m["params"]["max_steps"]
+    time_limited = m["params"].get("max_seconds") and out.get("steps") is not None  # its step limit a guard
+    censored = out["steps"] if time_limited else m["params"]["max_steps"]
     team = own = 0
     for robot in m.get("episodes_received", m["robots"]):  # a robot killed before its first step sends none
         coordination = fleet.api.get(f"/api/v1/episodes/{robot}/{m['id']}").get("coordination") or {}
