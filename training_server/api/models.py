@@ -20,6 +20,8 @@ RobotId = Annotated[str, Field(pattern=ID_RE.pattern, description="1-128 charact
 # and the server agree on which values are in range; the database's own limit (2^63 - 1) is above
 MAX_ID = 2**53 - 1
 MAX_MISSION_STEPS = 100_000  # a mission's step limit at most (the default guard under a time limit)
+# a mission's durations (its time limit, its wall-clock timeout): finite seconds, more than 0, a week at most
+MissionSeconds = Annotated[float, Field(gt=0, le=7 * 24 * 3600, allow_inf_nan=False)]
 
 
 class Error(BaseModel):
@@ -142,19 +144,13 @@ class MissionRequest(_Request):
     max_steps: Annotated[int, Field(ge=1, le=MAX_MISSION_STEPS), INTEGRAL] | None = Field(
         default=None, description="step limit (default 3n; with max_seconds, 100000: a guard only)"
     )
-    max_seconds: float | None = Field(
+    max_seconds: MissionSeconds | None = Field(
         default=None,
-        gt=0,
-        le=7 * 24 * 3600,
-        allow_inf_nan=False,
         description="time limit on the mission clock, seconds: each robot stops at its first reading at or past it "
         "(robots on the mission clock; docs/continuous-world.md). Default none: the step limit alone",
     )
-    timeout_s: float | None = Field(
+    timeout_s: MissionSeconds | None = Field(
         default=None,
-        gt=0,
-        le=7 * 24 * 3600,
-        allow_inf_nan=False,
         description="end the mission if it still runs after this long (default and upper bound: the server's "
         "--mission-timeout)",
     )
