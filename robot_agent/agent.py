@@ -39,7 +39,14 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from robot_agent.backend import BackendError, MissionOver, RobotBackend, load_backend, resolve_backend
+from robot_agent.backend import (
+    BackendError,
+    MissionOver,
+    RobotBackend,
+    SimBackend,
+    load_backend,
+    resolve_backend,
+)
 from robot_agent.teamwork import TEAM_WAIT_S, Teamwork
 from shared.core.clock import move_seconds
 from shared.core.files import atomic_write, read_token
@@ -504,6 +511,9 @@ class Agent:
         team = Teamwork(
             self.session, self.fleet, self.graph, mid, agent, wait_s=self.args.team_wait, link_loss=self.args.link_loss
         )
+        sim = getattr(backend, "backend", backend)  # the backend inside CheckedBackend
+        if isinstance(sim, SimBackend):  # the world answers together only robots that wait for each other
+            sim.wait_s = 0.0 if isinstance(agent, TimedTeamAgent) else self.args.team_wait
         self.team, self.last_failure = team, None
         try:
             end = self._search(backend, msg, agent, team, (max_steps, max_seconds), auto_capture, steps, decide_us)

@@ -80,7 +80,9 @@ class SimBackend:
     Moves always arrive. ``detect`` sends this robot's (t, node) to the world's queryable
     ``mures/<fleet>/sim/<mission>/<robot>`` and returns the world's z; the world answers once
     every robot of the mission has reported step t (lockstep), so this is where robots wait for
-    each other. It carries only this robot's own state, never the others'.
+    each other. It carries only this robot's own state, never the others'. ``wait_s``, when the
+    agent sets it, goes with each report: how long this robot's decision waits for its teammates'
+    observations (the continuous world answers together only the robots arriving within it).
     """
 
     def __init__(self, graph: Graph, robot_id: str, session: zenoh.Session, fleet: str, timeout: float = 30.0) -> None:
@@ -93,6 +95,7 @@ class SimBackend:
         self.node = -1
         self.t = 0
         self.time_s: float | None = None
+        self.wait_s: float | None = None  # this robot's wait for its teammates' observations (None: not said)
 
     def begin(self, mission: dict[str, Any]) -> int:
         self.mission = mission["mission_id"]
@@ -114,7 +117,8 @@ class SimBackend:
         return self.node
 
     def detect(self) -> int:
-        payload = json.dumps({"t": self.t, "node": self.node}).encode()
+        report = {"t": self.t, "node": self.node, **({} if self.wait_s is None else {"wait_s": self.wait_s})}
+        payload = json.dumps(report).encode()
         key = sim_key(self.fleet, self.mission, self.robot_id)
         start = time.monotonic()
         while (left := self.timeout - (time.monotonic() - start)) > 0:

@@ -16,8 +16,9 @@ from shared.core.clock import move_seconds
 from shared.core.graph import load_graph_file
 from shared.core.models import Sensor
 from shared.floorplan.occupancy import read_map
+from shared.tools.fleetsim import fleet_mission_seed
 from shared.tools.timed_world import Motion, TimedWorld
-from shared.world.continuous import building
+from shared.world.continuous import building, fly
 
 
 class _Session:
@@ -42,9 +43,10 @@ class _Session:
 class _Query:
     """A robot's report (t, node) on mures/<fleet>/sim/<mission>/<robot>, and the world's answer."""
 
-    def __init__(self, mission: str, robot: str, t: int, node: int) -> None:
+    def __init__(self, mission: str, robot: str, t: int, node: int, **extra) -> None:
         self.key_expr = f"mures/default/sim/{mission}/{robot}"
-        self.payload = type("P", (), {"to_bytes": lambda _s: json.dumps({"t": t, "node": node}).encode()})()
+        body = json.dumps({"t": t, "node": node, **extra}).encode()
+        self.payload = type("P", (), {"to_bytes": lambda _s: body})()
         self.answer: dict | None = None
         self.error: str | None = None
 
@@ -100,6 +102,32 @@ def test_each_robot_reads_on_its_own_clock_and_waits_for_no_step_index(tmp_path)
     bad = _Query("m1", "r1", 5, here)
     world._on_query(bad)
     assert "not robot r1's next" in bad.error and m.next_t["r1"] == 2
+
+
+@pytest.mark.parametrize("wait_s", [0.0, 0.5, None])
+def test_robots_arriving_close_together_are_answered_together_only_within_the_earliest_ones_wait(tmp_path, wait_s):
+    world, graph = _world(tmp_path)
+    here = int(graph.labels[graph.start])
+    _start(world, "m1", ["r1", "r2"], seed=4)
+    said = {} if wait_s is None else {"wait_s": wait_s}  # an agent that says nothing: the step rule's 0.5 s
+    for r in ("r1", "r2"):
+        world._on_query(_Query("m1", r, 0, here, **said))
+    m = world.missions["m1"]
+    a1 = _Query("m1", "r1", 1, here, **said)
+    world._on_query(a1)
+    m.due_s["r1"] = 1.3  # r1 reads 0.3 s after r2 (both stay: r2's reading is at 1 s)
+    b1 = _Query("m1", "r2", 1, here, **said)
+    world._on_query(b1)
+    assert b1.answer["time_s"] == pytest.approx(1.0)
+    if wait_s == 0.0:  # r2 decides at once: r1 is answered after r2's next report, and hears of r2's move
+        assert a1.answer is None
+        world._on_query(_Query("m1", "r2", 2, here, **said))
+        assert a1.answer["time_s"] == pytest.approx(1.3) and world.missions["m1"].next_t["r2"] == 2
+    else:  # r2 waits up to 0.5 s for its teammates' observations: r1's is answered with it
+        assert a1.answer["time_s"] == pytest.approx(1.3)
+    bad = _Query("m1", "r1", 2, here, wait_s=-1)
+    world._on_query(bad)
+    assert "wait_s must be seconds" in bad.error and "r1" not in m.reports
 
 
 def test_a_move_held_up_takes_its_stop_on_top_of_its_travel_time(tmp_path):
@@ -197,6 +225,29 @@ def test_fleet_sim_flies_the_agents_in_the_continuous_world(tmp_path):
             for robot in ("r1", "r2"):  # each robot's own readings up to the capture's moment, whatever its step count
                 rec = by_mission[m["mission_id"], robot]
                 assert rec["outcome"]["captured"] and rec["steps"][-1]["time_s"] <= m["capture_time_s"] + 1e-3
+
+
+def test_a_first_version_on_the_clock_flies_the_batched_worlds_plan_mission_by_mission(tmp_path):
+    """The server's first version (beliefs on the uniform walk, FHPE-SA on every observation heard)
+    flown by robot-agent processes on the mission clock decides as the batched world's fhpe-sa
+    searcher given every observation at once: on the same missions, the same capture times, to the
+    batched world's 0.1 s ticks. Robots arriving close together are answered one after another, so
+    each hears where the one before it is headed (a window of 0.5 s made this fleet 1.3 times later
+    on this map with N = 4, its robots planning on teammates' stale goals)."""
+    depot = NAV2 / "depot.yaml"
+    graph_file = tmp_path / "depot.json"
+    assert mures("map", "import", str(depot), "--out", str(graph_file)).returncode == 0
+    r = mures("fleet-sim", "--graph", str(graph_file), "--world", str(depot), "--robots", "4", "--missions", "8",
+              "--seed", "1", "--init-policy", "general", "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["coordinated_share"] == 1.0
+    fleet = np.array([m["capture_time_s"] for m in res["results"]])
+    graph = load_graph_file(graph_file)
+    seeds = [fleet_mission_seed(1, k) for k in range(8)]
+    plan = fly(building(read_map(depot), graph, 4.0), "fhpe-sa", 4, 8, mission_seeds=seeds).capture_s
+    assert fleet.mean() > 10  # missions that take moves, not only captures at the start node
+    assert np.abs(fleet - plan) == pytest.approx(np.zeros(8), abs=0.15), (fleet, plan)
 
 
 def test_a_mission_on_the_clock_ends_at_its_time_limit_whatever_each_robots_step_count(tmp_path):

@@ -18,8 +18,11 @@ compared on the same missions (paired). The readings' draws come from another.
 
 Virtual time, conservatively (a discrete-event simulation): the world answers only when every
 robot still in the mission has reported where it goes next, and then answers the earliest
-reading (the robots arriving within ``together_s`` after it at once, in time order: a robot's
-decision waits that long for its teammates, robot_agent/teamwork.py); the target walks to that
+reading, with the robots arriving within the earliest robot's wait for its teammates after it, at
+once and in time order (a robot on the step rule waits up to 0.5 s for its teammates' observations
+of its step, robot_agent/teamwork.py, and says so with its report; one on the mission clock waits
+for none, so a teammate arriving 0.3 s after it is answered after its decision and hears of it, as
+on real robots; ``together_s`` bounds the window); the target walks to that
 moment in ticks of ``dt`` (``Targets``), and the reading is z = 1 with probability 1 - eta_fn when
 the target is within the sensor's range in line of sight (``Building.sees``), eta_fp otherwise.
 A robot's thinking and the network take no mission time, so a run does not depend on the
@@ -47,7 +50,7 @@ from shared.core.wire import time_limit
 from shared.tools.world import World, _Mission
 from shared.world.continuous import Building, Targets, target_generator
 
-TOGETHER_S = 0.5  # robots arriving this close after the earliest are answered with it (robot_agent TEAM_WAIT_S)
+TOGETHER_S = 0.5  # robots arriving this close after the earliest are answered with it, at most (TEAM_WAIT_S)
 
 
 @dataclass
@@ -153,7 +156,7 @@ class TimedWorld(World):
 
     def _advance(self, mid: str, m: _Mission) -> None:
         """Every robot still flying has reported its next reading: answer the earliest (and those
-        within ``together_s`` of it), in time order."""
+        within its wait for its teammates, at most ``together_s``, after it), in time order."""
         assert isinstance(m, _TimedMission) and m.targets is not None
         if not m.reports:
             if not m.active:
@@ -162,9 +165,10 @@ class TimedWorld(World):
         order = {r: i for i, r in enumerate(m.robots)}
         pending = sorted(m.reports, key=lambda r: (m.due_s[r], order[r]))
         first = m.due_s[pending[0]]
+        window = min(self.together_s, m.waits.get(pending[0], TOGETHER_S))  # the earliest robot's wait
         (_in0, in1), (_out0, out1) = self.sensor.likelihoods()
         answered: dict[str, dict[str, Any]] = {}
-        for robot in [r for r in pending if m.due_s[r] <= first + self.together_s]:
+        for robot in [r for r in pending if m.due_s[r] <= first + window]:
             row, q = m.reports.pop(robot)
             due = m.due_s.pop(robot)
             while m.now_s + self.motion.dt <= due:  # the target walks to the reading's moment

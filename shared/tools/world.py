@@ -31,6 +31,7 @@ import zenoh
 
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
+from shared.core.records import is_seconds
 from shared.core.wire import mission_key, parse_message, sim_key, truth_key
 
 log = logging.getLogger("mures.world")
@@ -46,6 +47,7 @@ class _Mission:
     t: int = 0
     active: set[str] = field(default_factory=set)
     reports: dict[str, tuple[int, Any]] = field(default_factory=dict)  # robot -> (row, query)
+    waits: dict[str, float] = field(default_factory=dict)  # robot -> its decision's wait for teammates, if it said
     waiting_since: float = 0.0
     last_step: float = 0.0
     ended: bool = False
@@ -174,14 +176,19 @@ class World:
             body = json.loads(q.payload.to_bytes())
             t, node = int(body["t"]), int(body["node"])
             row = self.graph.index[node]
+            wait = body.get("wait_s")
         except (ValueError, KeyError, TypeError, AttributeError):
-            return self._err(q, 'payload must be {"t": int, "node": label on the map}')
+            return self._err(q, 'payload must be {"t": int, "node": label on the map, "wait_s": seconds (optional)}')
+        if wait is not None and not is_seconds(wait):
+            return self._err(q, f"wait_s must be seconds (a finite number >= 0), got {wait!r}")
         why = self._refusal(m, robot, t, row)
         if why:
             return self._err(q, why)
         if not m.reports:
             m.waiting_since = time.monotonic()
         m.reports[robot] = (row, q)
+        if wait is not None:
+            m.waits[robot] = float(wait)
         self._advance_if_ready(mid, m)
         return None
 

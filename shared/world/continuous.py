@@ -28,7 +28,8 @@ shortest paths, whatever it reads), the planner a robotics team would write firs
 (``TeamPlan``: the team's plan on the mission clock, as robot-agent --team-clock seconds flies it,
 given every observation at once: one collective belief per mission on 1 s ticks under the uniform
 walk made a tick's worth, each reading folded in as it is made, FHPE-SA's move for the robot that
-arrives with its teammates counted where they are headed; ``time_discount`` discounts a walk's
+arrives with its teammates counted where they are headed (the robots of a mission arriving in one
+tick, as at the start, on one plan); ``time_discount`` discounts a walk's
 detections by when they happen rather than by the move's index, which measured later:
 benchmarks/team_plan_in_time.py).
 """
@@ -387,13 +388,17 @@ class TeamPlan:
                 x = self.filter.weigh(np.ones(len(x)), p, int(zz))
                 total = x.sum()
             self.belief[b] = x / total
+        # the robots of one mission that arrive together share one plan (at the start, all of them),
+        # as robot agents arriving at one moment each take their own entry of the same plan
         out = np.empty(len(bs), dtype=np.int64)
         active = np.ones(self.goal.shape[1], dtype=bool)
-        for i, (b, r, p) in enumerate(zip(bs.tolist(), rs.tolist(), here.tolist(), strict=True)):
+        for b in np.unique(bs).tolist():
+            mine = np.flatnonzero(bs == b)
             pos = self.goal[b].copy()
-            pos[r] = p
-            out[i] = self.planner.plan(self.belief[b], pos, active, rng)[r]
-            self.goal[b, r] = out[i]
+            pos[rs[mine]] = here[mine]
+            plan = self.planner.plan(self.belief[b], pos, active, rng)
+            out[mine] = plan[rs[mine]]
+            self.goal[b, rs[mine]] = out[mine]
         return out
 
 
