@@ -5,7 +5,8 @@ fleet's own missions (each target walking by its mission seed), so every column 
 fleets' capture times mission by mission.
 
     python benchmarks/baselines_in_time.py [--runs results/fleet_in_time/before-60-missions.json
-                                            results/fleet_in_time/after-60-missions-time-limit.json]
+                                            results/fleet_in_time/after-60-missions-each-on-arrival.json
+                                            results/fleet_in_time/general-plan-each-on-arrival.json]
                                            [--json results/fleet_in_time/baselines.json]
 
 The runs are fleet_in_time.py JSON files on the same settings and seeds (the first is "before",
@@ -51,7 +52,8 @@ def main() -> None:
         nargs="+",
         default=[
             str(ROOT / "results" / "fleet_in_time" / "before-60-missions.json"),
-            str(ROOT / "results" / "fleet_in_time" / "after-60-missions-time-limit.json"),
+            str(ROOT / "results" / "fleet_in_time" / "after-60-missions-each-on-arrival.json"),
+            str(ROOT / "results" / "fleet_in_time" / "general-plan-each-on-arrival.json"),
         ],
     )
     ap.add_argument("--json", default=str(ROOT / "results" / "fleet_in_time" / "baselines.json"))
