@@ -236,6 +236,7 @@ class Agent:
         self.journal = Journal(self.state / "journal.jsonl")
         self.session: Any = None
         self.graph: Graph | None = None
+        self.team_clock = "steps" if args.team_clock == "auto" else args.team_clock  # resolved with the map (run)
         self.policies: PolicyStore | None = None
         self.in_mission = False
         self.telemetry_pub: Any = None
@@ -573,7 +574,7 @@ class Agent:
         }
         # matched by the mission clock (shared/core/timed_team.py); a version trained on the clock
         # (`mures train --speed`, its model per tick) always flies on it
-        if self.args.team_clock == "seconds" or snap.clock is not None:
+        if self.team_clock == "seconds" or snap.clock is not None:
             step_s = move_seconds(self.graph, self.args.speed)
             agent: TeamAgent = TimedTeamAgent(snap, self.graph, robots, self.robot_id, step_s=step_s, **team_kw)
         else:
@@ -739,8 +740,14 @@ class Agent:
         flusher = None
         try:
             self.graph = self.fetch_map()
-            if self.args.team_clock == "seconds":
+            self.team_clock = team_clock_for(self.args.team_clock, self.args.backend, self.graph)
+            if self.team_clock == "seconds":
                 move_seconds(self.graph, self.args.speed)  # ValueError: the map has no edge lengths
+            log.info(
+                "team clock: %s%s",
+                "the mission clock" if self.team_clock == "seconds" else "step index",
+                " (--team-clock auto)" if self.args.team_clock == "auto" else "",
+            )
             self.policies = PolicyStore(self.state / "policies", self.graph)
             self.policies.load_current()
             self.sync_policy("start")
@@ -798,6 +805,15 @@ class Agent:
         return 0
 
 
+def team_clock_for(choice: str, backend: str, graph: Graph) -> str:
+    """``--team-clock`` resolved: "seconds" or "steps". ``auto`` is the mission clock for a robot
+    whose moves take their travel time (any backend but ``sim``, whose worlds keep the step index
+    unless fleet-sim says otherwise) on a map with edge lengths, the step index otherwise."""
+    if choice != "auto":
+        return choice
+    return "seconds" if backend != "sim" and graph.edge_lengths is not None and len(graph.edge_lengths) else "steps"
+
+
 def positive_seconds(text: str) -> float:
     """A number of seconds above 0 (argparse type)."""
     try:
@@ -837,19 +853,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--team-clock",
-        choices=("steps", "seconds"),
-        default="steps",
+        choices=("auto", "steps", "seconds"),
+        default="auto",
         help="how the robot matches its teammates' observations: by step index, waiting --team-wait for the "
-        "current step's (default, the paper's model), or by the mission clock, never waiting for a teammate "
-        "that is travelling (shared/core/timed_team.py; needs a graph with edge lengths); a version trained on "
-        "the clock (mures train --speed) always flies on it",
+        "current step's (the paper's model), or by the mission clock, never waiting for a teammate that is "
+        "travelling (shared/core/timed_team.py; needs a graph with edge lengths); auto (default): the mission "
+        "clock for a robot whose moves take their travel time (a --backend other than sim) on a map with edge "
+        "lengths, step index otherwise; a version trained on the clock (mures train --speed) always flies on it",
     )
     p.add_argument(
         "--speed",
         type=float,
         default=0.5,
         metavar="M_PER_S",
-        help="with --team-clock seconds: the robot's travel speed, for how long a step of the model lasts (0.5)",
+        help="on the mission clock: the robot's typical travel speed, for how long a step of the model lasts (0.5)",
     )
     p.add_argument(
         "--link-loss",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import io
 import json
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from robot_agent.agent import Journal, Outbox, PolicyStore
+from robot_agent.agent import Journal, Outbox, PolicyStore, team_clock_for
 from robot_agent.backend import BackendError, load_backend
 from robot_agent.examples.nav_goal import NavGoalBackend
 from shared.core.graph import builtin_graph
@@ -234,3 +235,13 @@ def test_the_minimal_backend_of_the_docs_loads_and_flies(tmp_path):
     assert node == int(graph.labels[graph.start]) and backend.detect() == 0
     assert backend.move(int(graph.labels[graph.closed(graph.start)[1]])) == node
     backend.end()
+
+
+def test_the_team_clock_by_default_is_the_mission_clock_for_real_robots_on_a_map_with_edge_lengths():
+    office = builtin_graph("office")  # the paper's map: no edge lengths
+    timed = dataclasses.replace(office, edge_lengths=np.ones(len(office.edges)))
+    assert team_clock_for("auto", "nav2", timed) == "seconds"
+    assert team_clock_for("auto", "my_robot:Backend", timed) == "seconds"
+    assert team_clock_for("auto", "sim", timed) == "steps"  # the simulator's worlds: fleet-sim says which
+    assert team_clock_for("auto", "nav2", office) == "steps"  # no lengths, no clock
+    assert team_clock_for("steps", "nav2", timed) == "steps" and team_clock_for("seconds", "sim", office) == "seconds"

@@ -166,7 +166,8 @@ def test_agents_fly_nav2_robots_through_the_bridge_with_an_abort_and_a_timeout(t
 
 def test_a_nav2_robots_readings_are_timed_by_its_own_clock(tmp_path):
     """Under ROS simulated time the robot's seconds are not the agent's: with the stand-in's clock at a
-    quarter of the wall's, the agents' records on the mission clock advance at the robot's rate."""
+    quarter of the wall's, the agents' records on the mission clock advance at the robot's rate. Nav2
+    robots on a map with edge lengths fly on the mission clock without being told (--team-clock auto)."""
     depot = ROOT / "examples" / "maps" / "nav2" / "depot.yaml"
     graph_file = tmp_path / "depot.json"
     assert mures(["map", "import", str(depot), "--out", str(graph_file), "--quiet"]) == 0
@@ -180,7 +181,7 @@ def test_a_nav2_robots_readings_are_timed_by_its_own_clock(tmp_path):
     fleet = None
     try:
         assert standin.stdout is not None and standin.stdout.readline().strip() == "ready"
-        agent_extra = ["--backend", "nav2", "--nav2-connect", endpoint, "--team-clock", "seconds"]
+        agent_extra = ["--backend", "nav2", "--nav2-connect", endpoint]
         fleet = launch(graph, ["--graph", str(graph_file)], uniform_walk(graph), Sensor(), 2, tmp_path / "fleet",
                        agent_extra=agent_extra)  # fmt: skip
         gaps = []
