@@ -236,7 +236,7 @@ class Agent:
         self.journal = Journal(self.state / "journal.jsonl")
         self.session: Any = None
         self.graph: Graph | None = None
-        self.team_clock = "steps" if args.team_clock == "auto" else args.team_clock  # resolved with the map (run)
+        self.team_clock = "steps"  # "steps" or "seconds": --team-clock resolved once the map is fetched (run)
         self.policies: PolicyStore | None = None
         self.in_mission = False
         self.telemetry_pub: Any = None
