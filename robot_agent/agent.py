@@ -48,7 +48,7 @@ from robot_agent.backend import (
     resolve_backend,
 )
 from robot_agent.teamwork import TEAM_WAIT_S, Teamwork
-from shared.core.clock import move_seconds
+from shared.core.clock import has_edge_lengths, move_seconds
 from shared.core.files import atomic_write, read_token
 from shared.core.graph import Graph, graph_from_dict
 from shared.core.http import ApiClient, ApiError
@@ -811,7 +811,7 @@ def team_clock_for(choice: str, backend: str, graph: Graph) -> str:
     unless fleet-sim says otherwise) on a map with edge lengths, the step index otherwise."""
     if choice != "auto":
         return choice
-    return "seconds" if backend != "sim" and graph.edge_lengths is not None and len(graph.edge_lengths) else "steps"
+    return "seconds" if backend != "sim" and has_edge_lengths(graph) else "steps"
 
 
 def positive_seconds(text: str) -> float:

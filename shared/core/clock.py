@@ -20,9 +20,15 @@ TICK_S = 1.0  # the mission clock's tick
 MAX_MOVE_TICKS = 100_000  # a move longer than this many ticks is a speed given in the wrong unit
 
 
+def has_edge_lengths(graph: Graph) -> bool:
+    """Whether the graph holds its edges' lengths (a graph from `mures map import`), which the
+    mission clock needs."""
+    return graph.edge_lengths is not None and len(graph.edge_lengths) > 0
+
+
 def edge_lengths(graph: Graph) -> np.ndarray:
     """(m,) the graph's edge lengths in metres; ValueError for a graph without them."""
-    if graph.edge_lengths is None or not len(graph.edge_lengths):
+    if not has_edge_lengths(graph):
         raise ValueError(
             f"{graph.name} has no edge lengths: the mission clock needs a graph from `mures map import` "
             "(edge_lengths_m)"
