@@ -24,25 +24,15 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from shipped_maps import MAPS, imported  # benchmarks/shipped_maps.py, beside this script
+from shipped_maps import imported, map_yaml  # benchmarks/shipped_maps.py, beside this script
 
 from shared.engine.evaluate import mean_ci95
-from shared.floorplan.floors import office_floor
 from shared.floorplan.occupancy import read_map
 from shared.tools.fleetsim import fleet_mission_seed
 from shared.world.continuous import SEARCHERS, building, fly
 
 RANGE_M = 4.0  # the world's sensor range, as fleet_in_time.py flies it
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def map_yaml(name: str, workdir: Path) -> Path:
-    """A fleet_in_time.py map by its name: a shipped one, or office-K (office_floor(K))."""
-    if name in MAPS:
-        return MAPS[name]
-    if not name.startswith("office-"):
-        raise SystemExit(f"unknown map {name!r}")
-    return office_floor(int(name.split("-")[1])).write(workdir, name)
 
 
 def main() -> None:

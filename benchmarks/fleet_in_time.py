@@ -49,10 +49,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from shipped_maps import MAPS, imported  # benchmarks/shipped_maps.py, beside this script
+from shipped_maps import MAPS, imported, map_yaml  # benchmarks/shipped_maps.py, beside this script
 
 from shared.engine.evaluate import mean_ci95
-from shared.floorplan.floors import office_floor
 from shared.floorplan.occupancy import read_map
 from shared.tools.fleetsim import fleet_mission_seed
 from shared.world.continuous import building, fly
@@ -76,7 +75,7 @@ def maps(names: list[str] | None, offices: int, workdir: Path) -> list[tuple[str
     for seed in range(1, offices + 1):
         name = f"office-{seed}"
         if not names or name in names:
-            out.append((name, office_floor(seed).write(workdir, name)))
+            out.append((name, map_yaml(name, workdir)))
     return out
 
 

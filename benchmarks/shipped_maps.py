@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.core.graph import Graph, load_graph_file
+from shared.floorplan.floors import office_floor
 from shared.tools.cli import main as mures_main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -20,6 +21,17 @@ MAPS = {
     "bookstore": ROOT.parent / "shared" / "reference" / "maps" / "aws" / "bookstore.yaml",
     "small-house": ROOT.parent / "shared" / "reference" / "maps" / "aws" / "small-house.yaml",
 }
+
+
+def map_yaml(name: str, workdir: Path) -> Path:
+    """A benchmark map by its name: one of MAPS, or ``office-K``, the generated office floor
+    ``office_floor(K)`` written into ``workdir``."""
+    if name in MAPS:
+        return MAPS[name]
+    seed = name.removeprefix("office-")
+    if not name.startswith("office-") or not seed.isdigit():
+        raise SystemExit(f"unknown map {name!r}: one of {', '.join(MAPS)} or office-K")
+    return office_floor(int(seed)).write(workdir, name)
 
 
 def imported(yaml_path: Path, workdir: Path) -> Graph:

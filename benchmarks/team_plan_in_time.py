@@ -22,12 +22,11 @@ import json
 import tempfile
 from pathlib import Path
 
-from shipped_maps import MAPS  # benchmarks/shipped_maps.py, beside this script
+from shipped_maps import MAPS, map_yaml  # benchmarks/shipped_maps.py, beside this script
 
 from shared.core.graph import load_graph_file
 from shared.core.models import Sensor
 from shared.engine.evaluate import mean_ci95
-from shared.floorplan.floors import office_floor
 from shared.floorplan.occupancy import read_map
 from shared.tools.cli import main as mures_main
 from shared.world.continuous import building, fly
@@ -55,7 +54,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         names = [n for n in MAPS if MAPS[n].exists()] if args.maps == ["all"] else args.maps
         maps = [(name, MAPS[name]) for name in names]
-        maps += [(f"office-{k}", office_floor(k).write(tmp, f"office-{k}")) for k in range(1, args.offices + 1)]
+        maps += [(f"office-{k}", map_yaml(f"office-{k}", Path(tmp))) for k in range(1, args.offices + 1)]
         for name, yaml_path in maps:
             out = Path(tmp) / f"{name}.json"
             if mures_main(["map", "import", str(yaml_path), "--out", str(out), "--sensor-range", "4", "--quiet"]):
