@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from shared.core.fhpe_sa import GAMMA, walks
+from shared.core.fhpe_sa import GAMMA, FhpeSAPlanner, walks
 from shared.core.graph import builtin_graph
 from shared.core.models import Sensor, uniform_walk
 from shared.engine.evaluate import evaluate
@@ -102,6 +102,57 @@ def test_fhpe_sa_is_exact_for_one_robot(office):
     best = max(_team_value(pl, b, [p]) for p in P)
     first = pl.plan(b, np.array([start]), np.ones(1, bool))[0]
     assert max(_team_value(pl, b, [p]) for p in P if p[0] == first) == pytest.approx(best, rel=1e-9)
+
+
+def _travel_value(planner, b, start, path, steps):
+    """One robot's discounted capture probability of ``path`` when each move lasts ``steps[u, v]``
+    of the model's steps, the target propagated over each by dense matrix powers (the definition:
+    c = ceil(s) passes of I + (s / c)(Gamma - I))."""
+    eye = np.eye(planner.n)
+    U, v, elapsed, here = b.copy(), 0.0, 0.0, start
+    for p in path:
+        s = steps[here, p]
+        c = max(int(np.ceil(s - 1e-9)), 1)
+        U = U @ np.linalg.matrix_power(eye + (s / c) * (planner.gamma_dense - eye), c)
+        elapsed += s
+        miss = 1.0 - planner.hit * planner.det[p]
+        v += GAMMA**elapsed * (U * (1.0 - miss)).sum()
+        U, here = U * miss, p
+    return v
+
+
+def test_fhpe_sa_with_travel_times_is_exact_for_one_robot(office):
+    g, model, b, rng = office
+    steps = np.zeros((g.n, g.n))
+    u, v = g.edges[:, 0], g.edges[:, 1]
+    steps[u, v] = steps[v, u] = rng.uniform(0.3, 3.0, len(u))  # each move's steps' worth of travel
+    np.fill_diagonal(steps, 0.1)  # a stay: a tenth of a step
+    pl = FhpeSAPlanner(g, model, Sensor(), horizon=3, move_steps=steps, travel=True)
+    paper = FhpeSAPlanner(g, model, Sensor(), horizon=3)
+    parted = 0
+    for start in range(g.n):
+        P = walks(g, start, 3)
+        values = [_travel_value(pl, b, start, p, steps) for p in P]
+        first = pl.plan(b, np.array([start]), np.ones(1, bool), np.random.default_rng(0))[0]
+        assert max(x for x, p in zip(values, P, strict=True) if p[0] == first) == pytest.approx(max(values), rel=1e-9)
+        parted += paper.plan(b, np.array([start]), np.ones(1, bool), np.random.default_rng(0))[0] != first
+    assert parted  # travel times change the plan somewhere
+
+
+def test_fhpe_sa_with_moves_of_one_step_each_plans_as_the_paper(office):
+    g, model, _, rng = office
+    ones = np.ones((g.n, g.n))
+    paper = FhpeSAPlanner(g, model, Sensor())
+    travel = FhpeSAPlanner(g, model, Sensor(), move_steps=ones, travel=True)
+    for _ in range(5):
+        b = rng.random(g.n)
+        pos = rng.integers(0, g.n, 3)
+        seed = int(rng.integers(1000))
+        want = paper.plan(b / b.sum(), pos, np.ones(3, bool), np.random.default_rng(seed))
+        got = travel.plan(b / b.sum(), pos, np.ones(3, bool), np.random.default_rng(seed))
+        assert got.tolist() == want.tolist()
+    with pytest.raises(ValueError, match="needs move_steps"):
+        FhpeSAPlanner(g, model, Sensor(), travel=True)
 
 
 def test_oracle_dp_matches_its_simulation_and_bounds_the_planners():

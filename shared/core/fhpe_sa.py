@@ -13,6 +13,8 @@ planning from the same information with generators seeded alike choose the same 
 On the mission clock (``move_steps``, shared/core/timed_team.py) a move lasts its travel time in
 the model's steps, and a detection's discount is gamma to the power of the steps' worth of time
 elapsed when it happens: of two walks that look alike, the one through shorter edges is worth more.
+With ``travel`` the target's mass is also propagated over each move's steps rather than once a move:
+s steps as c = ceil(s) passes of I + (s / c)(Gamma - I), the uniformization of shared/core/clock.py.
 """
 
 from __future__ import annotations
@@ -63,9 +65,13 @@ class FhpeSAPlanner:
         horizon: int = HORIZON,
         propagate: Callable[[np.ndarray], np.ndarray] | None = None,
         move_steps: np.ndarray | None = None,
+        travel: bool = False,
     ) -> None:
+        if travel and move_steps is None:
+            raise ValueError("travel propagates the target over each move's steps: it needs move_steps")
         self.graph, self.n, self.h = graph, graph.n, horizon
         self.move_steps = move_steps  # (n, n): how many of the model's steps the move u -> v lasts (None: 1 each)
+        self.travel = travel  # the target propagated over each move's steps, not once a move
         self.gamma_dense = model.dense()
         self.propagate = propagate or _SparsePropagation(model)
         self.det = graph.detection_matrix(sensor.detection).astype(np.float64)  # det[p, v] = 1 if v in D(p)
@@ -82,23 +88,27 @@ class FhpeSAPlanner:
     def plan(self, b: np.ndarray, pos: np.ndarray, active: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The walks' values are computed down their prefix tree: the target's mass is propagated
         once per prefix (the K_{k-1} prefixes of k - 1 moves, not the K walks), which gives each walk
-        the same numbers as propagating it on its own."""
+        the same numbers as propagating it on its own (with ``travel``, once per walk prefix's last
+        move, over that move's steps)."""
         h, hit = self.h, self.hit
         survive_fixed = np.ones((h, self.n))  # 1 - hit * [v detected by the robots already planned]
         out = pos.copy()
-        g1 = b @ self.gamma_dense  # Gamma^T b
+        first = b if self.travel else b @ self.gamma_dense  # Gamma^T b: the mass at the first arrival
         for i in np.nonzero(active)[0]:
             P, levels = self.paths(int(pos[i]))  # (K, h)
-            U = g1[None, :]  # the uncaptured mass after each prefix, (prefixes, n)
+            U = first[None, :]  # the uncaptured mass after each prefix, (prefixes, n)
             val = np.zeros(1)
             here, elapsed = np.array([pos[i]]), np.zeros(1)  # each prefix's last node, and its steps' worth of time
             for k, (rep, nodes) in enumerate(levels):
-                if k:
+                if k and not self.travel:
                     U = np.asarray(self.propagate(U))  # propagate the uncaptured mass: U Gamma
                 U, val = U[rep], val[rep]  # each prefix's children
                 if self.move_steps is not None:  # discounted by when the detection happens, not by the move's index
-                    elapsed = elapsed[rep] + self.move_steps[here[rep], nodes]
+                    steps = self.move_steps[here[rep], nodes]
+                    elapsed = elapsed[rep] + steps
                     here = nodes
+                    if self.travel:
+                        U = self._over(U, steps)
                 disc = self.disc[k] if self.move_steps is None else GAMMA**elapsed
                 cap = U @ (1.0 - survive_fixed[k])
                 U = U * survive_fixed[k]
@@ -112,6 +122,18 @@ class FhpeSAPlanner:
                 survive_fixed[k] *= 1.0 - hit * self.det[P[j, k]]
             out[i] = P[j, 0]
         return out
+
+    def _over(self, U: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """Each row of U (K, n) propagated over its move's ``steps`` (K,) of the model: c = ceil(s)
+        passes of U + (s / c)(U Gamma - U), at least one."""
+        passes = np.maximum(np.ceil(steps - 1e-9), 1).astype(np.int64)
+        a = (steps / passes)[:, None]
+        U = U.copy()
+        for j in range(int(passes.max())):
+            rows = np.flatnonzero(passes > j)
+            Ur = U[rows]
+            U[rows] = Ur + a[rows] * (np.asarray(self.propagate(Ur)) - Ur)
+        return U
 
 
 class _SparsePropagation:

@@ -29,9 +29,11 @@ shortest paths, whatever it reads), the planner a robotics team would write firs
 given every observation at once: one collective belief per mission on 1 s ticks under the uniform
 walk made a tick's worth, each reading folded in as it is made, FHPE-SA's move for the robot that
 arrives with its teammates counted where they are headed (the robots of a mission arriving in one
-tick, as at the start, on one plan); ``time_discount`` discounts a walk's
-detections by when they happen rather than by the move's index, which measured later:
-benchmarks/team_plan_in_time.py).
+tick, as at the start, on one plan). ``plan_time`` (``PLAN_TIMES``) is how the plan's walks take
+time: "move", the paper's (the target moves once a move, detections discounted by the move's
+index); "discount", detections discounted by when they happen; "travel", the target also
+propagated over each move's travel time. Neither of the last two is sooner on every map:
+benchmarks/team_plan_in_time.py, docs/continuous-world.md).
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ from shared.floorplan.sight import view
 from shared.floorplan.travel import path_length_px, window_path
 
 SEARCHERS = ("random", "greedy", "sweep", "fhpe-sa")
+PLAN_TIMES = ("move", "discount", "travel")  # how the fhpe-sa plan's walks take time (module docstring)
 SAMPLE_M = 0.1  # a path is sampled every this many metres
 WINDOW_MARGIN_M = 3.0  # a path is first searched in the box of its two poses widened by this
 
@@ -267,7 +270,7 @@ def fly(
     dt: float = 0.1,
     max_s: float = 1800.0,
     seed: int = 0,
-    time_discount: bool = False,
+    plan_time: str = "move",
     target_model: TargetModel | None = None,
     stop_prob: float = 0.0,
     stop_s: float = 30.0,
@@ -282,6 +285,8 @@ def fly(
     seeds, for comparisons paired mission by mission."""
     if searcher not in SEARCHERS:
         raise ValueError(f"searcher must be one of {', '.join(SEARCHERS)}, got {searcher!r}")
+    if plan_time not in PLAN_TIMES:
+        raise ValueError(f"plan_time must be one of {', '.join(PLAN_TIMES)}, got {plan_time!r}")
     g, b_n, r_n = world.graph, missions, robots
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
@@ -300,7 +305,7 @@ def fly(
     r_left = np.zeros((b_n, r_n))
     belief = np.tile(model.b0 / model.b0.sum(), (b_n, r_n, 1))
     plan = Sweep(world, r_n) if searcher == "sweep" else None
-    team = TeamPlan(world, r_n, b_n, sensor, speed, dwell_s, time_discount, model) if searcher == "fhpe-sa" else None
+    team = TeamPlan(world, r_n, b_n, sensor, speed, dwell_s, plan_time, model) if searcher == "fhpe-sa" else None
     waypoint = np.zeros((b_n, r_n), dtype=np.int64)  # (sweep) the index of each robot's next waypoint
     done = np.zeros(b_n, dtype=bool)
     capture_s = np.full(b_n, max_s)
@@ -352,7 +357,7 @@ class TeamPlan:
         sensor: Sensor,
         speed: float,
         stay_s: float,
-        time_discount: bool,
+        plan_time: str,
         model: TargetModel | None = None,
         tick_s: float = TICK_S,
     ) -> None:
@@ -361,11 +366,11 @@ class TeamPlan:
         self.step_s = float(np.median(world.length_m)) / speed  # a step of the model: the median move
         self.gamma_tick = tick_model(model, self.step_s, tick_s).dense()
         steps = None
-        if time_discount:  # each move's steps' worth of time; only neighbours' entries are read
+        if plan_time != "move":  # each move's steps' worth of time; only neighbours' entries are read
             steps = np.full((g.n, g.n), stay_s / self.step_s)
             for (u, v), e in world.edge_of.items():
                 steps[u, v] = world.length_m[e] / speed / self.step_s
-        self.planner = FhpeSAPlanner(g, model, sensor, HORIZON, move_steps=steps)
+        self.planner = FhpeSAPlanner(g, model, sensor, HORIZON, move_steps=steps, travel=plan_time == "travel")
         self.filter = BeliefFilter(g, model, sensor)  # its weigh: Lambda(p, z) (Eq. 2)
         self.belief = np.tile(model.b0, (missions, 1))
         self.goal = np.full((missions, robots), g.start)
