@@ -55,8 +55,8 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         names = [n for n in MAPS if MAPS[n].exists()] if args.maps == ["all"] else args.maps
-        maps = [(name, MAPS[name]) for name in names]
-        maps += [(f"office-{k}", map_yaml(f"office-{k}", Path(tmp))) for k in range(1, args.offices + 1)]
+        names += [f"office-{k}" for k in range(1, args.offices + 1)]
+        maps = [(name, map_yaml(name, Path(tmp))) for name in names]
         for name, yaml_path in maps:
             out = Path(tmp) / f"{name}.json"
             if mures_main(["map", "import", str(yaml_path), "--out", str(out), "--sensor-range", "4", "--quiet"]):
