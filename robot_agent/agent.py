@@ -328,6 +328,8 @@ class Agent:
             "backend": self.args.backend,
             "ts": round(time.time(), 3),
         }
+        if self.on_the_clock():  # the server's default time limit for a mission over REST is read off it
+            out.update(clock="seconds", speed=self.args.speed)
         for key, b in (("belief", belief), ("team_belief", team_belief)):
             if b is not None and len(b) <= TELEMETRY_MAX_NODES:
                 out[key] = [round(float(x), 4) for x in np.asarray(b)]
@@ -335,6 +337,12 @@ class Agent:
             self.telemetry_pub.put(json.dumps(out).encode())
         except Exception as exc:  # never let telemetry stop a mission
             log.debug("telemetry: %s", exc)
+
+    def on_the_clock(self) -> bool:
+        """Whether this robot's next mission flies on the mission clock: ``--team-clock`` resolved to
+        seconds, or a current version trained on the clock (it always flies on it)."""
+        snap = self.policies.snapshot if self.policies else None
+        return self.team_clock == "seconds" or (snap is not None and snap.clock is not None)
 
     def report_down(self, reason: str) -> None:
         """The last live state before the agent stops on an error it cannot retry: the server keeps it,
@@ -574,7 +582,7 @@ class Agent:
         }
         # matched by the mission clock (shared/core/timed_team.py); a version trained on the clock
         # (`mures train --speed`, its model per tick) always flies on it
-        if self.team_clock == "seconds" or snap.clock is not None:
+        if self.on_the_clock():
             step_s = move_seconds(self.graph, self.args.speed)
             agent: TeamAgent = TimedTeamAgent(snap, self.graph, robots, self.robot_id, step_s=step_s, **team_kw)
         else:

@@ -175,6 +175,37 @@ def test_missions_start_follow_stop(api):
     assert srv.bus.published[-1]["max_seconds"] == 600 and srv.bus.published[-1]["max_steps"] == 100_000
 
 
+def test_a_mission_without_limits_for_robots_on_the_clock_gets_the_step_limits_horizon_in_time(api):
+    """Robots on the mission clock say so in their telemetry, with their speed; a mission started for
+    them with no limit is limited to 3 n moves of the map's median edge at the slowest one's speed
+    (a robot on the clock that stays reads once a second: a step limit would end it early)."""
+    import dataclasses
+
+    srv, c = api
+    srv.bus.online = {"r1": 1.0, "r2": 2.0, "r3": 3.0}
+    srv.bus.live = {"r1": {"state": "idle", "clock": "seconds", "speed": 0.5},
+                    "r2": {"state": "idle", "clock": "seconds", "speed": 0.4}, "r3": {"state": "idle"}}  # fmt: skip
+    start = c.post("/api/v1/missions", json={"robots": ["r1"]}, headers=auth(OP))
+    assert "max_seconds" not in srv.bus.published[-1]  # the built-in map has no edge lengths: steps alone
+    c.post(f"/api/v1/missions/{start.json()['id']}/stop", headers=auth(OP))
+    lengths = np.linspace(2.0, 8.0, srv.graph.m)
+    srv.graph = dataclasses.replace(srv.graph, edge_lengths=lengths)
+    for robots, speed in ((["r1"], 0.5), (["r1", "r2", "r3"], 0.4)):
+        r = c.post("/api/v1/missions", json={"robots": robots}, headers=auth(OP))
+        expected = round(3 * srv.graph.n * float(np.median(lengths)) / speed, 1)
+        assert r.status_code == 201 and r.json()["params"]["max_seconds"] == expected
+        assert srv.bus.published[-1]["max_seconds"] == expected and srv.bus.published[-1]["max_steps"] == 100_000
+        c.post(f"/api/v1/missions/{r.json()['id']}/stop", headers=auth(OP))
+    by = {a["robot_id"]: a for a in c.get("/api/v1/fleet", headers=auth(AG)).json()["agents"]}
+    assert (by["r1"]["speed"], by["r2"]["speed"], by["r3"]["speed"]) == (0.5, 0.4, None)
+    # a robot on the step index, or a request that names a step limit, keeps the step limit alone
+    for body in ({"robots": ["r3"]}, {"robots": ["r1"], "max_steps": 40}):
+        r = c.post("/api/v1/missions", json=body, headers=auth(OP))
+        assert r.json()["params"]["max_seconds"] is None and "max_seconds" not in srv.bus.published[-1]
+        assert r.json()["params"]["max_steps"] == body.get("max_steps", 3 * srv.graph.n)
+        c.post(f"/api/v1/missions/{r.json()['id']}/stop", headers=auth(OP))
+
+
 @pytest.mark.parametrize(
     ("path", "body", "field"),
     [
@@ -540,6 +571,7 @@ def test_fleet_shows_each_robot_online_or_not_flying_or_idle_and_its_last_state(
         "z": 1,
         "mode": "partial",
         "backend": "sim",
+        "speed": None,
         "down_reason": None,
         "last_failure": None,
         "revoked": None,

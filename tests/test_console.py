@@ -158,6 +158,11 @@ def test_the_server_keeps_a_robots_beliefs_only_when_they_are_n_probabilities():
         live = live_state(msg, n)
         assert live is not None and live["belief"] == good and ("team_belief" in live) is kept
     assert live_state({"state": "flying"}, n) is None and live_state(None, n) is None
+    # a robot on the mission clock says its speed; one that is not a positive number is not kept
+    for speed, kept in ((0.5, True), (0, False), (-1.0, False), ("0.5", False), (True, False), (float("inf"), False)):
+        live = live_state({"state": "idle", "clock": "seconds", "speed": speed}, n)
+        assert live is not None and (live.get("speed") == speed and live.get("clock") == "seconds") is kept
+        assert kept or ("speed" not in live and "clock" not in live)
 
 
 def test_the_automatic_layout_draws_no_node_over_another():

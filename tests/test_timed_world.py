@@ -341,3 +341,64 @@ def test_world_flags_that_do_not_fit_are_refused_in_one_line(tmp_path):
             extra = ["--robots", "2", "--missions", "1"] if command == "fleet-sim" else []
             r = mures(command, *args, *extra)
             assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, (command, args, r.stderr)
+
+
+def test_a_mission_started_over_rest_for_robots_on_the_clock_is_limited_in_time(tmp_path):
+    """A server on an imported map, `mures world --world` and two `robot-agent --team-clock seconds`
+    started by hand: the agents' telemetry says they fly on the clock at 0.5 m/s, so a mission an
+    operator starts with no limit is limited to 3 n moves of the median edge in time (the step
+    limit then a guard), the world keeps the same limit, and the mission completes on it."""
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from shared.core.files import read_token
+    from shared.core.http import ApiClient
+    from shared.tools.fleetsim import start_server, wait_until
+
+    depot = NAV2 / "depot.yaml"
+    graph_file, logs, data = tmp_path / "depot.json", tmp_path / "logs", tmp_path / "data"
+    logs.mkdir()
+    assert mures("map", "import", str(depot), "--out", str(graph_file)).returncode == 0
+    graph = load_graph_file(graph_file)
+    proc, base, endpoint = start_server(["--graph", str(graph_file)], data, 2, Sensor(), logs)
+    procs: list[subprocess.Popen] = []
+
+    def launch(name: str, cmd: list[str]) -> None:
+        log = open(logs / f"{name}.log", "w")  # noqa: SIM115 - owned by the process
+        procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT))
+
+    try:
+        mures_bin = str(Path(sys.executable).with_name("mures"))
+        launch("world", [mures_bin, "world", "--graph", str(graph_file), "--world", str(depot),
+                         "--zenoh-connect", endpoint])  # fmt: skip
+        for robot in ("r1", "r2"):
+            launch(robot, [sys.executable, "-m", "robot_agent.agent", "--robot-id", robot, "--server", base,
+                           "--zenoh-connect", endpoint, "--token-file", str(data / "agent.token"),
+                           "--state-dir", str(tmp_path / robot), "--team-clock", "seconds"])  # fmt: skip
+        api = ApiClient(base, read_token(data / "operator.token"))
+        wait_until(lambda: "simulating fleet 'default'" in (logs / "world.log").read_text(), 60, "the world")
+        wait_until(
+            lambda: [a["speed"] for a in api.get("/api/v1/fleet")["agents"] if a["online"]] == [0.5, 0.5],
+            60,
+            "the agents' telemetry to say they fly on the clock",
+        )
+        m = api.post("/api/v1/missions", {"robots": ["r1", "r2"], "seed": 4})
+        expected = round(3 * graph.n * move_seconds(graph, 0.5), 1)
+        assert m["params"]["max_seconds"] == expected and m["params"]["max_steps"] == 100_000
+        got = wait_until(
+            lambda: (r := api.get(f"/api/v1/missions/{m['id']}"))["episodes_received"] == ["r1", "r2"] and r,
+            120,
+            "both records",
+        )
+        assert got["outcome"]["captured"] or got["event"]["reason"] == "time limit", got
+        for robot in ("r1", "r2"):
+            steps = api.get(f"/api/v1/episodes/{robot}/{m['id']}")["steps"]
+            assert all("time_s" in s for s in steps) and steps[-1]["time_s"] < expected + 60
+    finally:
+        for p in procs:
+            p.send_signal(signal.SIGTERM)
+            p.wait(30)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(30)

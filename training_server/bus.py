@@ -13,7 +13,7 @@ import logging
 import queue
 import threading
 import time
-from typing import Any
+from typing import Any, TypeGuard
 
 import zenoh
 
@@ -62,11 +62,18 @@ def live_state(msg: dict[str, Any] | None, n: int) -> dict[str, Any] | None:
             "mission_id": failure["mission_id"][:200],
             "reason": str(failure.get("reason"))[:MAX_REASON_CHARS],
         }
+    speed = msg.get("speed")  # a robot on the mission clock says so, with its speed (m/s)
+    if msg.get("clock") == "seconds" and _positive(speed):
+        keep["clock"], keep["speed"] = "seconds", float(speed)
     for name in ("belief", "team_belief"):
         b = msg.get(name)
         if isinstance(b, list) and len(b) == n and all(_probability(x) for x in b):
             keep[name] = b
     return keep
+
+
+def _positive(x: Any) -> TypeGuard[float]:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and 0.0 < x < float("inf")
 
 
 def _probability(x: Any) -> bool:

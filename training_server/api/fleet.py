@@ -42,6 +42,7 @@ def fleet_view(srv: Any) -> FleetOut:
                 z=live.get("z") if same else None,
                 mode=live.get("mode") if same and live.get("mode") in ("team", "partial", "own") else None,
                 backend=live.get("backend"),
+                speed=live.get("speed") if live.get("clock") == "seconds" else None,
                 down_reason=live.get("reason") if live.get("state") == "down" and not a["online"] else None,
                 last_failure=live.get("last_failure") if live.get("state") == "idle" and not mission else None,
             )

@@ -9,6 +9,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 
+from shared.core.clock import has_edge_lengths, move_seconds
 from training_server.api.deps import READ, WRITE, Srv, errors, fleet_scope
 from training_server.api.models import (
     MAX_ID,
@@ -67,6 +68,23 @@ def mission_view(srv: Any, mid: str, m: dict[str, Any] | None = None) -> Mission
     )
 
 
+def default_time_limit(srv: Any, robots: list[str]) -> float | None:
+    """A mission's time limit when its request gives no limit: where some of ``robots`` fly on the
+    mission clock (their telemetry says so, with their speed), the step limit's horizon in time, 3 n
+    moves of the map's median edge at the slowest one's speed (as `mures fleet-sim --world` sets);
+    None when none does (or the map has no edge lengths): the step limit of 3 n alone. A robot on the
+    clock that the plan keeps where it is reads once a second, so a step limit would end it early."""
+    heard = srv.bus.agents()
+    speeds = []
+    for robot in robots:
+        live = (heard.get(robot) or {}).get("live") or {}
+        if live.get("clock") == "seconds" and live.get("speed"):
+            speeds.append(float(live["speed"]))
+    if not speeds or not has_edge_lengths(srv.graph):
+        return None
+    return round(3 * srv.graph.n * move_seconds(srv.graph, min(speeds)), 1)
+
+
 @router.post("", status_code=201, dependencies=WRITE, responses=errors(401, 403, 409, 422))
 def start_mission(req: MissionRequest, response: Response, srv: Srv) -> Mission:
     """Start a mission for the agents online (or the ones named); the Location header names it."""
@@ -89,15 +107,18 @@ def start_mission(req: MissionRequest, response: Response, srv: Srv) -> Mission:
     timeout = min(req.timeout_s or srv.mission_timeout, srv.mission_timeout)
     seed = req.seed if req.seed is not None else random.SystemRandom().randrange(2**31)
     pv, seed, canary = srv.mission_policy(seed)  # during a canary, every other mission flies it
+    max_seconds = req.max_seconds
+    if max_seconds is None and req.max_steps is None:
+        max_seconds = default_time_limit(srv, robots)
     params: dict[str, Any] = {
         "seed": seed,
         # under a time limit the step limit only guards: a robot on the clock that stays reads once a second
-        "max_steps": req.max_steps or (MAX_MISSION_STEPS if req.max_seconds else 3 * srv.graph.n),
+        "max_steps": req.max_steps or (MAX_MISSION_STEPS if max_seconds else 3 * srv.graph.n),
         "start_node": int(srv.graph.labels[srv.graph.start]),
         "capture": req.capture or srv.default_capture(),
     }
-    if req.max_seconds is not None:
-        params["max_seconds"] = req.max_seconds
+    if max_seconds is not None:
+        params["max_seconds"] = max_seconds
     if canary is not None:
         params["canary"] = canary
     srv.store.add_mission(mid, srv.fleet, robots, params, pv, deadline=time.time() + timeout)

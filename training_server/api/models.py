@@ -96,6 +96,11 @@ class Agent(BaseModel):
         "on it with one missing, or on its own policy (docs/coordination.md)",
     )
     backend: str | None = Field(None, description="its robot backend (sim, or MODULE:CLASS), from its telemetry")
+    speed: float | None = Field(
+        None,
+        description="its speed in m/s when it flies on the mission clock (telemetry; docs/continuous-world.md); "
+        "null: on the step index, or not said",
+    )
     down_reason: str | None = Field(
         None, description="why its agent stopped, when it stopped on an error it cannot retry (e.g. its backend)"
     )
@@ -147,7 +152,9 @@ class MissionRequest(_Request):
     max_seconds: MissionSeconds | None = Field(
         default=None,
         description="time limit on the mission clock, seconds: each robot stops at its first reading at or past it "
-        "(robots on the mission clock; docs/continuous-world.md). Default none: the step limit alone",
+        "(robots on the mission clock; docs/continuous-world.md). Default, when max_steps is not given either and "
+        "a robot's telemetry says it flies on the clock: 3 n moves of the map's median edge at the slowest such "
+        "robot's speed; otherwise none (the step limit alone)",
     )
     timeout_s: MissionSeconds | None = Field(
         default=None,
