@@ -236,6 +236,15 @@ def test_train_general_and_evaluate_general_from_the_command_line(tmp_path):
     bad = [sys.executable, "-m", "shared.tools.cli", "train-general", "--out", str(tmp_path / "x")]
     r = subprocess.run([*bad, "--min-nodes", "50", "--max-nodes", "10"], capture_output=True, text=True)
     assert r.returncode == 2 and "min_nodes <= max_nodes" in r.stderr and not (tmp_path / "x").exists()
+    # --device: one that does not exist here, or a GPU beside Dask workers, is refused before anything is written
+    r = subprocess.run([*bad, "--device", "tpu9"], capture_output=True, text=True)
+    assert r.returncode == 2 and "unknown device 'tpu9'" in r.stderr and not (tmp_path / "x").exists()
+    if not torch.cuda.is_available():
+        r = subprocess.run([*bad, "--device", "cuda"], capture_output=True, text=True)
+        assert r.returncode == 2 and "no CUDA device is available" in r.stderr and not (tmp_path / "x").exists()
+    else:
+        r = subprocess.run([*bad, "--device", "cuda", "--workers", "2"], capture_output=True, text=True)
+        assert r.returncode == 2 and "goes without --workers" in r.stderr and not (tmp_path / "x").exists()
 
 
 def test_a_fine_tune_of_the_general_policy_takes_its_own_defaults_unless_told(tmp_path):

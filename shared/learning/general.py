@@ -283,15 +283,17 @@ class FloorSpec:
     batch: int  # episodes per rollout
     sim_seed: int
 
-    def build(self, net: GeneralNet) -> _Building:
+    def build(self, net: GeneralNet, device: torch.device | str = "cpu") -> _Building:
+        """The entry's floor, simulator, beliefs and team, their tensors on ``device``."""
         graph = office_graph(self.nodes, seed=self.graph_seed)
         target, sensor = uniform_walk(graph), Sensor()
         sim = SearchSim(
             graph, target, sensor, self.robots, self.batch, seed=self.sim_seed, auto_reset=False,
-            check_actions=False, details=False,
+            check_actions=False, details=False, device=device,
         )  # fmt: skip
-        belief = BatchedBelief(graph, target, sensor)
-        return _Building(self, graph, self.robots, target, sim, belief, GraphTeam(net, graph, self.robots))
+        belief = BatchedBelief(graph, target, sensor, device)
+        team = GraphTeam(net, graph, self.robots, device)
+        return _Building(self, graph, self.robots, target, sim, belief, team)
 
 
 @dataclass
@@ -308,15 +310,16 @@ class _Building:
     scale: float | None = None  # running mean capture time (J's unit for this entry)
 
 
-def training_pool(cfg: GeneralConfig, net: GeneralNet) -> list[_Building]:
-    """The pool of generated buildings: seeds 10_000 + k (the evaluations use other seeds)."""
+def training_pool(cfg: GeneralConfig, net: GeneralNet, device: torch.device | str = "cpu") -> list[_Building]:
+    """The pool of generated buildings: seeds 10_000 + k (the evaluations use other seeds), their
+    tensors on ``device``."""
     rng = np.random.default_rng(cfg.seed)
     pool = []
     for k in range(cfg.pool):
         n = round(math.exp(rng.uniform(math.log(cfg.min_nodes), math.log(cfg.max_nodes))))
         robots = int(rng.integers(1, cfg.max_robots + 1))
         batch = int(np.clip(cfg.batch_elements // n, 16, 256))
-        pool.append(FloorSpec(n, 10_000 + k, robots, batch, cfg.seed * 7_919 + k).build(net))
+        pool.append(FloorSpec(n, 10_000 + k, robots, batch, cfg.seed * 7_919 + k).build(net, device))
     return pool
 
 
@@ -326,8 +329,9 @@ def imitation_data(b: _Building, episodes: int, seed: int) -> tuple[torch.Tensor
     5-step paths on the collective belief, Eq. 6, with the true model), as the network sees them:
     each robot's features on that belief with its role, and the slot of N[p] FHPE-SA chose for it.
     Returns features (M, d, F), target slots (M,) and valid slots (M, d) over the M robot-decisions
-    of ``episodes`` episodes."""
+    of ``episodes`` episodes, on the CPU (the planner's numpy walks are)."""
     graph, sensor, target = b.graph, b.sim.sensor, b.target
+    team = GraphTeam(b.team.net, graph, b.robots)  # the features, on the CPU whatever the entry's device
     planner = FhpeSAPlanner(graph, target, sensor)
     sim = SearchSim(graph, target, sensor, b.robots, episodes, seed=seed, auto_reset=False, details=False)
     tracker = BeliefTracker(BatchedBelief(graph, target, sensor, dtype=torch.float64))
@@ -349,8 +353,8 @@ def imitation_data(b: _Building, episodes: int, seed: int) -> tuple[torch.Tensor
         obs, _res = sim.step(act)
     pos, act = torch.cat(pos_log), torch.cat(act_log)  # (M', N)
     belief = torch.cat(bel_log).unsqueeze(1).expand(-1, b.robots, -1)  # every robot on the collective belief
-    feats = b.team.features(pos, belief).flatten(0, 1)  # (M' N, d, F)
-    cand, valid = b.team.nbr[pos].flatten(0, 1), b.team.valid[pos].flatten(0, 1)  # (M, d)
+    feats = team.features(pos, belief).flatten(0, 1)  # (M' N, d, F)
+    cand, valid = team.nbr[pos].flatten(0, 1), team.valid[pos].flatten(0, 1)  # (M, d)
     slot = ((cand == act.reshape(-1, 1)) & valid).float().argmax(1)  # the first slot holding the teacher's move
     return feats, slot, valid
 
@@ -378,15 +382,16 @@ def imitate(
         parts.append(part)
         say(f"imitation: FHPE-SA on building {k + 1}/{len(pool)} ({b.graph.n} nodes, N = {b.robots})")
     d = max(p[0].shape[1] for p in parts)  # buildings differ in their largest |N[p]|: pad to the largest
-    feats = torch.cat([nn.functional.pad(p[0], (0, 0, 0, d - p[0].shape[1])) for p in parts])
-    slot = torch.cat([p[1] for p in parts])
-    valid = torch.cat([nn.functional.pad(p[2], (0, d - p[2].shape[1])) for p in parts])
+    device = net.w1.device  # the decisions fitted where the network is
+    feats = torch.cat([nn.functional.pad(p[0], (0, 0, 0, d - p[0].shape[1])) for p in parts]).to(device)
+    slot = torch.cat([p[1] for p in parts]).to(device)
+    valid = torch.cat([nn.functional.pad(p[2], (0, d - p[2].shape[1])) for p in parts]).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     gen = torch.Generator()
     gen.manual_seed(cfg.seed)
     loss = torch.tensor(0.0)
     for epoch in range(cfg.imitation_epochs):
-        order = torch.randperm(slot.shape[0], generator=gen)
+        order = torch.randperm(slot.shape[0], generator=gen).to(device)
         for a in range(0, slot.shape[0], 2048):
             i = order[a : a + 2048]
             logits = net(feats[i]).masked_fill(~valid[i], NEG_INF)
@@ -414,7 +419,7 @@ def floor_gradients(
     ro = rollout(b.sim, b.team, b.belief, False, gen)  # type: ignore[arg-type]  # B episodes on one building
     mean_ct = float(ro.capture_time.float().mean())
     b.scale = mean_ct if b.scale is None else 0.9 * b.scale + 0.1 * mean_ct
-    beta = torch.full((b.robots,), cfg.beta)
+    beta = torch.full((b.robots,), cfg.beta, device=b.sim.device)
     terms = cepg_loss(b.team, ro, beta, cfg.eps, j_unit=max(b.scale, 1.0))  # type: ignore[arg-type]  # Eq. 9-13
     net.zero_grad()
     (terms.loss / b.robots).backward()
@@ -531,10 +536,11 @@ class FloorWorkers:
 
 def _update_generators(gen: torch.Generator, seed: int, update: int, floors: int) -> list[torch.Generator]:
     """The generators drawing the actions of an update's ``floors`` entries: the run's own for the
-    first, one seeded by the run's seed, the update and the entry's place for each other."""
+    first, one seeded by the run's seed, the update and the entry's place for each other (on the
+    run's device)."""
     out = [gen]
     for j in range(1, floors):
-        g = torch.Generator()
+        g = torch.Generator(device=gen.device)
         g.manual_seed(int(np.random.SeedSequence([seed, update, j]).generate_state(1)[0]))
         out.append(g)
     return out
@@ -547,12 +553,18 @@ def train_general(
     command: str = "",
     say: Callable[[str], None] = lambda _text: None,
     scheduler: str | None = None,
+    device: torch.device | str = "cpu",
 ) -> dict[str, Any]:
     """Train the general policy into ``out`` (module docstring); returns the training summary.
     ``progress`` gets the learning curve's points, ``say`` the imitation phase's lines. With
     ``scheduler`` (a Dask scheduler's address) the imitation phase's planner runs and each update's
-    ``floors_per_update`` rollouts fly on that cluster (``FloorWorkers``), with the same numbers."""
+    ``floors_per_update`` rollouts fly on that cluster (``FloorWorkers``), with the same numbers.
+    ``device``: where the rollouts, beliefs and network run in this process (a GPU: "cuda"; the
+    imitation phase's planner stays on the CPU); the random draws then differ from the CPU's."""
     cfg.check()
+    device = torch.device(device)
+    if scheduler and device.type != "cpu":
+        raise ValueError("rollouts on Dask workers run on their CPUs: give a device other than cpu without a cluster")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
@@ -564,14 +576,18 @@ def train_general(
             raise ValueError(f"init {cfg.init} has {start.hidden} hidden units, this run {cfg.hidden}")
         net = GeneralNet.from_weights(start.weights)
         state["imitation"] = {"from": cfg.init, "training": start.meta.get("training", {}).get("command")}
+    net.to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    pool = training_pool(cfg, net)
+    pool = training_pool(cfg, net, device)
     pick = random.Random(cfg.seed)
-    gen = torch.Generator()
+    gen = torch.Generator(device=device)
     gen.manual_seed(cfg.seed * 104_729)
     ckpt = out / CHECKPOINT
     if ckpt.is_file():  # go on from the last checkpoint
-        saved = torch.load(ckpt, weights_only=False)
+        saved = torch.load(ckpt, weights_only=False, map_location="cpu")  # random states are CPU tensors
+        began_on = saved.get("device", "cpu")
+        if began_on != device.type:
+            raise ValueError(f"{ckpt} was written by a run on {began_on}: go on there, or remove it to start afresh")
         if saved["config"] != asdict(cfg):
             raise ValueError(f"{ckpt} was written by a run with other settings: remove it or use another directory")
         net.load_state_dict(saved["net"])
@@ -595,6 +611,7 @@ def train_general(
             "pick": pick.getstate(),
             "gen": gen.get_state(),
             "pool": [(b.scale, b.sim.gen.get_state()) for b in pool],
+            "device": device.type,  # random states are per device: a run goes on where it began
         }
         torch.save(blob, ckpt.with_suffix(".tmp"))
         ckpt.with_suffix(".tmp").replace(ckpt)
@@ -653,7 +670,9 @@ def train_general(
         "learning_curve": state["curve"],
         "imitation": state.get("imitation"),
         "command": command,
-        "ran_on": "this process" if workers is None else workers.where,
+        "ran_on": ("this process" if device.type == "cpu" else f"this process on {device}")
+        if workers is None
+        else workers.where,
     }
     save_general(out, net.numpy_weights(), {"training": summary})
     ckpt.unlink(missing_ok=True)  # done: the same command trains afresh

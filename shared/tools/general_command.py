@@ -18,7 +18,7 @@ from typing import Any
 import torch
 
 from shared.learning.config import positive_int, whole_number
-from shared.tools.cli_args import CliError
+from shared.tools.cli_args import CliError, device_of
 
 
 def cmd_train_general(args: argparse.Namespace) -> int:
@@ -31,6 +31,10 @@ def cmd_train_general(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     if args.workers and args.dask_scheduler:
         raise CliError("train-general: --workers starts a local cluster; give it or --dask-scheduler, not both")
+    device = device_of(args.device)
+    if device.type != "cpu" and (args.workers or args.dask_scheduler):
+        raise CliError(f"train-general: --device {args.device} goes without --workers and --dask-scheduler "
+                       "(rollouts on Dask workers run on their CPUs)")  # fmt: skip
     if (args.workers or args.dask_scheduler) and cfg.floors_per_update == 1:
         print(
             "note: with --floors-per-update 1 each update flies one floor, so one worker at a time is busy "
@@ -40,7 +44,8 @@ def cmd_train_general(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     print(
         f"training the general policy: {cfg.episodes:,} episodes on {cfg.pool} generated floors of "
-        f"{cfg.min_nodes}-{cfg.max_nodes} nodes, teams of 1-{cfg.max_robots}, into {args.out}",
+        f"{cfg.min_nodes}-{cfg.max_nodes} nodes, teams of 1-{cfg.max_robots}, into {args.out}"
+        + ("" if device.type == "cpu" else f", on {device}"),
         file=sys.stderr,
         flush=True,
     )
@@ -72,6 +77,7 @@ def cmd_train_general(args: argparse.Namespace) -> int:
                 command=command,
                 say=(lambda _t: None) if args.quiet else (lambda t: print(t, file=sys.stderr, flush=True)),
                 scheduler=scheduler,
+                device=device,
             )
         except ValueError as exc:
             raise CliError(str(exc)) from None
@@ -129,6 +135,12 @@ def add_general_command(sub: Any) -> None:
         default=0,
         metavar="K",
         help="start a local Dask cluster of K one-thread workers for them (default 0: this process)",
+    )
+    p.add_argument(
+        "--device",
+        default="cpu",
+        help="torch device of the rollouts and the network (default cpu; cuda: a GPU, without --workers; the "
+        "imitation phase's planner stays on the CPU, and a run's numbers are reproducible on the device it ran on)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_train_general)
