@@ -237,6 +237,7 @@ class Agent:
         self.session: Any = None
         self.graph: Graph | None = None
         self.team_clock = "steps"  # "steps" or "seconds": --team-clock resolved once the map is fetched (run)
+        self.ask_world = False  # --team-clock auto with --backend sim: the simulated world's clock, until it says
         self.policies: PolicyStore | None = None
         self.in_mission = False
         self.telemetry_pub: Any = None
@@ -343,6 +344,22 @@ class Agent:
         seconds, or a current version trained on the clock (it always flies on it)."""
         snap = self.policies.snapshot if self.policies else None
         return self.team_clock == "seconds" or (snap is not None and snap.clock is not None)
+
+    def ask_world_clock(self, backend: RobotBackend, timeout: float) -> None:
+        """``--team-clock auto`` with ``--backend sim``: the simulated world's own clock (the
+        continuous world keeps the mission clock), once it answers; the step index until then."""
+        sim = getattr(backend, "backend", backend)  # the backend inside CheckedBackend
+        if not self.ask_world or not isinstance(sim, SimBackend):
+            return
+        clock = sim.world_clock(timeout)
+        if clock is None:
+            return
+        self.ask_world, self.team_clock = False, clock
+        log.info(
+            "team clock: %s (--team-clock auto: the simulated world keeps %s)",
+            "the mission clock" if clock == "seconds" else "step index",
+            "the mission clock" if clock == "seconds" else "every robot's step together",
+        )
 
     def report_down(self, reason: str) -> None:
         """The last live state before the agent stops on an error it cannot retry: the server keeps it,
@@ -508,6 +525,7 @@ class Agent:
     def run_mission(self, msg: dict[str, Any], backend: RobotBackend) -> None:
         """Fly one mission (Algorithm 1, this robot's part) from its start message to its end, then
         leave its episode record in the outbox."""
+        self.ask_world_clock(backend, 2.0)
         agent, header, max_steps, auto_capture = self._begin_mission(msg)
         max_seconds = time_limit(msg)
         mid = header["mission_id"]
@@ -749,6 +767,8 @@ class Agent:
         try:
             self.graph = self.fetch_map()
             self.team_clock = team_clock_for(self.args.team_clock, self.args.backend, self.graph)
+            auto_sim = self.args.team_clock == "auto" and self.args.backend == "sim"
+            self.ask_world = auto_sim and has_edge_lengths(self.graph)
             if self.team_clock == "seconds":
                 move_seconds(self.graph, self.args.speed)  # ValueError: the map has no edge lengths
             log.info(
@@ -780,12 +800,14 @@ class Agent:
                 self.report_down(str(exc))
                 raise AgentStop(str(exc)) from None
             log.info("robot %s up in fleet %r with policy version %s", self.robot_id, self.fleet, self.policies.version)
+            self.ask_world_clock(backend, 2.0)
             idle_beat, idle_check = 0.0, time.monotonic()
             while not self.stop.is_set():
                 if time.monotonic() - idle_check >= self.args.idle_check:  # a new version, or revoked credentials
                     idle_check = time.monotonic()
                     self.sync_policy("idle")
                 if time.monotonic() - idle_beat >= IDLE_BEAT_S:  # between missions: alive, idle, where
+                    self.ask_world_clock(backend, 0.5)  # (a world started after this robot)
                     idle_beat = time.monotonic()
                     idle: dict[str, Any] = {"state": "idle", "node": self.last_node}
                     if self.last_failure is not None:  # the fleet view shows why its last mission failed
@@ -815,8 +837,9 @@ class Agent:
 
 def team_clock_for(choice: str, backend: str, graph: Graph) -> str:
     """``--team-clock`` resolved: "seconds" or "steps". ``auto`` is the mission clock for a robot
-    whose moves take their travel time (any backend but ``sim``, whose worlds keep the step index
-    unless fleet-sim says otherwise) on a map with edge lengths, the step index otherwise."""
+    whose moves take their travel time (any backend but ``sim``) on a map with edge lengths, the
+    step index otherwise; a ``sim`` robot on such a map then takes its world's clock when the world
+    answers (``Agent.ask_world_clock``)."""
     if choice != "auto":
         return choice
     return "seconds" if backend != "sim" and has_edge_lengths(graph) else "steps"
@@ -867,7 +890,9 @@ def build_parser() -> argparse.ArgumentParser:
         "current step's (the paper's model), or by the mission clock, never waiting for a teammate that is "
         "travelling (shared/core/timed_team.py; needs a graph with edge lengths); auto (default): the mission "
         "clock for a robot whose moves take their travel time (a --backend other than sim) on a map with edge "
-        "lengths, step index otherwise; a version trained on the clock (mures train --speed) always flies on it",
+        "lengths, and for --backend sim in a world that keeps one (mures world --world, asked when the robot "
+        "starts, between missions and before each until it answers), step index otherwise; a version trained "
+        "on the clock (mures train --speed) always flies on it",
     )
     p.add_argument(
         "--speed",

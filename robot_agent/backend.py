@@ -43,6 +43,7 @@ import importlib
 import importlib.util
 import inspect
 import json
+import logging
 import numbers
 import os
 import sys
@@ -54,8 +55,9 @@ import zenoh
 
 from shared.core.graph import Graph
 from shared.core.records import is_seconds
-from shared.core.wire import sim_key
+from shared.core.wire import WORLD_CLOCK_PROBE, sim_key
 
+log = logging.getLogger("mures.agent")
 NAV2_BACKEND = "robot_agent.nav2:Nav2Backend"  # `--backend nav2` (it imports this module: loaded by name)
 
 
@@ -147,6 +149,21 @@ class SimBackend:
 
     def end(self) -> None:
         self.mission = ""
+
+    def world_clock(self, timeout: float = 1.0) -> str | None:
+        """The clock the simulated world keeps: "seconds" (the continuous world, `mures world
+        --world`), "steps" (every robot's step together), or None when no world answers within
+        ``timeout`` seconds (a world older than the question never does)."""
+        key = sim_key(self.fleet, WORLD_CLOCK_PROBE, self.robot_id)
+        try:
+            for reply in self.session.get(key, timeout=timeout):
+                if reply.ok is not None:
+                    clock = json.loads(reply.ok.payload.to_bytes()).get("clock")
+                    if clock in ("steps", "seconds"):
+                        return str(clock)
+        except Exception as exc:  # a closed session, an answer that is not JSON: no answer
+            log.debug("asking the simulated world its clock: %s", exc)
+        return None
 
 
 def resolve_backend(spec: str) -> type:

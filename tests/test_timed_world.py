@@ -14,7 +14,7 @@ from test_floorplan import NAV2, mures
 
 from shared.core.clock import move_seconds
 from shared.core.graph import load_graph_file
-from shared.core.models import Sensor
+from shared.core.models import Sensor, uniform_walk
 from shared.floorplan.occupancy import read_map
 from shared.tools.fleetsim import fleet_mission_seed
 from shared.tools.timed_world import Motion, TimedWorld
@@ -65,6 +65,20 @@ def _world(tmp_path, **motion):
     world = TimedWorld(_Session(), "default", building(grid, graph, 20.0), Sensor(), Motion(**motion), 60.0)
     world.close()  # its event thread stopped: the test calls its handlers itself
     return world, graph
+
+
+def test_a_robot_asking_the_simulated_world_its_clock_is_told_which_it_keeps(tmp_path):
+    from shared.core.wire import WORLD_CLOCK_PROBE
+    from shared.tools.world import World
+
+    timed, graph = _world(tmp_path)
+    step = World(_Session(), "default", graph, uniform_walk(graph), Sensor())
+    step.close()
+    for world, clock in ((timed, "seconds"), (step, "steps")):
+        q = _Query(WORLD_CLOCK_PROBE, "r1", 0, 0)
+        world._on_query(q)
+        assert q.answer == {"clock": clock} and q.error is None
+        assert not world.parked  # not taken for a mission whose start is still on its way
 
 
 def _start(world, mid: str, robots: list[str], seed: int, max_steps: int = 50) -> None:
@@ -344,10 +358,11 @@ def test_world_flags_that_do_not_fit_are_refused_in_one_line(tmp_path):
 
 
 def test_a_mission_started_over_rest_for_robots_on_the_clock_is_limited_in_time(tmp_path):
-    """A server on an imported map, `mures world --world` and two `robot-agent --team-clock seconds`
-    started by hand: the agents' telemetry says they fly on the clock at 0.5 m/s, so a mission an
-    operator starts with no limit is limited to 3 n moves of the median edge in time (the step
-    limit then a guard), the world keeps the same limit, and the mission completes on it."""
+    """A server on an imported map, `mures world --world` and two `robot-agent --backend sim` started
+    by hand, on `--team-clock auto`: they ask the world its clock and fly on the mission clock, and
+    their telemetry says so, at 0.5 m/s; a mission an operator starts with no limit is then limited
+    to 3 n moves of the median edge in time (the step limit a guard), the world keeps the same
+    limit, and the mission completes on it with every reading timed."""
     import signal
     import subprocess
     import sys
@@ -373,10 +388,10 @@ def test_a_mission_started_over_rest_for_robots_on_the_clock_is_limited_in_time(
         mures_bin = str(Path(sys.executable).with_name("mures"))
         launch("world", [mures_bin, "world", "--graph", str(graph_file), "--world", str(depot),
                          "--zenoh-connect", endpoint])  # fmt: skip
-        for robot in ("r1", "r2"):
+        for robot in ("r1", "r2"):  # --team-clock auto: the world's clock
             launch(robot, [sys.executable, "-m", "robot_agent.agent", "--robot-id", robot, "--server", base,
                            "--zenoh-connect", endpoint, "--token-file", str(data / "agent.token"),
-                           "--state-dir", str(tmp_path / robot), "--team-clock", "seconds"])  # fmt: skip
+                           "--state-dir", str(tmp_path / robot)])  # fmt: skip
         api = ApiClient(base, read_token(data / "operator.token"))
         wait_until(lambda: "simulating fleet 'default'" in (logs / "world.log").read_text(), 60, "the world")
         wait_until(

@@ -11,7 +11,8 @@ Key expressions, segment by segment (``<fleet>`` defaults to ``default``; ids ma
     mures/<fleet>/episodes/<robot_id>/<mission_id>    queryable on the server; the query payload
         is one episode record; reply ok {"status": "stored"|"duplicate"} or err {"reason", "error"}
     mures/<fleet>/telemetry/<robot_id>                pub/sub, optional per-step state
-    mures/<fleet>/sim/<mission_id>/<robot_id>         queryable of the simulated world (fleet-sim)
+    mures/<fleet>/sim/<mission_id>/<robot_id>         queryable of the simulated world (fleet-sim);
+        mission "~clock": which clock the world keeps, {"clock": "steps"|"seconds"}
     mures/<fleet>/detections/<robot_id>/<mission_id>  pub/sub: a robot's z = 1, the moment it reads it
         {"mission_id", "robot_id", "t", "node"}; the server decides whether it ends the mission
     mures/<fleet>/observations/<robot_id>/<mission_id>  pub/sub: every step's observation for the
@@ -68,6 +69,11 @@ def telemetry_key(fleet: str, robot: str = "*") -> str:
 
 def sim_key(fleet: str, mission: str = "*", robot: str = "*") -> str:
     return f"mures/{fleet}/sim/{mission}/{robot}"
+
+
+# the sim key's mission segment of a robot asking the simulated world which clock it keeps (no
+# mission id holds a "~", records.ID_RE): the world answers {"clock": "steps" | "seconds"}
+WORLD_CLOCK_PROBE = "~clock"
 
 
 def detection_key(fleet: str, robot: str = "*", mission: str = "*") -> str:

@@ -61,10 +61,10 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
     if args.kill >= args.robots:
         raise CliError(f"fleet-sim: --kill {args.kill} leaves no robot of {args.robots} to search")
     agent_extra = ["--link-loss", str(args.link_loss)] if args.link_loss else []
-    if args.team_clock == "seconds":
-        if not args.world:
-            raise CliError("fleet-sim: --team-clock seconds goes with --world (the continuous world keeps the clock)")
-        agent_extra += ["--team-clock", "seconds", "--speed", str(args.speed)]
+    if args.team_clock == "seconds" and not args.world:
+        raise CliError("fleet-sim: --team-clock seconds goes with --world (the continuous world keeps the clock)")
+    # said either way: an agent left on auto would take the continuous world's clock
+    agent_extra += ["--team-clock", args.team_clock, "--speed", str(args.speed)]
     init_clock = None if named else load_snapshot(args.init_policy, graph).clock
     if args.world and (args.team_clock == "seconds" or init_clock is not None):
         retrain["speed"] = args.speed  # the fleet flies on the clock: retrain on the map's travel times

@@ -85,6 +85,8 @@ class _TimedMission(_Mission):
 class TimedWorld(World):
     """The world of module docstring, for the missions the server starts on ``fleet``."""
 
+    CLOCK = "seconds"
+
     def __init__(
         self,
         session: zenoh.Session,

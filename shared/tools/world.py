@@ -32,7 +32,7 @@ import zenoh
 from shared.core.graph import Graph
 from shared.core.models import Sensor, TargetModel
 from shared.core.records import is_seconds
-from shared.core.wire import mission_key, parse_message, sim_key, truth_key
+from shared.core.wire import WORLD_CLOCK_PROBE, mission_key, parse_message, sim_key, truth_key
 
 log = logging.getLogger("mures.world")
 
@@ -60,6 +60,8 @@ class _Mission:
 
 
 class World:
+    CLOCK = "steps"  # every robot's step t together (the continuous world: "seconds", each its own)
+
     def __init__(
         self,
         session: zenoh.Session,
@@ -161,6 +163,9 @@ class World:
         if len(parts) != 5:
             return self._err(q, "bad key")
         mid, robot = parts[3], parts[4]
+        if mid == WORLD_CLOCK_PROBE:  # a robot asking which clock this world keeps (robot-agent --team-clock auto)
+            q.reply(q.key_expr, json.dumps({"clock": self.CLOCK}).encode())
+            return q.drop()
         m = self.missions.get(mid)
         if m is None:
             if mid not in self.parked:  # a mission started before this world joined never answers
