@@ -41,9 +41,8 @@ import zenoh
 
 from robot_agent.backend import (
     BackendError,
+    CheckedBackend,
     MissionOver,
-    RobotBackend,
-    SimBackend,
     load_backend,
     resolve_backend,
 )
@@ -345,13 +344,12 @@ class Agent:
         snap = self.policies.snapshot if self.policies else None
         return self.team_clock == "seconds" or (snap is not None and snap.clock is not None)
 
-    def ask_world_clock(self, backend: RobotBackend, timeout: float) -> None:
+    def ask_world_clock(self, backend: CheckedBackend, timeout: float) -> None:
         """``--team-clock auto`` with ``--backend sim``: the simulated world's own clock (the
         continuous world keeps the mission clock), once it answers; the step index until then."""
-        sim = getattr(backend, "backend", backend)  # the backend inside CheckedBackend
-        if not self.ask_world or not isinstance(sim, SimBackend):
+        if not self.ask_world:
             return
-        clock = sim.world_clock(timeout)
+        clock = backend.world_clock(timeout)
         if clock is None:
             return
         self.ask_world, self.team_clock = False, clock
@@ -522,7 +520,7 @@ class Agent:
             times=[s["time_s"] for s in steps] if all("time_s" in s for s in steps) else None,
         )
 
-    def run_mission(self, msg: dict[str, Any], backend: RobotBackend) -> None:
+    def run_mission(self, msg: dict[str, Any], backend: CheckedBackend) -> None:
         """Fly one mission (Algorithm 1, this robot's part) from its start message to its end, then
         leave its episode record in the outbox."""
         self.ask_world_clock(backend, 2.0)
@@ -538,9 +536,8 @@ class Agent:
         team = Teamwork(
             self.session, self.fleet, self.graph, mid, agent, wait_s=self.args.team_wait, link_loss=self.args.link_loss
         )
-        sim = getattr(backend, "backend", backend)  # the backend inside CheckedBackend
-        if isinstance(sim, SimBackend):  # the world answers together only robots that wait for each other
-            sim.wait_s = 0.0 if isinstance(agent, TimedTeamAgent) else self.args.team_wait
+        # a simulated world answers together only the robots that wait for each other
+        backend.tell_team_wait(0.0 if isinstance(agent, TimedTeamAgent) else self.args.team_wait)
         self.team, self.last_failure = team, None
         try:
             end = self._search(backend, msg, agent, team, (max_steps, max_seconds), auto_capture, steps, decide_us)
@@ -617,7 +614,7 @@ class Agent:
 
     def _search(
         self,
-        backend: RobotBackend,
+        backend: CheckedBackend,
         msg: dict[str, Any],
         agent: TeamAgent,
         team: Teamwork,
@@ -645,7 +642,7 @@ class Agent:
             # Eq. 1 (own belief; t = 0: b_0 ∝ Lambda(p_0, z_0) b0) and Eq. 6 (the team's, with the
             # teammates' observations as they come)
             if clocked:  # the reading's time: the backend's mission clock, else this agent's
-                clock = getattr(backend, "clock", lambda: None)()  # CheckedBackend.clock: checked seconds or None
+                clock = backend.clock()  # checked seconds, or None
                 now_s = clock if clock is not None else time.monotonic() - started
             if timed is not None:
                 timed.observe_at(self.robot_id, t, p, z, now_s)
@@ -799,6 +796,7 @@ class Agent:
             except ValueError as exc:  # the fleet sees why this robot is down (GET /api/v1/fleet, the console)
                 self.report_down(str(exc))
                 raise AgentStop(str(exc)) from None
+            assert isinstance(backend, CheckedBackend)  # load_backend checks any backend given the map
             log.info("robot %s up in fleet %r with policy version %s", self.robot_id, self.fleet, self.policies.version)
             self.ask_world_clock(backend, 2.0)
             idle_beat, idle_check = 0.0, time.monotonic()

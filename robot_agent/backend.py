@@ -264,6 +264,18 @@ class CheckedBackend:
     def end(self) -> None:
         self._call("end")
 
+    def tell_team_wait(self, seconds: float) -> None:
+        """How long this robot's decisions wait for its teammates' observations, for a backend
+        whose world answers together only the robots that wait for each other (``sim``'s
+        ``wait_s``); others are not told."""
+        if isinstance(self.backend, SimBackend):
+            self.backend.wait_s = seconds
+
+    def world_clock(self, timeout: float) -> str | None:
+        """The clock a simulated world keeps (``SimBackend.world_clock``); None for any other
+        backend, or when no world answers."""
+        return self.backend.world_clock(timeout) if isinstance(self.backend, SimBackend) else None
+
     def clock(self) -> float | None:
         """The backend's mission clock of its last reading (seconds, finite, >= 0), or None where
         it keeps none."""

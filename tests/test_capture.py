@@ -301,3 +301,6 @@ def test_checked_backend_refuses_what_breaks_the_contract():
             CheckedBackend(Bad(0, z), graph).detect()
     with pytest.raises(MissionOver):
         CheckedBackend(Bad(0, "over"), graph).detect()
+    # a backend that is not the simulated world's is not told the team's wait nor asked a world's clock
+    ok.tell_team_wait(0.5)
+    assert not hasattr(ok.backend, "wait_s") and ok.world_clock(0.1) is None and ok.clock() is None
