@@ -152,6 +152,14 @@ def test_a_killed_training_run_goes_on_from_its_checkpoint_to_the_same_weights(t
     assert (tmp_path / "again" / CHECKPOINT).is_file()
     with pytest.raises(ValueError, match="other settings"):
         train_general(_tiny(checkpoint_every=0.0, seed=5), tmp_path / "again")
+    # random states are per device: a checkpoint goes on only on the device its run began on
+    saved = torch.load(tmp_path / "again" / CHECKPOINT, weights_only=False)
+    assert saved["device"] == "cpu"
+    torch.save({**saved, "device": "cuda"}, tmp_path / "elsewhere.pt")
+    (tmp_path / "moved").mkdir()
+    (tmp_path / "elsewhere.pt").replace(tmp_path / "moved" / CHECKPOINT)
+    with pytest.raises(ValueError, match="written by a run on cuda"):
+        train_general(_tiny(checkpoint_every=0.0), tmp_path / "moved")
     again = train_general(_tiny(checkpoint_every=0.0), tmp_path / "again")
     assert again["episodes"] == whole["episodes"]
     assert not (tmp_path / "again" / CHECKPOINT).exists()
