@@ -7,7 +7,7 @@ plan, beside the same fleet in the step world.
                                        [--offices 2] [--maps depot,bookstore,...] [--workdir DIR]
                                        [--team-clock steps|seconds] [--step-limit 3] [--belief em|true]
                                        [--train-speed M_PER_S] [--em-pseudo-count C] [--general]
-                                       [--against BEFORE.json]
+                                       [--detection node|custom] [--against BEFORE.json]
                                        [--json results/fleet_in_time/before.json]
 
 Per map (imported with `mures map import`'s defaults) and team size N:
@@ -31,6 +31,9 @@ Per map (imported with `mures map import`'s defaults) and team size N:
 5. (--team-clock seconds) the team's plan given the true model and every observation at once (the
    batched world's ``fhpe-sa``) on 2's missions (each target walking by its mission's seed), so the
    fleet's capture times are paired with the plan's mission by mission.
+With --detection custom every map is imported with `--sensor-range 4` (the world's range) and the
+teams, the fleet and the plan of 5 take D(p) from that sensing table (what each node's robot sees
+in line of sight) instead of {p}.
 Prints a row per map and N and writes every run's summary as JSON. With --against, an earlier
 run's JSON on the same seeds (so the same missions: the continuous world draws the target's path
 from the mission seed alone), each row adds the paired difference of the capture times in seconds
@@ -51,6 +54,7 @@ from pathlib import Path
 import numpy as np
 from shipped_maps import MAPS, imported, map_yaml  # benchmarks/shipped_maps.py, beside this script
 
+from shared.core.models import Sensor
 from shared.engine.evaluate import mean_ci95
 from shared.floorplan.occupancy import read_map
 from shared.tools.fleetsim import fleet_mission_seed
@@ -105,6 +109,13 @@ def main() -> None:
         help="each mission's step limit, K n (the server's: 3); 0: none given, so fleet-sim's default limits "
         "(in the continuous world a time limit of 3 n moves of the median edge)",
     )
+    ap.add_argument(
+        "--detection",
+        choices=("node", "custom"),
+        default="node",
+        help="D(p) of the teams, the fleet and the plan: {p}, or the sensing table of each map imported with "
+        "--sensor-range 4 (default node)",
+    )
     ap.add_argument("--against", help="an earlier run's JSON on the same settings: paired differences")
     ap.add_argument("--json", default="results/fleet_in_time/before.json")
     args = ap.parse_args()
@@ -118,7 +129,7 @@ def main() -> None:
     print(f"{'map':<12} {'n':>4} {'N':>2} {'capture s (in time)':>20} {'captured':>8} {'team plan':>9} "
           f"{'team plan (steps)':>17} {'sweep s':>14}")  # fmt: skip
     for name, yaml_path in maps(args.maps, args.offices, work):
-        graph = imported(yaml_path, work)
+        graph = imported(yaml_path, work, RANGE_M if args.detection == "custom" else None)
         world = None  # the batched world, for the plan on the fleet's missions (built once a map)
         graph_file = work / f"{yaml_path.stem}.json"
         for robots in args.robots:
@@ -127,6 +138,9 @@ def main() -> None:
             train_extra = [] if args.train_speed is None else ["--speed", str(args.train_speed)]
             if args.train_speed is not None:
                 team = team.with_name(f"{team.name}-clock")
+            if args.detection != "node":
+                train_extra += ["--detection", args.detection]
+                team = team.with_name(f"{team.name}-{args.detection}")
             if args.em_pseudo_count is not None:
                 c = str(args.em_pseudo_count)
                 train_extra += ["--em-pseudo-count", c, "--em-b0-pseudo-count", c]
@@ -137,7 +151,8 @@ def main() -> None:
                     "--quiet", *train_extra)  # fmt: skip
             init = "general" if args.general else str(team)  # general: the server's own first version
             common = ["--graph", str(graph_file), "--robots", str(robots), "--missions", str(args.missions),
-                      "--seed", str(args.seed), "--init-policy", init, "--json"]  # fmt: skip
+                      "--seed", str(args.seed), "--init-policy", init, "--detection", args.detection,
+                      "--json"]  # fmt: skip
             if args.step_limit:
                 common += ["--max-steps", str(args.step_limit * graph.n)]
             in_time = run("fleet-sim", *common, "--world", str(yaml_path), "--team-clock", args.team_clock)
@@ -165,7 +180,8 @@ def main() -> None:
                 seeds = [fleet_mission_seed(args.seed, k) for k in range(in_time["missions"])]
                 if world is None:
                     world = building(read_map(yaml_path), graph, RANGE_M)
-                plan = fly(world, "fhpe-sa", robots, len(seeds), mission_seeds=seeds).capture_s
+                plan = fly(world, "fhpe-sa", robots, len(seeds), mission_seeds=seeds,
+                           sensor=Sensor(detection=args.detection)).capture_s  # fmt: skip
                 row["plan_capture_time_s"] = plan.tolist()
                 row["plan_mean_capture_time_s"], row["plan_ci95_halfwidth_s"] = mean_ci95(plan)
                 diff = np.subtract(row["capture_time_s"], plan)

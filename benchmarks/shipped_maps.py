@@ -34,10 +34,12 @@ def map_yaml(name: str, workdir: Path) -> Path:
     return office_floor(int(seed)).write(workdir, name)
 
 
-def imported(yaml_path: Path, workdir: Path) -> Graph:
-    """The map imported with default flags into ``workdir`` (its graph has edge lengths)."""
+def imported(yaml_path: Path, workdir: Path, sensor_range: float | None = None) -> Graph:
+    """The map imported with default flags into ``workdir`` (its graph has edge lengths), and with
+    ``sensor_range`` (metres) the sensing table of what each node's robot sees (`--sensor-range`)."""
     out = workdir / f"{yaml_path.stem}.json"
-    if mures_main(["map", "import", str(yaml_path), "--out", str(out), "--quiet"]) != 0:
+    extra = [] if sensor_range is None else ["--sensor-range", f"{sensor_range:g}"]
+    if mures_main(["map", "import", str(yaml_path), "--out", str(out), "--quiet", *extra]) != 0:
         raise SystemExit(f"importing {yaml_path} failed")
     return load_graph_file(out)
 
