@@ -7,11 +7,13 @@ fleets' capture times mission by mission.
     python benchmarks/baselines_in_time.py [--runs results/fleet_in_time/before-60-missions.json
                                             results/fleet_in_time/after-60-missions-each-on-arrival.json
                                             results/fleet_in_time/general-plan-each-on-arrival.json]
-                                           [--json results/fleet_in_time/baselines.json]
+                                           [--detection node|custom] [--json results/fleet_in_time/baselines.json]
 
 The runs are fleet_in_time.py JSON files on the same settings and seeds (the first is "before",
 the others are compared with it). Maps are made as fleet_in_time.py makes them (imported with
-default flags; office floors from their seeds). Prints a row per map and N: each column's mean
+default flags; office floors from their seeds). With --detection custom (fleet_in_time.py's) the
+maps are imported with the world's sensor range as their sensing table, and greedy's beliefs and
+the plan take D(p) from it. Prints a row per map and N: each column's mean
 capture time in seconds ± 95 % CI half-width over the missions, and each fleet's mean difference to
 the first run and to every baseline, paired.
 """
@@ -26,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from shipped_maps import imported, map_yaml  # benchmarks/shipped_maps.py, beside this script
 
+from shared.core.models import Sensor
 from shared.engine.evaluate import mean_ci95
 from shared.floorplan.occupancy import read_map
 from shared.tools.fleetsim import fleet_mission_seed
@@ -46,8 +49,11 @@ def main() -> None:
             str(ROOT / "results" / "fleet_in_time" / "general-plan-each-on-arrival.json"),
         ],
     )
+    ap.add_argument("--detection", choices=("node", "custom"), default="node", help="D(p): {p} or the sensing table")
     ap.add_argument("--json", default=str(ROOT / "results" / "fleet_in_time" / "baselines.json"))
     args = ap.parse_args()
+    sensor = Sensor(detection=args.detection)
+    sensor_range = RANGE_M if args.detection == "custom" else None
     runs = [json.loads(Path(p).read_text(encoding="utf-8")) for p in args.runs]
     names = [Path(p).stem for p in args.runs]
     seed = runs[0]["settings"]["seed"]
@@ -62,12 +68,14 @@ def main() -> None:
                 raise SystemExit(f"{name} N = {robots}: the runs flew different numbers of missions")
             if name not in worlds:
                 yaml_path = map_yaml(name, Path(tmp))
-                worlds[name] = building(read_map(yaml_path), imported(yaml_path, Path(tmp)), RANGE_M)
+                graph = imported(yaml_path, Path(tmp), sensor_range)
+                worlds[name] = building(read_map(yaml_path), graph, RANGE_M)
             seeds = [fleet_mission_seed(seed, k) for k in range(missions)]
             row: dict[str, object] = {"map": name, "robots": robots, "missions": missions}
             times = {n: np.asarray(f["capture_time_s"]) for n, f in zip(names, fleets, strict=True)}
             for searcher in SEARCHERS:
-                times[searcher] = fly(worlds[name], searcher, robots, missions, mission_seeds=seeds).capture_s  # type: ignore[arg-type]
+                flown = fly(worlds[name], searcher, robots, missions, sensor=sensor, mission_seeds=seeds)  # type: ignore[arg-type]
+                times[searcher] = flown.capture_s
             for column, x in times.items():
                 mean, half = mean_ci95(x)
                 row[column] = {"mean_s": mean, "ci95_s": half, "capture_time_s": [float(v) for v in x]}
@@ -81,7 +89,8 @@ def main() -> None:
             print(f"{name:<12} N={robots}  {cells}", flush=True)
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"runs": args.runs, "seed": seed, "rows": rows}, indent=1) + "\n", encoding="utf-8")
+    summary = {"runs": args.runs, "seed": seed, "detection": args.detection, "rows": rows}
+    out.write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")
 
 
 if __name__ == "__main__":
