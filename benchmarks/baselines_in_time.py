@@ -12,8 +12,8 @@ fleets' capture times mission by mission.
 The runs are fleet_in_time.py JSON files on the same settings and seeds (the first is "before",
 the others are compared with it). Maps are made as fleet_in_time.py makes them (imported with
 default flags; office floors from their seeds). With --detection custom (fleet_in_time.py's) the
-maps are imported with the world's sensor range as their sensing table, and greedy's beliefs and
-the plan take D(p) from it. Prints a row per map and N: each column's mean
+maps are imported with the world's sensor range as their sensing table, and the plan takes D(p)
+from it (greedy's beliefs in the batched world stay on {p}: shared/world/continuous.py). Prints a row per map and N: each column's mean
 capture time in seconds ± 95 % CI half-width over the missions, and each fleet's mean difference to
 the first run and to every baseline, paired.
 """
@@ -49,7 +49,7 @@ def main() -> None:
             str(ROOT / "results" / "fleet_in_time" / "general-plan-each-on-arrival.json"),
         ],
     )
-    ap.add_argument("--detection", choices=("node", "custom"), default="node", help="D(p): {p} or the sensing table")
+    ap.add_argument("--detection", choices=("node", "custom"), default="node", help="the plan's D(p): {p} or the sensing table")
     ap.add_argument("--json", default=str(ROOT / "results" / "fleet_in_time" / "baselines.json"))
     args = ap.parse_args()
     sensor = Sensor(detection=args.detection)
