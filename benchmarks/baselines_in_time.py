@@ -49,7 +49,9 @@ def main() -> None:
             str(ROOT / "results" / "fleet_in_time" / "general-plan-each-on-arrival.json"),
         ],
     )
-    ap.add_argument("--detection", choices=("node", "custom"), default="node", help="the plan's D(p): {p} or the sensing table")
+    ap.add_argument(
+        "--detection", choices=("node", "custom"), default="node", help="the plan's D(p): {p} or the sensing table"
+    )
     ap.add_argument("--json", default=str(ROOT / "results" / "fleet_in_time" / "baselines.json"))
     args = ap.parse_args()
     sensor = Sensor(detection=args.detection)
