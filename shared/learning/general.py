@@ -564,7 +564,7 @@ def train_general(
     cfg.check()
     device = torch.device(device)
     if scheduler and device.type != "cpu":
-        raise ValueError("rollouts on Dask workers run on their CPUs: give a device other than cpu without a cluster")
+        raise ValueError(f"device {device} goes without a Dask cluster (the workers' rollouts run on their CPUs)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
