@@ -216,3 +216,40 @@ def test_hold_ups_make_the_batched_missions_later(tmp_path):
     held = fly(world, "sweep", 1, 200, seed=3, stop_prob=1.0, stop_s=60.0)  # every move held up a minute
     assert free.captured.all() and held.captured.all()
     assert held.capture_s.mean() > free.capture_s.mean() + 20.0, (held.capture_s.mean(), free.capture_s.mean())
+
+
+def test_a_graph_with_a_sensing_table_makes_it_the_default_d_of_p(tmp_path):
+    """A graph imported with --sensor-range: evaluation, training and the server's first version
+    take its sensing table as D(p) unless --detection says otherwise; a graph without one keeps {p}."""
+    import signal
+
+    from test_floorplan import mures
+
+    from shared.core.files import read_token
+    from shared.core.http import ApiClient
+    from shared.tools.fleetsim import start_server
+
+    Image.fromarray(two_rooms_floor()).save(tmp_path / "m.pgm")
+    (tmp_path / "m.yaml").write_text("image: m.pgm\nresolution: 0.1\norigin: [0.0, 0.0, 0.0]\n")
+    for name, extra in (("seen.json", ["--sensor-range", "20"]), ("plain.json", [])):
+        r = mures("map", "import", str(tmp_path / "m.yaml"), "--out", str(tmp_path / name), "--max-region-m", "10",
+                  *extra)  # fmt: skip
+        assert r.returncode == 0, r.stderr
+    ev = ["evaluate", "--robots", "2", "--searcher", "greedy", "--episodes", "5", "--json"]
+    for name, flags, detection in (("seen.json", [], "custom"), ("seen.json", ["--detection", "node"], "node"),
+                                   ("plain.json", [], "node")):  # fmt: skip
+        r = mures(*ev, "--graph", str(tmp_path / name), *flags)
+        assert r.returncode == 0 and json.loads(r.stdout)["sensor"]["detection"] == detection, r.stderr
+    r = mures("train", "--graph", str(tmp_path / "seen.json"), "--robots", "2", "--episodes", "256", "--out",
+              str(tmp_path / "team"), "--quiet")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "team" / "policy.json").read_text())["sensor"]["detection"] == "custom"
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    proc, base, _ = start_server(["--graph", str(tmp_path / "seen.json")], tmp_path / "data", 2, None, logs)
+    try:
+        api = ApiClient(base, read_token(tmp_path / "data" / "operator.token"))
+        assert api.get("/api/v1/policies/current")["meta"]["sensor"]["detection"] == "custom"
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(30)

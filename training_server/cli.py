@@ -29,7 +29,7 @@ from typing import Any
 import training_server.credentials as credentials
 from shared.core.choices import BUILTIN_MAPS, DETECTIONS
 from shared.core.files import read_token, write_private
-from shared.core.graph import GraphError, builtin_graph, check_searchable, load_graph_file
+from shared.core.graph import GraphError, builtin_graph, check_searchable, default_detection, load_graph_file
 from shared.core.wire import DEFAULT_FLEET, DEFAULT_HTTP, DEFAULT_ZENOH_ENDPOINT, add_zenoh_arguments, check_id
 from training_server.security import MAX_FAILURES, ROLES, WINDOW_S, AuditLog, endpoint_host, is_loopback, rotate
 from training_server.server import CAPTURE_MODES, MISSION_TIMEOUT_S, Server
@@ -217,7 +217,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--eta-fn", type=float, default=0.0, help="sensor false-negative rate of the initial policy")
     p.add_argument("--eta-fp", type=float, default=0.0, help="sensor false-positive rate of the initial policy")
-    p.add_argument("--detection", choices=DETECTIONS, default="node")
+    p.add_argument(
+        "--detection",
+        choices=DETECTIONS,
+        default=None,
+        help="D(p) of the initial policy's sensor (default: custom, the sensing table, where the graph file has one "
+        "(`mures map import --sensor-range`), else node)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the initial policy's weights")
     p.add_argument("--log-json", action="store_true", help="structured (JSON Lines) logs")
     p.add_argument("--log-level", default="INFO")
@@ -305,7 +311,7 @@ def _open_server(args: argparse.Namespace) -> Server:
         raise ValueError("--sign-in-limit must be at least 1")
     graph = check_searchable(builtin_graph(args.env) if args.env else load_graph_file(args.graph))
     picture = _map_picture(args) if args.map_image else None
-    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection)
+    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection or default_detection(graph))
     data_dir = Path(args.data_dir)
     os.umask(0o077)  # everything the server writes (database, policies, logs of runs) is private
     data_dir.mkdir(parents=True, exist_ok=True)

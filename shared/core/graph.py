@@ -325,6 +325,12 @@ def _parse_label_key(key: str, index: dict[int, int], source: str, table: str) -
     return lab
 
 
+def default_detection(graph: Graph) -> str:
+    """D(p) when none is asked for: the graph file's sensing table where it has one (what a robot
+    on each node sees, `mures map import --sensor-range`), else {p}."""
+    return "custom" if graph.sensing_sets is not None else "node"
+
+
 def check_searchable(graph: Graph) -> Graph:
     """``graph`` if a team can search it (2 nodes or more), else GraphError saying why: a graph of
     one node is valid as a file but leaves nothing to move to."""

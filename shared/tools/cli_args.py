@@ -7,7 +7,7 @@ from collections.abc import Callable
 from typing import Any
 
 from shared.core.choices import BUILTIN_MAPS, DETECTIONS
-from shared.core.graph import Graph, builtin_graph, check_searchable, load_graph_file
+from shared.core.graph import Graph, builtin_graph, check_searchable, default_detection, load_graph_file
 from shared.core.models import Sensor, TargetModel, parse_target
 from shared.learning.config import positive_int
 
@@ -76,8 +76,9 @@ def add_world_args(p: argparse.ArgumentParser) -> None:
         "--detection",
         choices=DETECTIONS,
         default=None,
-        help="detection set D(p): {p}, N[p], or the graph file's sensing table (default node; "
-        "neighbourhood for cepg+; a policy snapshot's own when evaluating one)",
+        help="detection set D(p): {p}, N[p], or the graph file's sensing table (default: custom where the graph "
+        "file has one, `mures map import --sensor-range`, else node; neighbourhood for cepg+; a policy snapshot's "
+        "own when evaluating one)",
     )
     p.add_argument(
         "--target",
@@ -93,11 +94,13 @@ def graph_of(args: argparse.Namespace) -> Graph:
     return builtin_graph(args.env) if args.env else load_graph_file(args.graph)
 
 
-def world_of(args: argparse.Namespace, detection: str = "node") -> tuple[Graph, TargetModel, Sensor]:
-    """The map, the true target model and the sensor; ``detection`` when --detection is not given."""
+def world_of(args: argparse.Namespace, detection: str | None = None) -> tuple[Graph, TargetModel, Sensor]:
+    """The map, the true target model and the sensor; ``detection`` when --detection is not given,
+    else the map's ``default_detection``."""
     graph = check_searchable(graph_of(args))
     target = parse_target(graph, args.target)
-    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=args.detection or detection)
+    chosen = args.detection or detection or default_detection(graph)
+    sensor = Sensor(eta_fn=args.eta_fn, eta_fp=args.eta_fp, detection=chosen)
     if sensor.detection == "custom":
         graph.detection_sets("custom")  # raises a clear error when the graph has no table
     return graph, target, sensor

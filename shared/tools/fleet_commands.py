@@ -37,7 +37,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         args.missions = 0
     elif args.missions == 0 and not args.serve:
         raise CliError("fleet-sim: --missions must be at least 1 (0 only with --serve)")
-    graph, target, sensor = world_of(args, "node")
+    graph, target, sensor = world_of(args)
     graph_args = ["--env", args.env] if args.env else ["--graph", str(Path(args.graph).resolve())]
     if args.server and not (args.zenoh_connect and args.token_file):
         raise CliError("--server needs --zenoh-connect ENDPOINT and --token-file FILE (the operator token)")
@@ -169,7 +169,7 @@ def cmd_world(args: argparse.Namespace) -> int:
     from shared.core.wire import DEFAULT_ZENOH_ENDPOINT, check_id, client_config
     from shared.tools.world import World
 
-    graph, target, sensor = world_of(args, "node")
+    graph, target, sensor = world_of(args)
     building = building_of(args, graph) if args.world else None
     if args.world and args.step_delay:
         raise CliError("world: --step-delay is the step world's; --world moves robots at --speed")

@@ -253,13 +253,14 @@ def start_server(
     graph_args: list[str],
     data_dir: Path,
     robots: int,
-    sensor: Sensor,
+    sensor: Sensor | None,
     log_dir: Path,
     extra: list[str] | None = None,
     ca_file: str | None = None,
     zenoh_proto: str = "tcp",
 ) -> tuple[subprocess.Popen, str, str]:
     """A training-server process on free loopback ports: (process, base URL, zenoh endpoint).
+    ``sensor`` None: the server's own defaults for its initial policy's sensor.
     With ``ca_file`` the server is expected to serve https (``extra`` holds --tls-cert/--tls-key);
     ``zenoh_proto`` "tls" listens on a tls/ endpoint (``extra`` holds --zenoh-tls-cert/--zenoh-tls-key)."""
     http_port, z_port = free_port(), free_port()
@@ -277,12 +278,8 @@ def start_server(
         endpoint,
         "--robots",
         str(robots),
-        "--eta-fn",
-        str(sensor.eta_fn),
-        "--eta-fp",
-        str(sensor.eta_fp),
-        "--detection",
-        sensor.detection,
+        *([] if sensor is None else ["--eta-fn", str(sensor.eta_fn), "--eta-fp", str(sensor.eta_fp)]),
+        *([] if sensor is None else ["--detection", sensor.detection]),
         *(extra or []),
     ]
     log = open(log_dir / "server.log", "ab")  # noqa: SIM115 - owned by the process

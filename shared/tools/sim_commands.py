@@ -62,15 +62,16 @@ def _searcher_factory(
         raise CliError(str(exc)) from None
 
 
-def _snapshot_detection(args: argparse.Namespace) -> str:
-    """A policy is evaluated with the detection it was trained for unless --detection says otherwise."""
+def _snapshot_detection(args: argparse.Namespace) -> str | None:
+    """A policy is evaluated with the detection it was trained for unless --detection says otherwise
+    (None: not a policy, the map's default)."""
     if args.searcher.startswith("policy:") and args.detection is None:
         meta = Path(args.searcher.removeprefix("policy:")) / "policy.json"
         try:
             return str(json.loads(meta.read_text(encoding="utf-8"))["sensor"]["detection"])
         except (OSError, ValueError, KeyError, TypeError):
             return "node"  # load_snapshot reports the problem
-    return "node"
+    return None
 
 
 def _team_flight(args: argparse.Namespace, graph: Graph) -> TeamFlight | None:

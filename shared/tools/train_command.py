@@ -69,7 +69,7 @@ def _init_distributed(device: torch.device) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from shared.learning.train import leave_process_group
 
-    detection = "neighbourhood" if args.variant == "cepg+" else "node"
+    detection = "neighbourhood" if args.variant == "cepg+" else None  # None: the map's default
     if args.variant == "cepg+" and args.detection == "node":
         raise CliError("cepg+ trains with a sensing range: use --detection neighbourhood or custom, or leave it out")
     graph, target, sensor = world_of(args, detection)
