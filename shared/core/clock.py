@@ -42,6 +42,12 @@ def move_seconds(graph: Graph, speed: float) -> float:
     return float(np.median(edge_lengths(graph))) / speed
 
 
+def default_time_limit_s(graph: Graph, speed: float) -> float:
+    """A mission's default limit on the mission clock: the step limit's horizon (3 n steps) as 3 n
+    moves of the median edge at ``speed``, to 0.1 s. ValueError for a graph without edge lengths."""
+    return round(3 * graph.n * move_seconds(graph, speed), 1)
+
+
 def tick_model(model: TargetModel, step_s: float, tick_s: float = TICK_S) -> TargetModel:
     """The step model made one tick's worth (module docstring): Gamma_tick = I + a (Gamma - I),
     a = tick_s / step_s (at most 1); b0 unchanged. Gamma's support holds every self-loop."""

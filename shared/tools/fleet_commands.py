@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.core.choices import DETECTIONS
-from shared.core.clock import move_seconds
+from shared.core.clock import default_time_limit_s
 from shared.core.wire import add_zenoh_arguments
 from shared.learning.config import positive_int, seconds, whole_number
 from shared.learning.team_snapshot import load_snapshot
@@ -77,7 +77,7 @@ def cmd_fleet_sim(args: argparse.Namespace) -> int:
         if args.max_seconds is not None:
             limits["max_seconds"] = args.max_seconds
         elif args.max_steps is None:  # the step limit's horizon on the clock: 3 n moves of the median edge
-            limits["max_seconds"] = round(3 * graph.n * move_seconds(graph, args.speed), 1)
+            limits["max_seconds"] = default_time_limit_s(graph, args.speed)
     try:
         res = run_fleet_sim(
             graph,

@@ -9,7 +9,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 
-from shared.core.clock import has_edge_lengths, move_seconds
+from shared.core.clock import default_time_limit_s, has_edge_lengths
 from training_server.api.deps import READ, WRITE, Srv, errors, fleet_scope
 from training_server.api.models import (
     MAX_ID,
@@ -82,7 +82,7 @@ def default_time_limit(srv: Any, robots: list[str]) -> float | None:
             speeds.append(float(live["speed"]))
     if not speeds or not has_edge_lengths(srv.graph):
         return None
-    return round(3 * srv.graph.n * move_seconds(srv.graph, min(speeds)), 1)
+    return default_time_limit_s(srv.graph, min(speeds))
 
 
 @router.post("", status_code=201, dependencies=WRITE, responses=errors(401, 403, 409, 422))
