@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
+
 import numpy as np
 
 from robot_agent.agent import mission_seed
@@ -9,6 +12,14 @@ from shared.core.models import Sensor
 from shared.core.records import make_record
 from shared.core.snapshot_format import PolicyAgent, read_snapshot
 from shared.tools.fleetsim import wait_until
+
+
+def stop_processes(*procs: subprocess.Popen) -> None:
+    """Stop processes started by hand (agents, worlds, then their server), each with SIGTERM and up
+    to 30 s to exit, in the order given."""
+    for p in procs:
+        p.send_signal(signal.SIGTERM)
+        p.wait(30)
 
 
 def snapshot_dir(fleet, version):

@@ -221,8 +221,7 @@ def test_hold_ups_make_the_batched_missions_later(tmp_path):
 def test_a_graph_with_a_sensing_table_makes_it_the_default_d_of_p(tmp_path):
     """A graph imported with --sensor-range: evaluation, training and the server's first version
     take its sensing table as D(p) unless --detection says otherwise; a graph without one keeps {p}."""
-    import signal
-
+    from fleet_checks import stop_processes
     from test_floorplan import mures
 
     from shared.core.files import read_token
@@ -251,5 +250,4 @@ def test_a_graph_with_a_sensing_table_makes_it_the_default_d_of_p(tmp_path):
         api = ApiClient(base, read_token(tmp_path / "data" / "operator.token"))
         assert api.get("/api/v1/policies/current")["meta"]["sensor"]["detection"] == "custom"
     finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(30)
+        stop_processes(proc)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from fleet_checks import replay, snapshot_dir, walk_record
+from fleet_checks import replay, snapshot_dir, stop_processes, walk_record
 from prometheus_client.parser import text_string_to_metric_families
 
 from shared.core.files import read_token
@@ -483,11 +483,7 @@ def test_the_fleet_by_hand_as_the_readme_shows(tmp_path):
             "by_policy_version": None,
         }
     finally:
-        for p in procs:
-            p.send_signal(signal.SIGTERM)
-            p.wait(30)
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(30)
+        stop_processes(*procs, proc)
 
 
 def test_a_worse_version_on_trial_is_rolled_back_by_the_fleets_own_missions(fleet):

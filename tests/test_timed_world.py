@@ -363,10 +363,11 @@ def test_a_mission_started_over_rest_for_robots_on_the_clock_is_limited_in_time(
     their telemetry says so, at 0.5 m/s; a mission an operator starts with no limit is then limited
     to 3 n moves of the median edge in time (the step limit a guard), the world keeps the same
     limit, and the mission completes on it with every reading timed."""
-    import signal
     import subprocess
     import sys
     from pathlib import Path
+
+    from fleet_checks import stop_processes
 
     from shared.core.files import read_token
     from shared.core.http import ApiClient
@@ -412,8 +413,4 @@ def test_a_mission_started_over_rest_for_robots_on_the_clock_is_limited_in_time(
             steps = api.get(f"/api/v1/episodes/{robot}/{m['id']}")["steps"]
             assert all("time_s" in s for s in steps) and steps[-1]["time_s"] < expected + 60
     finally:
-        for p in procs:
-            p.send_signal(signal.SIGTERM)
-            p.wait(30)
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(30)
+        stop_processes(*procs, proc)
