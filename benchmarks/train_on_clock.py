@@ -2,7 +2,7 @@
 times: what training on the clock (`mures train --speed`) buys a robot's own policy.
 
     python benchmarks/train_on_clock.py [--robots 2 4] [--episodes 20000] [--eval-episodes 1000]
-                                        [--algorithm cepg|maddpg|masac|facmac|mappo]
+                                        [--algorithm cepg|maddpg|masac|facmac|mambpo|mappo]
                                         [--speed 0.5] [--offices 2] [--maps depot,bookstore,...]
                                         [--workdir DIR] [--json results/train_on_clock/train_on_clock.json]
 

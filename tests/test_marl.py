@@ -58,7 +58,7 @@ def test_each_baseline_learns_to_sweep_a_corridor(algorithm):
     assert res.summary["algorithm"] == algorithm and res.summary["learning_curve"]
 
 
-@pytest.mark.parametrize("algorithm", ["mappo", "masac"])
+@pytest.mark.parametrize("algorithm", ["mappo", "masac", "mambpo"])
 def test_a_baseline_on_the_clock_learns_to_sweep_a_corridor_of_unequal_doors(algorithm):
     """On the mission clock (doors 1-3 m apart at 1 m/s: moves of 1-3 ticks, a step 2 ticks) the
     environment steps a tick at a time and a robot in transit has one action; the team still
@@ -87,10 +87,53 @@ def test_a_baseline_on_the_clock_learns_to_sweep_a_corridor_of_unequal_doors(alg
     assert learned < 0.7 * random, f"{algorithm}: {learned:.2f} s after training (random {random:.2f} s)"
 
 
-def test_mambpo_refuses_the_clock_naming_why():
-    with pytest.raises(ValueError, match="mambpo counts steps"):
-        TrainConfig(robots=2, algorithm="mambpo", speed=0.5).check()
-    TrainConfig(robots=2, algorithm="mappo", speed=0.5).check()
+def test_mambpos_branched_rollouts_on_the_clock_move_robots_as_the_simulator_does(monkeypatch):
+    """Every transition MAMBPO's learned model makes on the clock follows the simulator's rule: a
+    robot on a node sets off for its action's node and arrives after the move's ticks, one in
+    transit has action 0 only and goes on to its goal, a tick passes, and the reward is a step's
+    worth of -1 spread over its ticks."""
+    from shared.core.clock import TravelTimes
+    from shared.learning.marl import mambpo
+
+    g, target, sensor = _corridor()
+    g = dataclasses.replace(g, edge_lengths=np.array([1.0, 3.0, 2.0, 1.0, 3.0]))
+    models = []
+    rollout = mambpo.WorldModel.rollout
+
+    def keep(self, data):
+        models.append(self)
+        return rollout(self, data)
+
+    monkeypatch.setattr(mambpo.WorldModel, "rollout", keep)
+    cfg = TrainConfig(robots=2, algorithm="mambpo", belief="true", seed=0, speed=1.0)
+    train_marl("mambpo", g, target, sensor, cfg, hyperparameters("mambpo", ["episodes=300", "warmup=100"]))
+    model = models[-1]
+    td = model.buffer.storage[: len(model.buffer)]
+    n, N = g.n, 2
+    clock = TravelTimes.of(g, 1.0)
+    per_step = clock.ticks_per_step
+    ticks = torch.as_tensor(clock.ticks)
+
+    def decode(state):
+        pos = state[:, : N * n].view(-1, N, n).argmax(-1)
+        goal = state[:, (N + 1) * n : (2 * N + 1) * n].view(-1, N, n).argmax(-1)
+        left = torch.round(state[:, (2 * N + 1) * n : (2 * N + 1) * n + N] * per_step).long()
+        return pos, goal, left, state[:, -1]
+
+    pos, goal, left, t = decode(td.get("state"))
+    pos1, goal1, left1, t1 = decode(td.get(("next", "state")))
+    action, mask = td.get(("agents", "action")), td.get(("agents", "action_mask"))
+    assert len(td) > 100 and bool((left > 0).any()) and bool((left == 0).any())  # both kinds of robots seen
+    transit = left > 0
+    assert bool((mask[transit][:, 1:] == 0).all()) and bool(mask[transit][:, 0].all())
+    dest = torch.as_tensor(g.nbr)[pos, action]
+    want_goal = torch.where(transit, goal, dest)
+    want_left = torch.where(transit, left, ticks[pos, want_goal]) - 1
+    assert torch.equal(goal1, want_goal) and torch.equal(left1, want_left)
+    assert torch.equal(pos1, torch.where(want_left == 0, want_goal, pos))
+    assert torch.equal(td.get(("next", "agents", "observation"))[..., :n].argmax(-1), pos1)
+    assert torch.allclose(t1 - t, torch.full_like(t, 1.0 / clock.t_max(g.n)))  # a tick of T_max
+    assert torch.allclose(td.get(("next", "agents", "reward")), torch.tensor(-1.0 / per_step))
 
 
 @pytest.mark.parametrize("algorithm", ["mappo", "maddpg"])

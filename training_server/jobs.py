@@ -285,21 +285,16 @@ def measured_links(records: list[dict[str, Any]]) -> dict[str, Any]:
 def run_speed(params: TrainingParams, trained: tuple[float, float] | None) -> float | None:
     """The robot speed a run trains on travel times at: ``speed``, else the current version's
     (``trained``: its training's (speed, tick), None for a version trained in steps); None for a
-    run in steps. A ValueError names a run that cannot: mambpo on travel times (the body is valid:
-    such a run fails at once, as one with an unknown hyperparameter does), or a version trained
-    with another tick than the agents' 1 s."""
+    run in steps. A ValueError names a run that cannot: a version trained with another tick than the
+    agents' 1 s (the body is valid: such a run fails at once, as one with an unknown hyperparameter
+    does)."""
     from shared.core.clock import TICK_S
-    from shared.learning.config import STEPS_ONLY
 
     speed = params.speed if params.speed is not None else (trained[0] if trained else None)
     if speed is None:
         return None
     if trained is not None and abs(trained[1] - TICK_S) > 1e-9:
         raise ValueError(f"the current version was trained with ticks of {trained[1]:g} s; the agents' are 1 s")
-    steps_only = [m for m in params.methods() if m in STEPS_ONLY]
-    if steps_only:
-        why = "speed retrains" if params.speed is not None else "the current version was trained on travel times, so"
-        raise ValueError(f"{why} on travel times, which {', '.join(steps_only)} cannot train on: it counts steps")
     return speed
 
 

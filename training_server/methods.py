@@ -159,7 +159,7 @@ def train_team(
     """Train ``method``'s team for ``robots`` robots for ``episodes`` episodes in ``world`` (graph,
     the run's EM model, sensor), save it in ``folder`` and return it; None when stopped first
     (a MARL team's checkpoint then holds where it was). ``speed``: the team trains on the map's
-    travel times (CE-PG and the MARL baselines but mambpo), the EM model being per tick."""
+    travel times (CE-PG and every MARL baseline), the EM model being per tick."""
     from shared.learning.config import TrainConfig, fine_tune_defaults
     from shared.learning.team_snapshot import save_snapshot
 

@@ -24,8 +24,6 @@ TORCH_THREADS = 1
 # the experiments' teams): a MUSEUM N = 4 team's checkpoint with a full replay buffer is 1.5 GB,
 # 8-17 s to write beside two jobs, under 3 % of the interval (benchmarks/bench_checkpoint.py)
 CHECKPOINT_EVERY_S = 600.0
-# the methods that train in steps only: MAMBPO's learned model moves the robots a step at a time
-STEPS_ONLY = ("mambpo",)
 
 
 def _opt(help: str, **kw: Any) -> Any:
@@ -170,7 +168,7 @@ class TrainConfig:
         metadata=_opt(
             "robots' speed in m/s: each move takes its edge's travel time (the graph's edge_lengths_m) in "
             "ticks of --tick seconds and the target moves once a tick (docs/continuous-world.md); unset: every "
-            "move is one step, the paper's model (every method but mambpo)",
+            "move is one step, the paper's model",
             parse=positive_float,
             metavar="M_PER_S",
         ),
@@ -227,11 +225,6 @@ class TrainConfig:
             raise ValueError("EM's pseudo-counts must be numbers >= 0")
         if not (self.tick > 0 and math.isfinite(self.tick)):
             raise ValueError(f"tick must be a number of seconds above 0, got {self.tick}")
-        if self.speed is not None and self.algorithm in STEPS_ONLY:
-            raise ValueError(
-                f"--speed: {self.algorithm} counts steps (its learned model moves the robots a step at a time); "
-                "cepg, maddpg, masac, facmac and mappo train on travel times"
-            )
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -64,7 +64,7 @@ def train_marl(
 ) -> TrainResult:
     """Train ``name`` with ``hyper`` (see ``hyperparameters``); ``cfg`` gives N, the seed, the
     device, the hidden width of the actors, the belief model (EM as CE-PG's, or true) and, with
-    ``cfg.speed``, the mission clock (all but mambpo): ``target`` and ``init_model`` are models per
+    ``cfg.speed``, the mission clock: ``target`` and ``init_model`` are models per
     step made a tick's worth, unless ``models_per_tick`` (the server's EM fitted per tick).
 
     With ``checkpoint`` (a directory) the run is resumable: it continues from the checkpoint there

@@ -13,6 +13,13 @@ the known sensor model (its belief filter uses that model), capture and truncati
 simulator, each belief updated by Eq. 1, reward -1 per step. These transitions fill a model
 buffer; every SAC minibatch mixes ``real_ratio`` real transitions with model ones.
 
+On the mission clock (shared/envs/core.py) a model step is a tick, as the environment's is: the
+ensemble learns the target's motion per tick from consecutive ticks' states; a robot on a node
+(no ticks left) sets off for the node its action leads to, taking the move's travel time in ticks
+(the scenario's table), one in transit goes on with its one action; only robots on a node read z
+and update their beliefs with it (the others predict, Lambda = I); the reward is the environment's
+-1 / (ticks a step lasts); the state carries every robot's goal and ticks left.
+
 What differs from the paper: the learned part is the target's motion only (the robots' own moves
 and their sensor are known to them, so they are not learned), and the ensemble's members are
 sampled per rollout rather than per step.
@@ -74,12 +81,36 @@ class WorldModel:
             storage=LazyTensorStorage(hyper.model_buffer, device=run.device), sampler=RandomSampler()
         )
         self.gen = torch.Generator(device=run.device).manual_seed(run.cfg.seed + 17)
+        clock = core.scenario.clock
+        self.move_ticks = None if clock is None else torch.as_tensor(clock.ticks, dtype=torch.long, device=run.device)
         self.last_loss = float("nan")
 
     def _target(self, state: torch.Tensor) -> torch.Tensor:
         """The target's row from the state's last onehot block: (M, S) -> (M,)."""
         n, N = self.n, self.N
         return state[:, N * n : (N + 1) * n].argmax(-1)
+
+    def _robots_move(
+        self, state: torch.Tensor, pos: torch.Tensor, action: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
+        """Where the robots are after one model step: (M, S) states, (M, N) nodes and actions ->
+        (positions, goals, ticks left, on a node) (M, N) each; in steps every robot moves to its
+        action's node at once (goals, ticks left and on a node None). On the clock the simulator's
+        rule (shared/engine/sim.py): a robot on a node sets off for its action's node, its ticks
+        left the move's travel time, a robot in transit goes on; each loses a tick, and one with
+        none left stands on its goal."""
+        core, n, N = self.core, self.n, self.N
+        if self.move_ticks is None:  # in steps
+            return core.destinations(pos, action), None, None, None
+        goal = state[:, (N + 1) * n : (2 * N + 1) * n].view(-1, N, n).argmax(-1)
+        start = (2 * N + 1) * n
+        left = torch.round(state[:, start : start + N] * core.scenario.ticks_per_step).long()
+        on_node = left == 0
+        goal = torch.where(on_node, core.destinations(pos, action), goal)
+        left = torch.where(on_node, self.move_ticks[pos, goal], left) - 1
+        left = left.clamp_min(0)
+        ready = left == 0
+        return torch.where(ready, goal, pos), goal, left, ready
 
     def fit(self, data: TensorDictBase) -> None:
         e = self._target(data.get("state"))
@@ -117,7 +148,7 @@ class WorldModel:
             b = obs[..., n:]
             e = self._target(state)
             t = torch.round(state[:, -1] * t_max)
-            pos_next = core.destinations(pos, a)
+            pos_next, goal, left, ready = self._robots_move(state, pos, a)
             logits = self.net(torch.nn.functional.one_hot(e, n).float())  # (K, M, n)
             probs = torch.softmax(logits[member, torch.arange(len(e), device=e.device)], -1)
             e_next = torch.multinomial(probs, 1, generator=self.gen).squeeze(1)
@@ -125,12 +156,17 @@ class WorldModel:
             u = torch.rand(in_d.shape, generator=self.gen, device=in_d.device)
             sensor = core.scenario.sensor
             z = torch.where(in_d, u >= sensor.eta_fn, u < sensor.eta_fp)
+            if ready is not None:  # in transit: no reading
+                in_d, z = in_d & ready, z & ready
             captured = (z & in_d).any(1)
             t_next = t + 1
             truncated = ~captured & (t_next >= t_max)
-            b_next = belief.update(b, belief.likelihood(pos_next, z))  # Eq. 1
+            b_next = belief.update(b, belief.likelihood(pos_next, z, ready))  # Eq. 1
             obs_next = core.encode_observation(pos_next, b_next)
-            state_next = core.encode_state(pos_next, e_next, t_next)
+            state_next = core.encode_state(pos_next, e_next, t_next, goal, left)
+            mask_next = core.valid[pos_next]
+            if ready is not None:  # a robot in transit has action 0 only
+                mask_next = mask_next & (ready.unsqueeze(-1) | (torch.arange(core.d, device=mask.device) == 0))
             M = len(e)
             term = captured.unsqueeze(1)
             done = (captured | truncated).unsqueeze(1)
@@ -139,8 +175,8 @@ class WorldModel:
                     "agents": TensorDict(
                         {
                             "observation": obs_next,
-                            "action_mask": core.valid[pos_next],
-                            "reward": -torch.ones(M, N, 1, device=obs.device),
+                            "action_mask": mask_next,
+                            "reward": torch.full((M, N, 1), core.reward_per_step, device=obs.device),
                             "done": done.unsqueeze(1).expand(M, N, 1),
                             "terminated": term.unsqueeze(1).expand(M, N, 1),
                         },
