@@ -276,10 +276,14 @@ class EnvCore:
 
     def action_mask(self) -> torch.Tensor:
         """(B, N, d) bool; on the clock a robot in transit has index 0 only."""
-        pos = self.sim.pos
+        return self.encode_action_mask(self.sim.pos, None if self.scenario.clock is None else self.sim.ready)
+
+    def encode_action_mask(self, pos: torch.Tensor, ready: torch.Tensor | None = None) -> torch.Tensor:
+        """Positions (M, N) as action masks (M, N, d); where ``ready`` (M, N) is False (in transit on
+        the clock) index 0 only."""
         mask = self.valid.index_select(0, pos.reshape(-1)).view(*pos.shape, self.d)
-        if self.scenario.clock is not None:
-            mask = mask & (self.sim.ready.unsqueeze(-1) | (torch.arange(self.d, device=self.device) == 0))
+        if ready is not None:
+            mask = mask & (ready.unsqueeze(-1) | (torch.arange(self.d, device=self.device) == 0))
         return mask
 
     def state(self) -> torch.Tensor:

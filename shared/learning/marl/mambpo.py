@@ -164,9 +164,7 @@ class WorldModel:
             b_next = belief.update(b, belief.likelihood(pos_next, z, ready))  # Eq. 1
             obs_next = core.encode_observation(pos_next, b_next)
             state_next = core.encode_state(pos_next, e_next, t_next, goal, left)
-            mask_next = core.valid[pos_next]
-            if ready is not None:  # a robot in transit has action 0 only
-                mask_next = mask_next & (ready.unsqueeze(-1) | (torch.arange(core.d, device=mask.device) == 0))
+            mask_next = core.encode_action_mask(pos_next, ready)  # in transit: action 0 only
             M = len(e)
             term = captured.unsqueeze(1)
             done = (captured | truncated).unsqueeze(1)
