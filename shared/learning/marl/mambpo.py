@@ -107,8 +107,7 @@ class WorldModel:
         left = torch.round(state[:, start : start + N] * core.scenario.ticks_per_step).long()
         on_node = left == 0
         goal = torch.where(on_node, core.destinations(pos, action), goal)
-        left = torch.where(on_node, self.move_ticks[pos, goal], left) - 1
-        left = left.clamp_min(0)
+        left = torch.where(on_node, self.move_ticks[pos, goal], left) - 1  # a move takes >= 1 tick: left >= 0
         ready = left == 0
         return torch.where(ready, goal, pos), goal, left, ready
 
