@@ -278,8 +278,11 @@ def start_server(
         endpoint,
         "--robots",
         str(robots),
-        *([] if sensor is None else ["--eta-fn", str(sensor.eta_fn), "--eta-fp", str(sensor.eta_fp)]),
-        *([] if sensor is None else ["--detection", sensor.detection]),
+        *(
+            []
+            if sensor is None
+            else ["--eta-fn", str(sensor.eta_fn), "--eta-fp", str(sensor.eta_fp), "--detection", sensor.detection]
+        ),
         *(extra or []),
     ]
     log = open(log_dir / "server.log", "ab")  # noqa: SIM115 - owned by the process
