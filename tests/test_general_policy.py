@@ -17,7 +17,7 @@ from shared.core.graph_policy import FEATURE_COUNTS, FEATURES, Distances, Genera
 from shared.core.models import Sensor, uniform_walk
 from shared.core.snapshot_format import GENERAL_META as META
 from shared.core.snapshot_format import GENERAL_WEIGHTS as WEIGHTS
-from shared.core.snapshot_format import SnapshotError, load_general, save_general, shipped_general_path
+from shared.core.snapshot_format import SnapshotError, load_general, read_snapshot, save_general, shipped_general_path
 from shared.engine.evaluate import evaluate, means_differ
 from shared.learning.config import FINE_TUNE, fine_tune_defaults
 from shared.learning.general import CHECKPOINT, GeneralConfig, GeneralNet, GraphTeam, train_general
@@ -268,6 +268,9 @@ def test_a_fine_tune_of_the_general_policy_takes_its_own_defaults_unless_told(tm
     assert got == {**FINE_TUNE, "em_pseudo_count": 1.0, "em_b0_pseudo_count": 1.0, "batch": 256}  # OFFICE, n = 60
     assert cfg["em_missions"] == 16  # given
     assert "warning" not in r.stderr  # the per-map team's large-graph warning is not about this
+    data = read_snapshot(tmp_path / "a", builtin_graph("office"))
+    assert cfg["node_bias"] == 10.0 and data.weights["node_bias"].shape == (2, 60)  # learned for this map and team
+    assert np.abs(data.weights["node_bias"]).max() > 0
     given = ["--lr", "0.005", "--beta", "0.5", "--j-unit", "1", "--batch", "32", "--em-pseudo-count", "0"]
     r = subprocess.run([*cmd, *given, "--out", str(tmp_path / "b")], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -279,6 +282,14 @@ def test_a_fine_tune_of_the_general_policy_takes_its_own_defaults_unless_told(tm
         32,
         0.0,
     )
+    r = subprocess.run([*cmd, "--node-bias", "0", "--out", str(tmp_path / "c")], capture_output=True, text=True,
+                       timeout=300)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "node_bias" not in read_snapshot(tmp_path / "c", builtin_graph("office")).weights  # the network alone
+    per_map = [*cmd[: cmd.index("--init")], "--episodes", "8", "--node-bias", "5", "--out", str(tmp_path / "d")]
+    r = subprocess.run(per_map, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "--node-bias is for a fine-tune of the general policy" in r.stderr
+    assert not (tmp_path / "d").exists()
     assert fine_tune_defaults(1_000)["batch"] == 24 and fine_tune_defaults(20)["batch"] == 256
     assert fine_tune_defaults(1_000)["em_missions"] == 128 and fine_tune_defaults(60)["em_missions"] == 512
     # EM's prior: 1 on the paper's maps, stronger on larger floors, at most 20
@@ -353,3 +364,46 @@ def test_a_snapshot_of_the_general_policy_flies_any_team_size(tmp_path):
     (where / "policy.json").write_text(json.dumps({**meta, "architecture": "transformer"}))
     with pytest.raises(SnapshotError, match="unknown architecture 'transformer'"):
         read_snapshot(where, graph)
+
+
+def test_a_fine_tunes_node_bias_is_flown_by_the_robots_as_trained(tmp_path):
+    """A fine-tune's node_bias (N, n): robot i's scores gain its row at the candidates, in torch (the
+    rollout, and network j on robot i's state in the cross-entropy term with row j) and in numpy (what
+    a robot runs); a snapshot keeps it, a team of another size flies the network without it, and a
+    node_bias of the wrong shape is refused by name."""
+    from shared.core.snapshot_format import PolicyAgent, write_snapshot
+    from shared.learning.team_snapshot import load_snapshot, save_snapshot
+
+    graph = builtin_graph("office")
+    torch.manual_seed(0)
+    net = GeneralNet.from_weights(load_general(shipped_general_path()).weights)
+    rng = np.random.default_rng(1)
+    bias = rng.normal(0.0, 2.0, size=(3, graph.n)).astype(np.float32)
+    team = GraphTeam(net, graph, 3, node_bias=bias, bias_rate=10.0)
+    assert any(p is team.bias for p in team.parameters())  # learned
+    pos = torch.as_tensor(rng.integers(0, graph.n, size=(4, 3)))
+    belief = torch.as_tensor(rng.dirichlet(np.ones(graph.n) * 0.2, size=(4, 3)), dtype=torch.float32)
+    with torch.no_grad():
+        logits = team.logits(pos, belief)
+        plain = GraphTeam(net, graph, 3).logits(pos, belief)
+        cross = team.cross_probs(pos, belief)  # (4, N_i, N_j, d)
+        own = torch.softmax(team.slot_logits(pos, belief), -1)
+    assert torch.allclose(cross.diagonal(dim1=1, dim2=2).permute(0, 2, 1), own, atol=1e-6)
+    where = save_snapshot(tmp_path / "v", team, graph, uniform_walk(graph), Sensor(), "cepg", [0.9] * 3, {}, {})
+    data = read_snapshot(where, graph)
+    assert np.allclose(data.weights["node_bias"], bias, atol=1e-5)
+    assert torch.allclose(load_snapshot(where, graph).policy.logits(pos, belief), logits, atol=1e-5)
+    for s in range(4):
+        for i in range(3):
+            p, mates = int(pos[s, i]), np.delete(pos[s].numpy(), i)
+            b = belief[s, i].double().numpy()
+            agent = PolicyAgent(data, graph, i)
+            got = agent.general.logits(p, b, mates)
+            assert np.allclose(got, logits[s, i, graph.closed(p)].double().numpy(), atol=1e-4)
+            assert np.allclose(got - plain[s, i, graph.closed(p)].double().numpy(), bias[i, graph.closed(p)], atol=1e-4)
+    two = data.team_for(2)  # robots left after a drop-out: the network as a team of 2, without the bias
+    assert "node_bias" not in two.weights and PolicyAgent(two, graph, 1).general.node_bias is None
+    with pytest.raises(SnapshotError, match=r"node_bias has shape \(2, 60\), expected \(3, 60\)"):
+        write_snapshot(tmp_path / "x", graph, {**data.weights, "node_bias": bias[:2]}, data.model, Sensor(), "cepg",
+                       [0.9] * 3, {}, {}, robots=3)  # fmt: skip
+    assert not (tmp_path / "x").exists()

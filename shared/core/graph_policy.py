@@ -21,6 +21,11 @@ the teammates known, and its change from p), which lets a robot keep clear of th
 not depend on n or N. A general policy reads the first k of ``FEATURES``, k in ``FEATURE_COUNTS``
 (w1's rows): the first shipped policy read none of the teammates' features.
 
+A fine-tune on one map and team (shared/learning/train.py) may add what no graph-wide feature says:
+each robot's own preference for each node of that map, ``NODE_BIAS`` (N, n), added to the score of
+a move there, score_i(a) + node_bias[i, a] (the per-map networks' w2 and b2 hold such a term). It
+is learned for that team's roles: a team of another size flies the network without it.
+
 Shapes: n nodes, d = max |N[p]| (the graph's ``nbr`` table, padded by repeating p), F features,
 H hidden units. Features are computed for any leading batch shape (...).
 """
@@ -59,6 +64,7 @@ TEAMMATE_FEATURES = 2  # the last two: a policy without them reads the first F -
 FEATURE_COUNTS = (F - TEAMMATE_FEATURES, F)
 MATE_SCALE = 4.0  # hops
 PARAMS = ("w1", "b1", "w2", "b2", "w3", "skip")  # shapes in ``param_shapes``
+NODE_BIAS = "node_bias"  # (N, n): a fine-tune's learned preference of robot i for node a, added to score(a)
 ALL_PAIRS_MAX = 5_000  # above this a graph's hop distances are computed row by row, as moves need them
 ROW_CACHE = 4_096  # rows kept when computed row by row (each n float32)
 
@@ -223,9 +229,11 @@ def scores(weights: dict[str, np.ndarray], feats: np.ndarray) -> np.ndarray:
 
 class GeneralAgent:
     """One robot's decisions with the general policy, in numpy: robot ``robot`` of a team of
-    ``team`` on ``graph``, with the network's float32 ``weights`` (``param_shapes``). ``act(p, b,
-    mates)`` -> next node row in N[p], b the robot's belief (Eq. 1) or the team's collective one,
-    ``mates`` its teammates' latest known node rows (as heard; None or empty: none known)."""
+    ``team`` on ``graph``, with the network's float32 ``weights`` (``param_shapes``) and, from a
+    fine-tune on this map, ``NODE_BIAS`` (team, n): robot i's score of a move to a gains
+    node_bias[i, a]. ``act(p, b, mates)`` -> next node row in N[p], b the robot's belief (Eq. 1) or
+    the team's collective one, ``mates`` its teammates' latest known node rows (as heard; None or
+    empty: none known)."""
 
     def __init__(
         self,
@@ -240,6 +248,12 @@ class GeneralAgent:
         if not 0 <= robot < team:
             raise ValueError(f"robot index {robot} is not in a team of {team}")
         self.weights = {k: np.asarray(weights[k], dtype=np.float64) for k in PARAMS}
+        self.node_bias: np.ndarray | None = None  # (n,): this robot's row
+        if NODE_BIAS in weights:
+            bias = np.asarray(weights[NODE_BIAS], dtype=np.float64)
+            if bias.shape != (team, graph.n):
+                raise ValueError(f"{NODE_BIAS} has shape {bias.shape}, expected ({team}, {graph.n}): a team of {team}")
+            self.node_bias = bias[robot]
         self.graph = graph
         self.dist = distances or distances_of(graph)
         self.role, self.team = float(roles(team)[robot]), team
@@ -252,7 +266,10 @@ class GeneralAgent:
         feats = move_features(
             self.graph, self.dist, np.asarray(p), belief, np.asarray(self.role), np.asarray(self.team), m
         )
-        return scores(self.weights, feats.astype(np.float64))[: int(self.graph.deg_closed[p])]
+        out = scores(self.weights, feats.astype(np.float64))
+        if self.node_bias is not None:
+            out = out + self.node_bias[self.graph.nbr[p]]
+        return out[: int(self.graph.deg_closed[p])]
 
     def act(self, p: int, belief: np.ndarray, mates: np.ndarray | None = None) -> int:
         """a ~ pi_i(. | p, b) over N[p] (the most likely with ``greedy_actions``) -> node row."""

@@ -50,7 +50,7 @@ from shared.core.belief_filter import BeliefFilter
 from shared.core.choices import ALGORITHMS, TEAM_SEARCHERS, VARIANTS
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
-from shared.core.graph_policy import FEATURE_COUNTS, FEATURES, SCALES, GeneralAgent, draw, feature_count
+from shared.core.graph_policy import FEATURE_COUNTS, FEATURES, NODE_BIAS, SCALES, GeneralAgent, draw, feature_count
 from shared.core.graph_policy import PARAMS as GENERAL_PARAMS
 from shared.core.graph_policy import param_shapes as general_shapes
 from shared.core.models import ModelError, Sensor, TargetModel, from_matrix, uniform_walk
@@ -164,8 +164,9 @@ class SnapshotData(TeamInfo):
         """The snapshot as flown by a mission of ``k`` robots: its team built for k where it holds
         one (meta's robots and hidden then k's), else itself (robot i on network i, or i mod N)."""
         if self.general and k != self.robots:  # every team size flies the one network, each robot with its role
+            network = {name: w for name, w in self.weights.items() if name != NODE_BIAS}  # learned for N's roles
             return SnapshotData(meta={**self.meta, "robots": k, "flown_for": k}, model=self.model, sensor=self.sensor,
-                                weights=self.weights)  # fmt: skip
+                                weights=network)  # fmt: skip
         weights = self.teams.get(k)
         if weights is None or k == self.robots:
             return self
@@ -203,12 +204,12 @@ def write_snapshot(
     if algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algorithm!r}")
     names: tuple[str, ...]
-    general = set(weights) == set(GENERAL_PARAMS)
+    general = set(GENERAL_PARAMS) <= set(weights) <= {*GENERAL_PARAMS, NODE_BIAS}
     if general:
         if teams or robots is None:
             raise ValueError("a general policy's snapshot names its robots and holds no teams (it flies every size)")
-        hidden, names = int(weights["b1"].shape[0]), GENERAL_PARAMS
-        _check_shapes(weights, general_shapes(hidden, feature_count(weights)), str(path))
+        hidden = int(weights["b1"].shape[0])
+        names = _check_general(weights, hidden, robots, graph.n, str(path))
     else:
         robots, n, hidden = weights["w_pos"].shape
         names = PARAMS
@@ -355,8 +356,8 @@ def read_snapshot(path: str | Path, graph: Graph, legacy: Callable[[bytes], Weig
         raise SnapshotError(f"{where}/{name}: cannot be read as weights ({exc})") from None
     general = meta.get("architecture") == GENERAL
     if general:
-        names: tuple[str, ...] = GENERAL_PARAMS
-        _check_shapes(weights, general_shapes(int(meta["hidden"]), feature_count(weights)), f"{where}/{name}")
+        names: tuple[str, ...] = _check_general(weights, int(meta["hidden"]), int(meta["robots"]), graph.n,
+                                                f"{where}/{name}")  # fmt: skip
         if meta.get("teams"):
             raise SnapshotError(f"{where}/{META}: a general policy flies every team size itself and holds no teams")
     else:
@@ -437,6 +438,16 @@ def combine_teams(
         switch_to=switch_to,
     )
     return read_snapshot(out, graph), gaps
+
+
+def _check_general(weights: Any, hidden: int, robots: int, n: int, where: str) -> tuple[str, ...]:
+    """A general snapshot's tensors: the network's (``general_shapes``) and, from a fine-tune on
+    this map, ``NODE_BIAS`` of shape (robots, n). Returns their names; a SnapshotError names a bad one."""
+    expected = general_shapes(hidden, feature_count(weights))
+    if isinstance(weights, dict) and NODE_BIAS in weights:
+        expected[NODE_BIAS] = (robots, n)
+    _check_shapes(weights, expected, where)
+    return tuple(expected)
 
 
 def _check_shapes(weights: Any, expected: dict[str, tuple[int, ...]], where: str) -> None:

@@ -177,6 +177,15 @@ class TrainConfig:
         default=1.0,
         metadata=_opt("the mission clock's tick in seconds, with --speed", parse=positive_float, metavar="S"),
     )
+    node_bias: float = field(
+        default=10.0,
+        metadata=_opt(
+            "a fine-tune of the general policy also learns each robot's preference for each node of the map, "
+            "at this many times the learning rate (docs/general-policy.md); 0: the network alone",
+            parse=non_negative,
+            metavar="RATE",
+        ),
+    )
     seed: int = field(default=0, metadata=_opt("random seed", flag=False))
     device: str = field(default="cpu", metadata=_opt("torch device", flag=False))
     hidden: int | None = field(
@@ -223,6 +232,8 @@ class TrainConfig:
             raise ValueError(f"speed must be a number of m/s above 0, got {self.speed}")
         if not (self.em_pseudo_count >= 0 and self.em_b0_pseudo_count >= 0):
             raise ValueError("EM's pseudo-counts must be numbers >= 0")
+        if not (self.node_bias >= 0 and math.isfinite(self.node_bias)):
+            raise ValueError(f"node_bias must be a number >= 0 (0: the network alone), got {self.node_bias}")
         if not (self.tick > 0 and math.isfinite(self.tick)):
             raise ValueError(f"tick must be a number of seconds above 0, got {self.tick}")
 

@@ -98,11 +98,31 @@ class GeneralNet(nn.Module):
 class GraphTeam:
     """The network bound to one graph and a team of N: the team interface of shared/learning/cepg.py.
     Features are computed without gradient (they hold no parameters), in chunks; the network runs
-    on them with gradient."""
+    on them with gradient.
 
-    def __init__(self, net: GeneralNet, graph: Graph, n_robots: int, device: torch.device | str = "cpu") -> None:
+    ``node_bias`` (N, n), from a fine-tune on this map (shared/core/graph_policy.py ``NODE_BIAS``):
+    robot i's score of a move to a gains node_bias[i, a]. With ``bias_rate`` > 0 it is learned too
+    (a fine-tune; zeros when none is given): held as node_bias / bias_rate, so that Adam's steps of
+    about the learning rate move it ``bias_rate`` times as fast as the network's weights."""
+
+    def __init__(
+        self,
+        net: GeneralNet,
+        graph: Graph,
+        n_robots: int,
+        device: torch.device | str = "cpu",
+        node_bias: np.ndarray | None = None,
+        bias_rate: float = 0.0,
+    ) -> None:
         graph.require_dense("the general policy's batched features")
         self.net, self.graph, self.N, self.n = net, graph, n_robots, graph.n
+        self.bias_rate = float(bias_rate)
+        self.bias: torch.Tensor | None = None  # (N, n), node_bias / bias_rate when learned
+        if node_bias is not None or self.bias_rate > 0:
+            start = torch.zeros(n_robots, graph.n) if node_bias is None else torch.as_tensor(node_bias).float()
+            if start.shape != (n_robots, graph.n):
+                raise ValueError(f"node_bias has shape {tuple(start.shape)}, expected ({n_robots}, {graph.n})")
+            self.bias = nn.Parameter(start / self.bias_rate) if self.bias_rate > 0 else start.clone()
         self.device = torch.device(device)
         self.dist = distances_of(graph)
         self.nbr = torch.as_tensor(graph.nbr, device=self.device)  # (n, d)
@@ -116,7 +136,15 @@ class GraphTeam:
         return int(self.net.b1.shape[0])
 
     def parameters(self) -> Iterator[nn.Parameter]:
-        return self.net.parameters()
+        yield from self.net.parameters()
+        if isinstance(self.bias, nn.Parameter):
+            yield self.bias
+
+    def node_bias(self) -> torch.Tensor | None:
+        """node_bias (N, n) as the scores add it, or None."""
+        if self.bias is None:
+            return None
+        return self.bias * self.bias_rate if isinstance(self.bias, nn.Parameter) else self.bias
 
     def to(self, device: torch.device | str) -> GraphTeam:
         """The network on ``device`` (its features are computed in numpy and moved there)."""
@@ -124,7 +152,21 @@ class GraphTeam:
         self.net.to(self.device)
         for name in ("nbr", "valid", "role"):
             setattr(self, name, getattr(self, name).to(self.device))
+        if self.bias is not None:
+            with torch.no_grad():
+                moved = self.bias.data.to(self.device)
+            self.bias = nn.Parameter(moved) if isinstance(self.bias, nn.Parameter) else moved
         return self
+
+    def _scores(self, feats: torch.Tensor, nets: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+        """The network's slot scores (..., k, d) of robot slots with networks (roles) ``nets`` (k,)
+        at nodes pos (..., k), each with its node_bias row where the team has one."""
+        out = self.net(feats)
+        bias = self.node_bias()
+        if bias is None:
+            return out
+        cand = self.nbr[pos]  # (..., k, d)
+        return out + bias[nets.view(*([1] * (cand.dim() - 2)), -1, 1).expand_as(cand), cand]
 
     def features(
         self,
@@ -165,7 +207,12 @@ class GraphTeam:
         action space, shared/learning/cepg.py): pos (S, N), belief (S, N, n) -> (S, N, d), NEG_INF
         on padding. O(d) a decision where node logits are O(n): what keeps a fine-tune's memory
         linear in n."""
-        return self.net(self.features(pos, belief)).masked_fill(~self.valid[pos], NEG_INF)
+        return self._scores(self.features(pos, belief), self._own, pos).masked_fill(~self.valid[pos], NEG_INF)
+
+    @property
+    def _own(self) -> torch.Tensor:
+        """Robot slot i flies network (role) i: (N,)."""
+        return torch.arange(self.N, device=self.device)
 
     def slot_allowed(self, pos: torch.Tensor) -> torch.Tensor:
         """pos (...) -> (..., d) bool: the slots of N[p] that hold a move."""
@@ -177,11 +224,11 @@ class GraphTeam:
 
     def logits(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         """Each robot's policy on its own state over the n nodes: pos (S, N), belief (S, N, n) -> (S, N, n)."""
-        return self.scatter_logits(pos, self.net(self.features(pos, belief)))
+        return self.scatter_logits(pos, self._scores(self.features(pos, belief), self._own, pos))
 
     def logits_for(self, nets: torch.Tensor, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         """Robot slot k flies with role ``nets[k]``: pos (B, k), belief (B, k, n) -> (B, k, n)."""
-        return self.scatter_logits(pos, self.net(self.features(pos, belief, self.role[nets])))
+        return self.scatter_logits(pos, self._scores(self.features(pos, belief, self.role[nets]), nets, pos))
 
     @torch.no_grad()
     def cross_probs(self, pos: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
@@ -190,7 +237,7 @@ class GraphTeam:
         feats = self.features(pos, belief).unsqueeze(2).repeat(1, 1, N, 1, 1)  # (K, N_i, N_j, d, F)
         feats[..., FEATURES.index("role")] = self.role.view(1, 1, N, 1).to(feats)
         pos_ij = pos.unsqueeze(2).expand(K, N, N)
-        return torch.softmax(self.net(feats).masked_fill(~self.valid[pos_ij], NEG_INF), dim=-1)
+        return torch.softmax(self._scores(feats, self._own, pos_ij).masked_fill(~self.valid[pos_ij], NEG_INF), dim=-1)
 
 
 class GeneralSearcher:

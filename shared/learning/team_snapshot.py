@@ -21,6 +21,7 @@ import torch
 
 from shared.core.files import atomic_write
 from shared.core.graph import Graph
+from shared.core.graph_policy import NODE_BIAS
 from shared.core.models import Sensor, TargetModel
 from shared.core.snapshot_format import (
     GENERAL,
@@ -63,7 +64,9 @@ def policy_weights(policy: Any) -> Weights:
     from shared.learning.general import GraphTeam
 
     if isinstance(policy, GraphTeam):
-        return policy.net.numpy_weights()
+        bias = policy.node_bias()
+        extra = {} if bias is None else {NODE_BIAS: bias.detach().cpu().to(torch.float32).numpy()}
+        return {**policy.net.numpy_weights(), **extra}
     return {k: v.detach().cpu().to(torch.float32).numpy() for k, v in policy.named_parameters()}
 
 
@@ -131,8 +134,10 @@ def load_snapshot(path: str | Path, graph: Graph, device: torch.device | str = "
     if data.general:
         from shared.learning.general import GeneralNet, GraphTeam
 
-        team = GraphTeam(GeneralNet.from_weights(data.weights), graph, data.robots).to(device)
-        return Snapshot(meta=data.meta, policy=team, model=data.model, sensor=data.sensor)
+        team = GraphTeam(
+            GeneralNet.from_weights(data.weights), graph, data.robots, node_bias=data.weights.get(NODE_BIAS)
+        )
+        return Snapshot(meta=data.meta, policy=team.to(device), model=data.model, sensor=data.sensor)
     policy = TeamPolicy(graph.n, data.robots, torch.as_tensor(graph.adjacency()), hidden=int(data.meta["hidden"]))
     with torch.no_grad():
         for k, p in policy.named_parameters():

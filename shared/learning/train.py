@@ -220,7 +220,9 @@ def clock_of(graph: Graph, cfg: TrainConfig) -> TravelTimes | None:
 def _initial_policy(graph: Graph, cfg: TrainConfig, init_policy: Snapshot | None, device: torch.device) -> Any:
     """The team's networks, seeded (identical initial weights on every process) or warm-started
     from ``init_policy``'s weights (a TeamPolicy; for the general policy, its network bound to this
-    map and cfg.robots robots, any number: shared/learning/general.py ``GraphTeam``)."""
+    map and cfg.robots robots, any number: shared/learning/general.py ``GraphTeam``, which learns
+    each robot's node_bias at ``cfg.node_bias`` times the learning rate, from the snapshot's own
+    when it has one for this team)."""
     torch.manual_seed(cfg.seed)
     if init_policy is not None and init_policy.general:  # fine-tune the general policy on this map
         import copy
@@ -229,7 +231,15 @@ def _initial_policy(graph: Graph, cfg: TrainConfig, init_policy: Snapshot | None
 
         if len(set(cfg.per_robot(cfg.lr, "lr"))) > 1:
             raise ValueError("the general policy is one network for every robot: give one learning rate")
-        return GraphTeam(copy.deepcopy(init_policy.policy.net), graph, cfg.robots).to(device)
+        start = init_policy.policy.node_bias()  # a fine-tune's, going on from it with the same team
+        same_team = start is not None and init_policy.robots == cfg.robots
+        return GraphTeam(
+            copy.deepcopy(init_policy.policy.net),
+            graph,
+            cfg.robots,
+            node_bias=start.detach().cpu().numpy() if same_team else None,
+            bias_rate=cfg.node_bias,
+        ).to(device)
     policy = TeamPolicy(graph.n, cfg.robots, torch.as_tensor(graph.adjacency()), hidden=cfg.hidden).to(device)
     if init_policy is not None:
         if init_policy.robots != cfg.robots or init_policy.policy.H != policy.H:

@@ -162,6 +162,8 @@ def _checked_config(args: argparse.Namespace, device: Any, graph_n: int) -> tupl
         tuned = train_config.fine_tune_defaults(graph_n)
         cfg = replace(cfg, **{k: v for k, v in tuned.items() if getattr(args, k) is None})
     marl = cfg.algorithm != "cepg"
+    if not _general_init(args) and cfg.node_bias != train_config.default("node_bias"):
+        raise CliError("--node-bias is for a fine-tune of the general policy (--init general)")
     try:
         cfg.check()
         cfg.per_robot(cfg.beta, "--beta")
