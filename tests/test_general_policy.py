@@ -381,6 +381,8 @@ def test_a_fine_tunes_node_bias_is_flown_by_the_robots_as_trained(tmp_path):
     bias = rng.normal(0.0, 2.0, size=(3, graph.n)).astype(np.float32)
     team = GraphTeam(net, graph, 3, node_bias=bias, bias_rate=10.0)
     assert any(p is team.bias for p in team.parameters())  # learned
+    learned = team.bias
+    assert team.to("cpu").bias is learned  # the optimiser's tensor still (an EM update's searcher moves the team)
     pos = torch.as_tensor(rng.integers(0, graph.n, size=(4, 3)))
     belief = torch.as_tensor(rng.dirichlet(np.ones(graph.n) * 0.2, size=(4, 3)), dtype=torch.float32)
     with torch.no_grad():

@@ -152,10 +152,8 @@ class GraphTeam:
         self.net.to(self.device)
         for name in ("nbr", "valid", "role"):
             setattr(self, name, getattr(self, name).to(self.device))
-        if self.bias is not None:
-            with torch.no_grad():
-                moved = self.bias.data.to(self.device)
-            self.bias = nn.Parameter(moved) if isinstance(self.bias, nn.Parameter) else moved
+        if self.bias is not None:  # the same tensor (an optimiser holding it keeps it), its data moved
+            self.bias.data = self.bias.data.to(self.device)
         return self
 
     def _scores(self, feats: torch.Tensor, nets: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
