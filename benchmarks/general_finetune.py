@@ -2,10 +2,11 @@
 of results/fig7 (trained from scratch, 4x10^5 episodes) on the same protocol (1500 episodes, seed 1).
 
     python benchmarks/general_finetune.py [--maps office,museum] [--robots 4] [--minutes 10]
-                                          [--beliefs em,true] [--json results/general_policy/finetune.json]
+                                          [--beliefs em,true] [--json results/general_policy/finetune-node-bias.json]
 
 For each map, N and belief: `mures train --env MAP --robots N --init general --episodes E --seed 0
-[--belief true]` with a fine-tune's defaults (shared/learning/config.py ``fine_tune_defaults``; E is
+[--belief true]` with a fine-tune's defaults (shared/learning/config.py ``fine_tune_defaults``, and
+node_bias learned at the trainer's default rate; E is
 what ``--minutes`` buys at the rate a short probe run measures on this machine). ``em``: EM in the
 loop, the robots' beliefs starting on the uniform walk, as the fig7 teams learned theirs (from I);
 ``true``: the target's model known, which is what a training server's retraining does once its EM
@@ -48,7 +49,7 @@ def main() -> None:
     ap.add_argument("--robots", default="4")
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--beliefs", default="em,true")
-    ap.add_argument("--json", default=str(ROOT / "results" / "general_policy" / "finetune.json"))
+    ap.add_argument("--json", default=str(ROOT / "results" / "general_policy" / "finetune-node-bias.json"))
     args = ap.parse_args()
     fig7 = {}
     with open(ROOT / "results" / "fig7" / "fig7.csv", encoding="utf-8") as f:
